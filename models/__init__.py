@@ -1,0 +1,7 @@
+"""Data package ``proprio_models``: the MJCF elbow (``elbow.xml``) and generated length fits.
+
+No code lives here. In a wheel this folder is installed as the package ``proprio_models`` so
+``importlib.resources`` finds the files; in a source checkout it is the top-level ``models/``.
+Use ``proprio_env.model.model_path()`` and ``spindle.length_fits.default_fits_path()`` rather
+than building paths by hand.
+"""
