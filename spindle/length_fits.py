@@ -1,0 +1,297 @@
+"""Reduced muscle-length model: elbow angle -> normalised fibre length by fitted polynomials.
+
+The seed paper reduced OpenSim's fibre lengths to fitted equations so a microcontroller can
+evaluate them. Here the fits are made from the MJCF elbow by ``python scripts/fit_lengths.py``
+and stored in ``models/length_fits.json``: per muscle, Chebyshev coefficients over the valid
+angle range, the maximum error against the exact MuJoCo length model, and the sha256 of the
+``elbow.xml`` they were fitted to. This module only needs numpy (no MuJoCo): it is what runs
+on the prosthesis.
+
+Units: angles in rad, lengths in optimal fibre lengths (L0), velocities in L0/s.
+
+Angles are checked: NaN/inf is always an error; an angle outside the valid range is an error
+unless ``clip=True``, which clamps it to the range (the documented rule for, e.g., encoder
+noise a fraction of a degree past the end stops).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+from numpy.polynomial import chebyshev
+
+__all__ = [
+    "FITS_FILENAME",
+    "FORMAT",
+    "MODEL_FILENAME",
+    "REGENERATE_COMMAND",
+    "LengthFit",
+    "LengthFits",
+    "LengthFitsError",
+    "default_fits_path",
+    "default_model_path",
+    "file_sha256",
+    "load_length_fits",
+    "models_dir",
+]
+
+FITS_FILENAME = "length_fits.json"
+MODEL_FILENAME = "elbow.xml"
+FORMAT = "proprio-elbow/length-fits/1"
+REGENERATE_COMMAND = "python scripts/fit_lengths.py"
+_MODELS_PACKAGE = "proprio_models"
+
+
+class LengthFitsError(RuntimeError):
+    """``length_fits.json`` is missing, malformed, or stale (fitted to another ``elbow.xml``)."""
+
+
+def models_dir() -> Path:
+    """Folder holding ``elbow.xml`` and ``length_fits.json``.
+
+    A source checkout (plain or editable install) uses the repository's ``models/`` next to
+    this package; a wheel install uses the installed data package ``proprio_models``.
+    """
+    checkout = Path(__file__).resolve().parent.parent / "models"
+    if (checkout / MODEL_FILENAME).is_file():
+        return checkout
+    try:
+        installed = resources.files(_MODELS_PACKAGE)
+    except ModuleNotFoundError as err:
+        raise FileNotFoundError(
+            f"cannot find the models folder: neither {checkout} nor an installed "
+            f"'{_MODELS_PACKAGE}' package exists; reinstall proprio-elbow"
+        ) from err
+    # Wheels install plain files, so the traversable is a real directory.
+    return Path(str(installed))
+
+
+def default_fits_path() -> Path:
+    """Path of the packaged ``length_fits.json`` (it may not exist yet)."""
+    return models_dir() / FITS_FILENAME
+
+
+def default_model_path() -> Path:
+    """Path of the packaged ``elbow.xml``."""
+    return models_dir() / MODEL_FILENAME
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes (the staleness check of the fits)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _check_angle_rad(
+    angle_rad: np.ndarray | float, valid_range_rad: tuple[float, float], clip: bool
+) -> np.ndarray:
+    angle = np.asarray(angle_rad, dtype=float)
+    if not np.all(np.isfinite(angle)):
+        raise ValueError("elbow angle must be finite (got NaN or inf)")
+    lo, hi = valid_range_rad
+    if clip:
+        return np.clip(angle, lo, hi)
+    if np.any(angle < lo) or np.any(angle > hi):
+        bad = angle[(angle < lo) | (angle > hi)].ravel()[0]
+        raise ValueError(
+            f"elbow angle {bad:.6g} rad ({math.degrees(bad):.4g} deg) is outside the fitted "
+            f"range [{lo:.6g}, {hi:.6g}] rad; pass clip=True to clamp it to the range"
+        )
+    return angle
+
+
+@dataclass(frozen=True)
+class LengthFit:
+    """Normalised fibre length of one muscle as a Chebyshev series in the elbow angle.
+
+    Parameters
+    ----------
+    muscle : str
+        OpenSim muscle name (``"BRA"``, ``"TRImed"``).
+    coefficients : tuple of float
+        Chebyshev coefficients (L0) in x = (2 angle - (lo + hi)) / (hi - lo), lowest first.
+    valid_range_rad : (float, float)
+        Angle range (rad) the fit was made on and may be evaluated in.
+    max_error_L0 : float
+        Largest deviation from the exact MuJoCo length model over the range, L0.
+    """
+
+    muscle: str
+    coefficients: tuple[float, ...]
+    valid_range_rad: tuple[float, float]
+    max_error_L0: float
+
+    @property
+    def degree(self) -> int:
+        """Polynomial degree."""
+        return len(self.coefficients) - 1
+
+    def _x(self, angle: np.ndarray) -> np.ndarray:
+        lo, hi = self.valid_range_rad
+        return (2.0 * angle - (lo + hi)) / (hi - lo)
+
+    def length_L0(self, angle_rad: np.ndarray | float, *, clip: bool = False) -> np.ndarray:
+        """Normalised fibre length (L0) at elbow angle(s) ``angle_rad`` (rad), same shape."""
+        angle = _check_angle_rad(angle_rad, self.valid_range_rad, clip)
+        return chebyshev.chebval(self._x(angle), self.coefficients)
+
+    def derivative_L0_rad(
+        self, angle_rad: np.ndarray | float, order: int = 1, *, clip: bool = False
+    ) -> np.ndarray:
+        """d^order L / d angle^order in L0/rad^order at ``angle_rad`` (rad), same shape."""
+        angle = _check_angle_rad(angle_rad, self.valid_range_rad, clip)
+        lo, hi = self.valid_range_rad
+        # chebder works in x; dx/dangle = 2 / (hi - lo).
+        coef = chebyshev.chebder(self.coefficients, m=order, scl=2.0 / (hi - lo))
+        return chebyshev.chebval(self._x(angle), coef)
+
+
+@dataclass(frozen=True)
+class LengthFits:
+    """The fits of all muscles, in a fixed muscle order (the last axis of every result).
+
+    Parameters
+    ----------
+    fits : tuple of LengthFit
+        One fit per muscle, in output order.
+    valid_range_rad : (float, float)
+        Elbow angle range (rad) shared by all fits.
+    model_sha256 : str
+        sha256 of the ``elbow.xml`` the fits were made from.
+    """
+
+    fits: tuple[LengthFit, ...]
+    valid_range_rad: tuple[float, float]
+    model_sha256: str
+
+    @property
+    def muscles(self) -> tuple[str, ...]:
+        """Muscle names in output order."""
+        return tuple(f.muscle for f in self.fits)
+
+    def __getitem__(self, muscle: str) -> LengthFit:
+        for fit in self.fits:
+            if fit.muscle == muscle:
+                return fit
+        raise KeyError(f"no fit for muscle {muscle!r}; have {self.muscles}")
+
+    def length_L0(self, angle_rad: np.ndarray | float, *, clip: bool = False) -> np.ndarray:
+        """Normalised fibre lengths (L0), shape ``angle_rad.shape + (n_muscles,)``."""
+        angle = _check_angle_rad(angle_rad, self.valid_range_rad, clip)
+        return np.stack([f.length_L0(angle) for f in self.fits], axis=-1)
+
+    def velocity_L0_s(
+        self,
+        angle_rad: np.ndarray | float,
+        angular_velocity_rad_s: np.ndarray | float,
+        *,
+        clip: bool = False,
+    ) -> np.ndarray:
+        """Fibre velocities (L0/s) = dL/dangle * angular velocity, shape ``(..., n_muscles)``.
+
+        With ``clip=True`` an angle past the range is clamped and its slope taken at the end.
+        """
+        angle = _check_angle_rad(angle_rad, self.valid_range_rad, clip)
+        omega = np.asarray(angular_velocity_rad_s, dtype=float)
+        if not np.all(np.isfinite(omega)):
+            raise ValueError("angular velocity must be finite (got NaN or inf)")
+        slope = np.stack([f.derivative_L0_rad(angle) for f in self.fits], axis=-1)
+        return slope * omega[..., None]
+
+
+def _malformed(path: Path, why: str) -> LengthFitsError:
+    return LengthFitsError(
+        f"{path} is malformed ({why}); regenerate it with `{REGENERATE_COMMAND}`"
+    )
+
+
+def _parse(doc: object, path: Path) -> tuple[LengthFits, str]:
+    if not isinstance(doc, Mapping):
+        raise _malformed(path, "top level is not a JSON object")
+    if doc.get("format") != FORMAT:
+        raise _malformed(path, f"format is {doc.get('format')!r}, expected {FORMAT!r}")
+    try:
+        lo, hi = (float(v) for v in doc["valid_range_rad"])
+        sha = str(doc["model_sha256"])
+        model_file = str(doc.get("model", MODEL_FILENAME))
+        muscles = doc["muscles"]
+        fits = tuple(
+            LengthFit(
+                muscle=str(name),
+                coefficients=tuple(float(c) for c in entry["coefficients"]),
+                valid_range_rad=(lo, hi),
+                max_error_L0=float(entry["max_error_L0"]),
+            )
+            for name, entry in muscles.items()
+        )
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise _malformed(path, f"{type(err).__name__}: {err}") from err
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise _malformed(path, f"valid_range_rad [{lo}, {hi}] is not an increasing finite range")
+    if not fits:
+        raise _malformed(path, "no muscles")
+    for fit in fits:
+        if not fit.coefficients or not all(math.isfinite(c) for c in fit.coefficients):
+            raise _malformed(path, f"coefficients of {fit.muscle} are empty or not finite")
+    if len(sha) != 64:
+        raise _malformed(path, "model_sha256 is not a sha256 hex digest")
+    return LengthFits(fits=fits, valid_range_rad=(lo, hi), model_sha256=sha), model_file
+
+
+def load_length_fits(
+    path: str | Path | None = None,
+    *,
+    model_xml: str | Path | None = None,
+    verify: bool = True,
+) -> LengthFits:
+    """Load and check ``length_fits.json``.
+
+    Parameters
+    ----------
+    path : path, optional
+        The json; default :func:`default_fits_path`.
+    model_xml : path, optional
+        The ``elbow.xml`` whose sha256 must match the one recorded in the json; default: the
+        model file named in the json, next to it.
+    verify : bool
+        Check the hash (set False only on a device that carries the fits without the model).
+
+    Raises
+    ------
+    LengthFitsError
+        If the file is missing, malformed or stale; the message names the regenerating
+        command.
+    """
+    path = Path(path) if path is not None else default_fits_path()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as err:
+        raise LengthFitsError(
+            f"{path} does not exist; generate it with `{REGENERATE_COMMAND}`"
+        ) from err
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise _malformed(path, f"not valid JSON: {err}") from err
+    fits, model_file = _parse(doc, path)
+    if verify:
+        xml = Path(model_xml) if model_xml is not None else path.parent / model_file
+        if not xml.is_file():
+            raise LengthFitsError(
+                f"cannot check {path} for staleness: model {xml} not found "
+                "(pass model_xml=..., or verify=False on a device without the model)"
+            )
+        actual = file_sha256(xml)
+        if actual != fits.model_sha256:
+            raise LengthFitsError(
+                f"{path} is stale: it was fitted to an elbow.xml with sha256 "
+                f"{fits.model_sha256[:12]}..., but {xml} has {actual[:12]}...; "
+                f"regenerate it with `{REGENERATE_COMMAND}`"
+            )
+    return fits
