@@ -1,0 +1,146 @@
+"""Make the reduced length model: fit angle -> normalised fibre length per muscle.
+
+The exact model (:mod:`proprio_env.muscle_length`) is swept densely over the elbow range and
+each muscle's curve is fitted by a Chebyshev series (``numpy.polynomial``). The degree is the
+smallest whose error on held-out angles (every other sample, the fit made on the rest) is
+within the tolerance; the final fit uses all samples. ``spindle.length_fits`` evaluates the
+result without MuJoCo. The user-facing command is ``python scripts/fit_lengths.py``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.polynomial import Chebyshev
+
+from proprio_env.model import JOINT, model_path
+from proprio_env.muscle_length import Sweep, elbow_range_rad, sweep
+from spindle.length_fits import (
+    FITS_FILENAME,
+    FORMAT,
+    REGENERATE_COMMAND,
+    file_sha256,
+)
+
+if TYPE_CHECKING:
+    import mujoco
+
+__all__ = [
+    "DegreeChoice",
+    "choose_degree",
+    "default_output",
+    "fit_document",
+    "sweep_for_fit",
+    "write_fits",
+]
+
+DEFAULT_STEP_DEG = 0.05
+DEFAULT_TOLERANCE_L0 = 5e-4  # half the 0.001 L0 target: margin for the final, all-sample fit
+DEFAULT_MAX_DEGREE = 20
+
+
+@dataclass(frozen=True)
+class DegreeChoice:
+    """Outcome of the degree search for one muscle.
+
+    Parameters
+    ----------
+    degree : int
+        Chosen degree.
+    heldout_max_error_L0 : np.ndarray
+        Held-out max error (L0) for degrees 1..max_degree (index = degree - 1).
+    """
+
+    degree: int
+    heldout_max_error_L0: np.ndarray
+
+
+def choose_degree(
+    angle_rad: np.ndarray,
+    length_L0: np.ndarray,
+    domain_rad: tuple[float, float],
+    tolerance_L0: float = DEFAULT_TOLERANCE_L0,
+    max_degree: int = DEFAULT_MAX_DEGREE,
+) -> DegreeChoice:
+    """Smallest degree whose held-out max error is within ``tolerance_L0``.
+
+    Odd-indexed samples are held out (they sit between the fitted ones, where a polynomial
+    that only interpolates its training points would show). If no degree qualifies, the one
+    with the smallest held-out error is returned; the caller checks the final error.
+    """
+    train, test = slice(0, None, 2), slice(1, None, 2)
+    errors = np.empty(max_degree)
+    for deg in range(1, max_degree + 1):
+        fit = Chebyshev.fit(angle_rad[train], length_L0[train], deg, domain=list(domain_rad))
+        errors[deg - 1] = np.max(np.abs(fit(angle_rad[test]) - length_L0[test]))
+    within = np.flatnonzero(errors <= tolerance_L0)
+    degree = int(within[0] + 1) if within.size else int(np.argmin(errors) + 1)
+    return DegreeChoice(degree=degree, heldout_max_error_L0=errors)
+
+
+def sweep_for_fit(model: mujoco.MjModel, step_deg: float = DEFAULT_STEP_DEG) -> Sweep:
+    """Exact model on a uniform grid over the whole joint range, both ends included."""
+    lo, hi = elbow_range_rad(model)
+    n = int(np.ceil(np.degrees(hi - lo) / step_deg)) + 1
+    return sweep(model, np.linspace(lo, hi, n))
+
+
+def fit_document(
+    model: mujoco.MjModel,
+    model_file: Path,
+    step_deg: float = DEFAULT_STEP_DEG,
+    tolerance_L0: float = DEFAULT_TOLERANCE_L0,
+    max_degree: int = DEFAULT_MAX_DEGREE,
+) -> tuple[dict, Sweep]:
+    """The ``length_fits.json`` content for ``model`` (compiled from ``model_file``) and the
+    exact sweep it was fitted to."""
+    import mujoco
+
+    exact = sweep_for_fit(model, step_deg)
+    lo, hi = elbow_range_rad(model)
+    muscles = {}
+    for j, name in enumerate(exact.muscles):
+        y = exact.fibre_length_L0[:, j]
+        choice = choose_degree(exact.angle_rad, y, (lo, hi), tolerance_L0, max_degree)
+        fit = Chebyshev.fit(exact.angle_rad, y, choice.degree, domain=[lo, hi])
+        muscles[name] = {
+            "degree": choice.degree,
+            "coefficients": [float(c) for c in fit.coef],
+            "max_error_L0": float(np.max(np.abs(fit(exact.angle_rad) - y))),
+            "heldout_max_error_L0": float(choice.heldout_max_error_L0[choice.degree - 1]),
+        }
+    doc = {
+        "format": FORMAT,
+        "generated_by": REGENERATE_COMMAND,
+        "description": (
+            "Normalised fibre length (L0) of each muscle vs elbow angle (rad): rigid tendon, "
+            "constant-width pennation, from MuJoCo tendon lengths. Chebyshev series: "
+            "L = sum_k c_k T_k(x), x = (2*angle - (lo + hi)) / (hi - lo), [lo, hi] = "
+            "valid_range_rad. max_error_L0 is against the exact model on the fit grid."
+        ),
+        "model": model_file.name,
+        "model_sha256": file_sha256(model_file),
+        "mujoco_version": mujoco.__version__,
+        "joint": JOINT,
+        "valid_range_rad": [lo, hi],
+        "valid_range_deg": [float(np.degrees(lo)), float(np.degrees(hi))],
+        "grid_step_deg": step_deg,
+        "tolerance_L0": tolerance_L0,
+        "muscles": muscles,
+    }
+    return doc, exact
+
+
+def write_fits(doc: dict, path: Path) -> None:
+    """Write the document as stable, diff-friendly JSON (LF line ends, trailing newline)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8", newline="\n")
+
+
+def default_output(model_file: Path | None = None) -> Path:
+    """Where the fits go: next to the model they were made from."""
+    return (model_file or model_path()).parent / FITS_FILENAME

@@ -1,0 +1,221 @@
+"""The reduced length model (models/length_fits.json, evaluated by spindle.length_fits).
+
+Accuracy is checked against the exact MuJoCo length model on a grid other than the one the
+fits were made on, and against the OpenSim oracle; bad angles and a missing, malformed or
+stale json must fail loudly and name the regenerating command.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spindle.length_fits import (
+    REGENERATE_COMMAND,
+    LengthFitsError,
+    default_fits_path,
+    default_model_path,
+    file_sha256,
+    load_length_fits,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+ORACLE = Path(__file__).parent / "data" / "arm26_elbow_oracle.csv"
+MUSCLES = ("BRA", "TRImed")
+
+
+def read_oracle() -> dict[str, np.ndarray]:
+    lines = [ln for ln in ORACLE.read_text().splitlines() if ln and not ln.startswith("#")]
+    table = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]])
+    return {name: table[:, i] for i, name in enumerate(lines[0].split(","))}
+
+
+@pytest.fixture(scope="module")
+def fits():
+    return load_length_fits()
+
+
+def test_committed_fits_match_committed_model(fits):
+    assert default_fits_path().parent == default_model_path().parent
+    assert fits.model_sha256 == file_sha256(default_model_path())
+    assert fits.muscles == MUSCLES
+
+
+def test_valid_range_covers_0_to_130_deg(fits):
+    lo, hi = fits.valid_range_rad
+    assert lo <= 0.0 and hi >= np.radians(130.0)
+    assert np.all(np.isfinite(fits.length_L0(np.radians([0.0, 65.0, 130.0]))))
+
+
+def test_fit_within_0_001_L0_of_exact_model(fits):
+    from proprio_env.model import load_model
+    from proprio_env.muscle_length import sweep
+
+    # 0.0137 deg steps, offset from the 0.05 deg fitting grid.
+    lo, hi = fits.valid_range_rad
+    angle = np.linspace(lo, hi, 9491)
+    exact = sweep(load_model(), angle)
+    assert exact.muscles == fits.muscles
+    error = fits.length_L0(angle) - exact.fibre_length_L0
+    assert np.max(np.abs(error)) <= 1e-3
+    for j, name in enumerate(fits.muscles):
+        # the recorded max error is honest (to within the grid's resolution)
+        assert np.max(np.abs(error[:, j])) <= fits[name].max_error_L0 * 1.05
+
+
+def test_fit_matches_opensim_passive_equilibrium():
+    fits = load_length_fits()
+    oracle = read_oracle()
+    fitted = fits.length_L0(oracle["elbow_flex_rad"])
+    for j, name in enumerate(MUSCLES):
+        assert np.max(np.abs(fitted[:, j] - oracle[f"{name}_norm_fiber_length"])) <= 0.005
+
+
+def test_fit_slope_matches_opensim(fits):
+    oracle = read_oracle()
+    angle = oracle["elbow_flex_rad"]
+    velocity = fits.velocity_L0_s(angle[1:-1], np.ones(angle.size - 2))
+    for j, name in enumerate(MUSCLES):
+        slope = np.gradient(oracle[f"{name}_rigid_norm_fiber_length"], angle)[1:-1]
+        assert np.max(np.abs(velocity[:, j] - slope)) <= 0.015  # L0/s at 1 rad/s
+
+
+def test_shapes_are_vectorised_over_leading_axes(fits):
+    assert fits.length_L0(0.3).shape == (2,)
+    assert fits.length_L0(np.full(7, 0.3)).shape == (7, 2)
+    assert fits.length_L0(np.full((4, 3), 0.3)).shape == (4, 3, 2)
+    assert fits.velocity_L0_s(np.full(5, 0.3), np.full(5, 2.0)).shape == (5, 2)
+    np.testing.assert_allclose(
+        fits.velocity_L0_s(0.3, 2.0), 2.0 * np.array([f.derivative_L0_rad(0.3) for f in fits.fits])
+    )
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -1e-3, np.radians(130.0) + 1e-3])
+def test_bad_angle_raises(fits, bad):
+    with pytest.raises(ValueError, match="elbow angle"):
+        fits.length_L0(np.array([0.5, bad]))
+    with pytest.raises(ValueError, match="elbow angle"):
+        fits["BRA"].length_L0(bad)
+
+
+def test_clip_clamps_to_range_but_not_nan(fits):
+    lo, hi = fits.valid_range_rad
+    np.testing.assert_array_equal(
+        fits.length_L0(np.array([lo - 0.1, hi + 0.1]), clip=True),
+        fits.length_L0(np.array([lo, hi])),
+    )
+    with pytest.raises(ValueError, match="finite"):
+        fits.length_L0(np.nan, clip=True)
+    with pytest.raises(ValueError, match="finite"):
+        fits.velocity_L0_s(0.5, np.nan)
+
+
+def _copy_fits(tmp_path: Path) -> tuple[Path, Path]:
+    xml = tmp_path / "elbow.xml"
+    js = tmp_path / "length_fits.json"
+    shutil.copy(default_model_path(), xml)
+    shutil.copy(default_fits_path(), js)
+    return xml, js
+
+
+def test_missing_json_names_the_command(tmp_path):
+    with pytest.raises(LengthFitsError, match="does not exist") as err:
+        load_length_fits(tmp_path / "length_fits.json")
+    assert REGENERATE_COMMAND in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "corrupt",
+    [
+        lambda doc: "{ not json",
+        lambda doc: json.dumps([1, 2]),
+        lambda doc: json.dumps({**doc, "format": "something else"}),
+        lambda doc: json.dumps({k: v for k, v in doc.items() if k != "muscles"}),
+        lambda doc: json.dumps({**doc, "valid_range_rad": [1.0, 0.0]}),
+        lambda doc: json.dumps({**doc, "muscles": {}}),
+        lambda doc: json.dumps(
+            {**doc, "muscles": {"BRA": {**doc["muscles"]["BRA"], "coefficients": ["x"]}}}
+        ),
+        lambda doc: json.dumps(
+            {**doc, "muscles": {"BRA": {**doc["muscles"]["BRA"], "coefficients": []}}}
+        ),
+        lambda doc: json.dumps({**doc, "model_sha256": "abc"}),
+    ],
+)
+def test_malformed_json_names_the_command(tmp_path, corrupt):
+    _, js = _copy_fits(tmp_path)
+    js.write_text(corrupt(json.loads(js.read_text())))
+    with pytest.raises(LengthFitsError, match="malformed") as err:
+        load_length_fits(js)
+    assert REGENERATE_COMMAND in str(err.value)
+
+
+def test_non_finite_coefficient_is_malformed(tmp_path):
+    _, js = _copy_fits(tmp_path)
+    js.write_text(
+        js.read_text().replace('"coefficients": [\n        ', '"coefficients": [NaN, ', 1)
+    )
+    with pytest.raises(LengthFitsError, match="malformed"):
+        load_length_fits(js)
+
+
+def test_stale_json_names_the_command(tmp_path):
+    xml, js = _copy_fits(tmp_path)
+    load_length_fits(js)  # the untouched copy is fine
+    xml.write_bytes(xml.read_bytes().replace(b'range="0 2.26892803"', b'range="0 2.2"', 1))
+    with pytest.raises(LengthFitsError, match="stale") as err:
+        load_length_fits(js)
+    assert REGENERATE_COMMAND in str(err.value)
+    load_length_fits(js, verify=False)  # a device without the model may skip the check
+
+
+def test_unverifiable_json_is_refused(tmp_path):
+    js = tmp_path / "length_fits.json"
+    shutil.copy(default_fits_path(), js)
+    with pytest.raises(LengthFitsError, match="staleness"):
+        load_length_fits(js)
+    load_length_fits(js, model_xml=default_model_path())
+
+
+def _run(code: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True
+    )
+
+
+def test_spindle_evaluates_fits_without_mujoco():
+    done = _run(
+        "import sys; from spindle.length_fits import load_length_fits;"
+        "print(load_length_fits().length_L0(0.5));"
+        "assert 'mujoco' not in sys.modules and 'proprio_env' not in sys.modules"
+    )
+    assert done.returncode == 0, done.stderr
+
+
+def test_fit_script_regenerates_the_committed_fits(tmp_path):
+    out = tmp_path / "length_fits.json"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    done = subprocess.run(
+        [sys.executable, "scripts/fit_lengths.py", "--fits", str(out), "--no-figure"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    new = json.loads(out.read_text())
+    old = json.loads(default_fits_path().read_text())
+    assert new["model_sha256"] == old["model_sha256"]
+    for name in MUSCLES:
+        assert new["muscles"][name]["degree"] == old["muscles"][name]["degree"]
+        np.testing.assert_allclose(
+            new["muscles"][name]["coefficients"], old["muscles"][name]["coefficients"], atol=1e-9
+        )
