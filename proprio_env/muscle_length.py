@@ -36,6 +36,7 @@ __all__ = [
     "check_angle_rad",
     "elbow_range_rad",
     "fibre_length_L0",
+    "fibre_state",
     "fibre_velocity_L0_s",
     "muscle_geometry",
     "pennation_rad",
@@ -219,3 +220,31 @@ def sweep(
             [pennation_rad(length[:, j], g) for j, g in enumerate(geoms)], axis=-1
         ),
     )
+
+
+def fibre_state(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    geometries: tuple[MuscleGeometry, ...] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fibre lengths (L0) and velocities (L0/s), shape ``(n_muscles,)`` in ``MUSCLES`` order,
+    from ``data.ten_length`` / ``data.ten_velocity``.
+
+    Those are filled by ``mj_forward`` (or ``mj_fwdPosition`` + ``mj_fwdVelocity``); after
+    ``mj_step`` they describe the state *before* the step, so call ``mj_forward`` first when
+    the post-step value is wanted. Pass ``geometries`` (from :func:`muscle_geometry`) to
+    avoid re-reading them at every call.
+    """
+    if geometries is None:
+        geometries = tuple(muscle_geometry(model, m) for m in MUSCLES)
+    ids = [model.tendon(g.name).id for g in geometries]
+    length = np.array(
+        [fibre_length_L0(data.ten_length[i], g) for i, g in zip(ids, geometries, strict=True)]
+    )
+    velocity = np.array(
+        [
+            fibre_velocity_L0_s(data.ten_length[i], data.ten_velocity[i], g)
+            for i, g in zip(ids, geometries, strict=True)
+        ]
+    )
+    return length, velocity

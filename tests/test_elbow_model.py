@@ -16,6 +16,7 @@ from proprio_env.model import JOINT, MUSCLES, SERVO, load_model, model_path
 from proprio_env.muscle_length import (
     MuscleGeometry,
     fibre_length_L0,
+    fibre_state,
     fibre_velocity_L0_s,
     muscle_geometry,
     sweep,
@@ -167,6 +168,23 @@ def test_fibre_velocity_matches_opensim_slope(model, exact, oracle, j):
     )
     slope = np.gradient(oracle[f"{name}_rigid_norm_fiber_length"], oracle["elbow_flex_rad"])
     np.testing.assert_allclose(velocity[1:-1], slope[1:-1], atol=0.002)
+
+
+def test_fibre_state_reads_a_running_simulation(model, oracle):
+    data = mujoco.MjData(model)
+    k = 100
+    data.qpos[0] = oracle["elbow_flex_rad"][k]
+    data.qvel[0] = -2.0  # extending at 2 rad/s
+    mujoco.mj_forward(model, data)
+    length_L0, velocity_L0_s = fibre_state(model, data)
+    for j, name in enumerate(MUSCLES):
+        assert length_L0[j] == pytest.approx(oracle[f"{name}_rigid_norm_fiber_length"][k], abs=1e-3)
+    slope = [
+        np.gradient(oracle[f"{m}_rigid_norm_fiber_length"], oracle["elbow_flex_rad"])[k]
+        for m in MUSCLES
+    ]
+    np.testing.assert_allclose(velocity_L0_s, -2.0 * np.array(slope), atol=0.004)
+    assert velocity_L0_s[MUSCLES.index("BRA")] > 0  # extension lengthens the flexor
 
 
 def test_fibre_length_and_velocity_formulas():
