@@ -110,7 +110,9 @@ def draw(figure: Path, exact, fits, oracle: dict[str, np.ndarray] | None) -> Non
     ax_err.axhline(-TARGET_L0 * 1e3, color="k", lw=0.5, ls="--")
     ax_err.set_xlabel("elbow flexion (deg)")
     ax_err.set_ylabel("error (10$^{-3}$ L0)")
-    ax_err.legend(fontsize=7, ncol=2)
+    bottom, top = ax_err.get_ylim()
+    ax_err.set_ylim(bottom, top + 0.6 * (top - bottom))  # room for the legend above the curves
+    ax_err.legend(fontsize=7, ncol=2, loc="upper right")
     ax_err.grid(alpha=0.3)
     fig.tight_layout()
     figure.parent.mkdir(parents=True, exist_ok=True)
