@@ -13,6 +13,13 @@ from spindle.core import (
     equilibrium_state,
     step,
 )
+from spindle.length_fits import (
+    LengthFit,
+    LengthFits,
+    LengthFitsError,
+    default_fits_path,
+    load_length_fits,
+)
 from spindle.methods import DEFAULT_METHOD, METHODS, Method, get_method
 from spindle.params import CAT, FIBRES, HUMAN, FibreParams, SpindleParams
 from spindle.simulate import SpindleResult, simulate
@@ -26,13 +33,18 @@ __all__ = [
     "MAX_SPEED_L0_S",
     "METHODS",
     "FibreParams",
+    "LengthFit",
+    "LengthFits",
+    "LengthFitsError",
     "Method",
     "SpindleParams",
     "SpindleResult",
     "SpindleState",
     "afferents",
+    "default_fits_path",
     "equilibrium_state",
     "get_method",
+    "load_length_fits",
     "simulate",
     "step",
 ]

@@ -115,15 +115,17 @@ def check_inputs(
     ):
         finite = np.isfinite(arr)
         if not finite.all():
-            bad = arr[~finite].flat[0]
+            bad = float(arr[~finite].flat[0])
             raise ValueError(f"{name} contains {bad!r}; every value must be finite")
     lo, hi = LENGTH_RANGE_L0
     if length_L0.size and (length_L0.min() < lo or length_L0.max() > hi):
-        bad = length_L0.min() if length_L0.min() < lo else length_L0.max()
+        bad = float(length_L0.min() if length_L0.min() < lo else length_L0.max())
         raise ValueError(f"length_L0={bad!r} is outside the model's range [{lo}, {hi}] L0")
     for name, arr in (("gamma_dyn_pps", gamma_dyn_pps), ("gamma_stat_pps", gamma_stat_pps)):
         if arr.size and arr.min() < 0:
-            raise ValueError(f"{name}={arr.min()!r} is negative; fusimotor rates must be >= 0")
+            raise ValueError(
+                f"{name}={float(arr.min())!r} is negative; fusimotor rates must be >= 0"
+            )
 
 
 def check_speed(length_change_L0: np.ndarray, dt_s: float) -> None:
