@@ -419,9 +419,16 @@ def _implicit_solve(A, v0, z0, F0, L1, beta1, Gamma1, h, theta, c):
     active = None
     dz = np.zeros_like(z)
     for iteration in range(NEWTON_MAX_ITER):
-        if iteration == NEWTON_FULL_ITER and c.a_is_03:
-            # The few spindles still moving (e.g. a polar velocity changing sign) go on alone.
-            active = np.nonzero(np.abs(dz) > NEWTON_TOL_Z)
+        if active is None and iteration >= NEWTON_FULL_ITER and c.a_is_03:
+            # Once few fibres are still moving (e.g. a polar velocity changing sign), they go
+            # on alone; gathering them costs more than it saves while many are.
+            moving = np.abs(dz) > NEWTON_TOL_Z
+            if np.count_nonzero(moving) > moving.size // 8:
+                moving = None
+        else:
+            moving = None
+        if moving is not None:
+            active = np.nonzero(moving)
             z_all = z
             z = z_all[active]
             a2, p0, rhs, cS, dC = (np.broadcast_to(x, z_all.shape)[active]
@@ -435,7 +442,8 @@ def _implicit_solve(A, v0, z0, F0, L1, beta1, Gamma1, h, theta, c):
         g = a2 * w + phi * q - rhs
         dg = a2 * dw + dphi * q + th_h * phi * dw
         dz = g / np.maximum(dg, 1e-300)
-        np.clip(dz, -NEWTON_MAX_DZ, NEWTON_MAX_DZ, out=dz)
+        np.minimum(dz, NEWTON_MAX_DZ, out=dz)
+        np.maximum(dz, -NEWTON_MAX_DZ, out=dz)
         z = z - dz
         if z.size == 0 or np.abs(dz).max() <= NEWTON_TOL_Z:
             break
