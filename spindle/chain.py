@@ -1,0 +1,497 @@
+"""The seed paper's processing chain for one arm: encoder counts in, Ia and II out.
+
+    counts -> median filter (7) -> f(x) -> elbow angle -> fitted BRA/TRImed fibre lengths
+           -> tracking low-pass (L, dL/dt) -> PI template -> gamma_s = h, gamma_d = g
+           -> Mileusnic spindles (HUMAN gains) -> Ia, II per muscle
+
+This is what would run on the prosthesis, so it needs no MuJoCo. :class:`ArmChain` streams:
+push samples as they come and read the rates. :func:`run_chain` takes a whole trace and
+returns every intermediate signal; it is :class:`ArmChain` driven sample by sample, so the
+two agree exactly.
+
+Three entry points feed the same chain at different stages: encoder counts
+(:meth:`ArmChain.push_counts`, the prosthesis), clean elbow angles (:meth:`~ArmChain.push_angle`,
+skipping the sensor stage) and fibre lengths (:meth:`~ArmChain.push_lengths`, e.g. exact
+lengths from MuJoCo, skipping the length model).
+
+Handling rules for bad samples (all counted in :attr:`ArmChain.counters`; a rejected sample
+changes no state and the previous output is returned again with ``accepted=False``):
+
+- ``invalid_reading``: counts that are NaN, not an integer, or outside 0..max_count
+  (the encoder's dropout code -1 and corrupted words): rejected. A corrupted word that happens
+  to fall inside 0..max_count is a spike: the median filter removes it;
+- ``invalid_angle`` / ``invalid_length``: a non-finite angle, or lengths that are non-finite,
+  of the wrong shape or outside the spindle's range: rejected;
+- ``repeated_time``, ``time_backwards``, ``bad_time``: a sample whose time equals, precedes or
+  is not a finite number after the last accepted one: rejected (time never runs backwards);
+- ``gaps``: an interval longer than ``max_gap_s`` (default: the filter window, 7 nominal
+  sample periods) since the last accepted sample (dropped samples): accepted and counted. The
+  median window keeps the last 7 accepted readings; the low-pass filter and the spindles are
+  advanced exactly across the gap, the length following a smooth (Hermite) curve;
+- ``slew_limited``: the conditioned angle may change by at most ``max_speed_deg_s`` times the
+  interval (default 1000 deg/s, above the servo's 684 deg/s no-load speed), lengths by at most
+  ``max_speed_L0_s`` times it; a faster change (a jump after a long gap, a spike the median
+  let through) is limited to that and counted;
+- ``angle_clamped``: an angle outside the length model's range (0-130 deg) is clamped to it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from spindle import core
+from spindle.derivatives import natural_rad_s, tracking_step
+from spindle.fusimotor import SEED_PAPER, Fusimotor, FusimotorParams
+from spindle.length_fits import LengthFits, load_length_fits
+from spindle.methods import get_method
+from spindle.params import HUMAN, SpindleParams
+from spindle.sensor import AX12, Calibration, EncoderParams, MedianFilter, is_valid_reading
+from spindle.simulate import hermite_weights
+
+MUSCLES = ("BRA", "TRImed")
+BACKENDS = ("numpy",)
+
+COUNTERS = (
+    "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
+    "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped",
+)
+"""Names of :attr:`ArmChain.counters` (see the module docstring for each rule)."""
+
+
+@dataclass(frozen=True)
+class ChainConfig:
+    """Every setting of the chain (frozen; defaults: the seed paper's system).
+
+    Attributes:
+        encoder: the encoder's range and nominal rate (validity of readings, default gap).
+        calibration: f(x), counts to elbow angle.
+        median_window: the median filter's window (odd; paper: 7).
+        lowpass_hz: natural frequency of the tracking low-pass on the lengths (Hz); ``None``
+            passes lengths unfiltered and differences them (only for clean inputs).
+        fusimotor: :class:`~spindle.fusimotor.FusimotorParams`.
+        params: spindle constants (default :data:`spindle.HUMAN`, G x 1/5).
+        method: the spindle integrator (``"trapezoidal"``, ``"backward_euler"``,
+            ``"forward_euler"``).
+        step_s: largest internal spindle step (s); each sample interval is split into equal
+            sub-steps no longer than it. ``None``: the method's default.
+        max_gap_s: intervals longer than this are counted as gaps; ``None``: the median window
+            times the nominal sample period (14 ms).
+        max_speed_deg_s: slew limit of the conditioned angle (deg/s).
+        max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
+        fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
+        backend: ``"numpy"``.
+    """
+
+    encoder: EncoderParams = AX12
+    calibration: Calibration = field(default_factory=Calibration)
+    median_window: int = 7
+    lowpass_hz: float | None = 10.0
+    fusimotor: FusimotorParams = SEED_PAPER
+    params: SpindleParams = HUMAN
+    method: str = "trapezoidal"
+    step_s: float | None = None
+    max_gap_s: float | None = None
+    max_speed_deg_s: float = 1000.0
+    max_speed_L0_s: float = 8.0
+    fits_path: str | Path | None = None
+    backend: str = "numpy"
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.median_window, int) and self.median_window >= 1
+                and self.median_window % 2 == 1):
+            raise ValueError(f"median_window={self.median_window!r} must be an odd integer >= 1")
+        if self.lowpass_hz is not None:
+            natural_rad_s(self.lowpass_hz)
+        method = get_method(self.method)
+        if self.step_s is not None:
+            core.check_step(float(self.step_s), method)
+        if self.max_gap_s is not None and not (np.isfinite(self.max_gap_s)
+                                               and self.max_gap_s > 0):
+            raise ValueError(f"max_gap_s={self.max_gap_s!r} must be finite and > 0")
+        if not (np.isfinite(self.max_speed_deg_s) and self.max_speed_deg_s > 0):
+            raise ValueError(f"max_speed_deg_s={self.max_speed_deg_s!r} must be finite and > 0")
+        if not (0 < self.max_speed_L0_s <= core.MAX_SPEED_L0_S):
+            raise ValueError(
+                f"max_speed_L0_s={self.max_speed_L0_s!r} must lie in (0, "
+                f"{core.MAX_SPEED_L0_S}] (the spindle's speed limit)"
+            )
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend={self.backend!r} is not one of {BACKENDS}")
+
+    @property
+    def gap_s(self) -> float:
+        if self.max_gap_s is not None:
+            return float(self.max_gap_s)
+        return self.median_window * self.encoder.period_s
+
+    @property
+    def spindle_step_s(self) -> float:
+        m = get_method(self.method)
+        return m.default_step_s if self.step_s is None else float(self.step_s)
+
+
+@dataclass(frozen=True)
+class ArmSample:
+    """The chain's output after one sample; per-muscle arrays are (2,) in order BRA, TRImed.
+
+    Attributes:
+        t_s: sample time (s).
+        accepted: False if this sample was rejected (every other field then repeats the
+            previous output).
+        counts: the raw reading (-1 when the sample did not come from the encoder).
+        counts_filtered: the median-filtered reading (-1 likewise).
+        angle_deg: conditioned elbow angle (deg).
+        length_L0: conditioned (low-passed) fibre length.
+        velocity_L0_s, acceleration_L0_s2: its first and second time derivatives.
+        template_L0: the fusimotor template (PI predictor output).
+        gamma_static_pps, gamma_dynamic_pps: fusimotor drive.
+        ia_pps, ii_pps: primary and secondary afferent rates.
+    """
+
+    t_s: float
+    accepted: bool
+    counts: float
+    counts_filtered: float
+    angle_deg: float
+    length_L0: np.ndarray
+    velocity_L0_s: np.ndarray
+    acceleration_L0_s2: np.ndarray
+    template_L0: np.ndarray
+    gamma_static_pps: np.ndarray
+    gamma_dynamic_pps: np.ndarray
+    ia_pps: np.ndarray
+    ii_pps: np.ndarray
+
+
+class ArmChain:
+    """The streaming chain of one arm (BRA and TRImed).
+
+    Call :meth:`reset` once, then push samples in increasing time. Each accepted push
+    advances the spindles from the previous sample's time to the new one.
+    """
+
+    def __init__(self, config: ChainConfig | None = None, fits: LengthFits | None = None):
+        self.config = ChainConfig() if config is None else config
+        self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
+        if self.fits.muscles != MUSCLES:
+            raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
+        lo_rad, hi_rad = self.fits.valid_range_rad
+        self.angle_range_deg = (math.degrees(lo_rad), math.degrees(hi_rad))
+        span = self.fits.length_L0(np.linspace(lo_rad, hi_rad, 1301))
+        self.length_min_L0 = span.min(axis=0)
+        self.length_max_L0 = span.max(axis=0)
+        self._method = get_method(self.config.method)
+        self._columns = core.columns(self.config.params)
+        self._omega = (None if self.config.lowpass_hz is None
+                       else natural_rad_s(self.config.lowpass_hz))
+        self._median = MedianFilter(self.config.median_window)
+        self._fusimotor = Fusimotor(self.length_min_L0, self.length_max_L0, self.config.fusimotor)
+        self._intended_L0: np.ndarray | None = None
+        self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._last: ArmSample | None = None
+
+    # -- state ---------------------------------------------------------------------------
+    def reset(self, angle_deg: float, t_s: float = 0.0,
+              length_L0: np.ndarray | None = None) -> ArmSample:
+        """The arm at rest at ``angle_deg`` (and, if given, exact ``length_L0``) at ``t_s``.
+
+        Filters start on that angle, the template on those lengths, the spindles at
+        equilibrium with the resulting drive. Counters restart at zero.
+        """
+        if not np.isfinite(t_s):
+            raise ValueError(f"t_s={t_s!r} must be finite")
+        angle = self._check_angle(angle_deg)
+        if length_L0 is None:
+            L = self.fits.length_L0(math.radians(angle))
+        else:
+            L = self._check_lengths(length_L0)
+            if L is None:
+                raise ValueError(f"length_L0={length_L0!r} must be 2 finite lengths within "
+                                 f"{core.LENGTH_RANGE_L0} L0")
+        counts = float(self.config.calibration.counts(angle))
+        self._median.reset(counts)
+        self._u = L.copy()
+        self._x = L.copy()
+        self._v = np.zeros(2)
+        self._a = np.zeros(2)
+        self._angle = angle
+        self._t = float(t_s)
+        self._intended_L0 = None
+        template, gs, gd = self._fusimotor.reset(self._t, L)
+        self._state = core.equilibrium_state(L, gd, gs, self.config.params)
+        ia, ii = core.afferents(self._state, self.config.params)
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self._last = ArmSample(self._t, True, -1.0, -1.0, angle, L.copy(), self._v.copy(),
+                               self._a.copy(), template, gs, gd, ia, ii)
+        return self._last
+
+    def set_intended_angle(self, angle_deg: float | None) -> None:
+        """The switch: drive the fusimotor template from an intended elbow angle (deg).
+
+        ``None`` returns to the measured motion. The intended angle holds until changed; call
+        it before each push to follow an intended trajectory.
+        """
+        if angle_deg is None:
+            self._intended_L0 = None
+            return
+        angle = self._check_angle(angle_deg)
+        lo, hi = self.angle_range_deg
+        self._intended_L0 = self.fits.length_L0(math.radians(min(max(angle, lo), hi)))
+
+    @property
+    def last(self) -> ArmSample:
+        """The latest output."""
+        if self._last is None:
+            raise RuntimeError("call ArmChain.reset before using the chain")
+        return self._last
+
+    @property
+    def spindle_state(self) -> core.SpindleState:
+        """A copy of the spindles' state (2 spindles: BRA, TRImed)."""
+        return self._state.copy()
+
+    # -- pushes ----------------------------------------------------------------------------
+    def push_counts(self, t_s: float, counts: float) -> ArmSample:
+        """One encoder reading taken at ``t_s``."""
+        if not self._time_ok(t_s):
+            return self._rejected()
+        if not is_valid_reading(counts, self.config.encoder.max_count):
+            self.counters["invalid_reading"] += 1
+            return self._rejected()
+        filtered = self._median.push(float(counts))
+        angle = float(self.config.calibration.angle_deg(filtered))
+        return self._angle_stage(float(t_s), angle, float(counts), filtered)
+
+    def push_angle(self, t_s: float, angle_deg: float) -> ArmSample:
+        """One clean elbow-angle sample (deg), skipping the sensor stage."""
+        if not self._time_ok(t_s):
+            return self._rejected()
+        try:
+            angle = float(angle_deg)
+        except (TypeError, ValueError):
+            angle = math.nan
+        if not math.isfinite(angle):
+            self.counters["invalid_angle"] += 1
+            return self._rejected()
+        return self._angle_stage(float(t_s), angle, -1.0, -1.0)
+
+    def push_lengths(self, t_s: float, length_L0: np.ndarray,
+                     angle_deg: float | None = None) -> ArmSample:
+        """One sample of the two fibre lengths (L0), skipping the sensor and length model.
+
+        ``angle_deg`` is only recorded in the output (the last known angle if None).
+        """
+        if not self._time_ok(t_s):
+            return self._rejected()
+        L = self._check_lengths(length_L0)
+        if L is None:
+            self.counters["invalid_length"] += 1
+            return self._rejected()
+        angle = self._angle if angle_deg is None or not np.isfinite(angle_deg) else angle_deg
+        return self._length_stage(float(t_s), L, float(angle), -1.0, -1.0)
+
+    # -- stages ----------------------------------------------------------------------------
+    def _angle_stage(self, t: float, angle: float, counts: float, filtered: float) -> ArmSample:
+        limit = self.config.max_speed_deg_s * (t - self._t)
+        if abs(angle - self._angle) > limit:
+            self.counters["slew_limited"] += 1
+            angle = self._angle + math.copysign(limit, angle - self._angle)
+        lo, hi = self.angle_range_deg
+        if not lo <= angle <= hi:
+            self.counters["angle_clamped"] += 1
+            angle = min(max(angle, lo), hi)
+        L = self.fits.length_L0(math.radians(angle))
+        return self._length_stage(t, L, angle, counts, filtered)
+
+    def _length_stage(self, t: float, L_in: np.ndarray, angle: float, counts: float,
+                      filtered: float) -> ArmSample:
+        dt = t - self._t
+        if dt > self.config.gap_s:
+            self.counters["gaps"] += 1
+        limit = self.config.max_speed_L0_s * dt
+        change = L_in - self._u
+        if np.any(np.abs(change) > limit):
+            self.counters["slew_limited"] += 1
+            L_in = L_in - change + np.clip(change, -limit, limit)
+        x0, v0 = self._x, self._v
+        if self._omega is None:
+            x1 = L_in
+            v1 = (x1 - x0) / dt
+            a1 = (v1 - v0) / dt
+        else:
+            x1, v1, a1 = tracking_step(x0, v0, L_in, dt, self._omega)
+        template_in = x1 if self._intended_L0 is None else self._intended_L0
+        template, gs, gd = self._fusimotor.update(t, template_in)
+        ia, ii = self._advance_spindles(x0, v0, x1, v1, gd, gs, dt)
+        self._u, self._x, self._v, self._a = L_in, x1, v1, a1
+        self._angle, self._t = angle, t
+        self.counters["accepted"] += 1
+        self._last = ArmSample(t, True, counts, filtered, angle, x1, v1, a1, template, gs, gd,
+                               ia, ii)
+        return self._last
+
+    def _advance_spindles(self, x0, v0, x1, v1, gd, gs, dt):
+        c, theta = self._columns, self._method.theta
+        k = max(1, math.ceil(dt / self.config.spindle_step_s * (1 - 1e-12)))
+        h = dt / k
+        for j in range(1, k):
+            w = hermite_weights(j / k, 1)
+            Ls = w[0] * x0 + w[1] * x1 + dt * (w[2] * v0 + w[3] * v1)
+            core.commit(self._state, core.advance(self._state, Ls, gd, gs, h, theta, c),
+                        Ls, gd, gs)
+        new = core.advance(self._state, x1, gd, gs, h, theta, c)
+        core.commit(self._state, new, x1, gd, gs)
+        return core._afferents(new[0], x1, c)
+
+    # -- checks ----------------------------------------------------------------------------
+    def _time_ok(self, t_s: float) -> bool:
+        if self._last is None:
+            raise RuntimeError("call ArmChain.reset before pushing samples")
+        try:
+            t = float(t_s)
+        except (TypeError, ValueError):
+            t = math.nan
+        if not math.isfinite(t):
+            self.counters["bad_time"] += 1
+            return False
+        if t == self._t:
+            self.counters["repeated_time"] += 1
+            return False
+        if t < self._t:
+            self.counters["time_backwards"] += 1
+            return False
+        return True
+
+    def _rejected(self) -> ArmSample:
+        last = self.last
+        return ArmSample(**{f.name: getattr(last, f.name) for f in fields(ArmSample)
+                            if f.name != "accepted"}, accepted=False)
+
+    @staticmethod
+    def _check_angle(angle_deg: float) -> float:
+        angle = float(angle_deg)
+        if not math.isfinite(angle):
+            raise ValueError(f"angle_deg={angle_deg!r} must be finite")
+        return angle
+
+    @staticmethod
+    def _check_lengths(length_L0: np.ndarray) -> np.ndarray | None:
+        L = np.asarray(length_L0, dtype=float)
+        lo, hi = core.LENGTH_RANGE_L0
+        if L.shape != (2,) or not np.all(np.isfinite(L)) or L.min() < lo or L.max() > hi:
+            return None
+        return L.copy()
+
+
+@dataclass(frozen=True)
+class ChainTrace:
+    """Every signal of a batch run; arrays have the samples on axis 0, muscles on axis 1.
+
+    Fields are those of :class:`ArmSample` stacked over samples, plus the final counters.
+    """
+
+    t_s: np.ndarray
+    accepted: np.ndarray
+    counts: np.ndarray
+    counts_filtered: np.ndarray
+    angle_deg: np.ndarray
+    length_L0: np.ndarray
+    velocity_L0_s: np.ndarray
+    acceleration_L0_s2: np.ndarray
+    template_L0: np.ndarray
+    gamma_static_pps: np.ndarray
+    gamma_dynamic_pps: np.ndarray
+    ia_pps: np.ndarray
+    ii_pps: np.ndarray
+    counters: dict[str, int]
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """Flat named columns (per-muscle signals split as ``BRA_ia_pps`` ...), e.g. for CSV."""
+        out: dict[str, np.ndarray] = {}
+        for f in fields(ArmSample):
+            value = getattr(self, f.name)
+            if value.ndim == 2:
+                for k, muscle in enumerate(MUSCLES):
+                    out[f"{muscle}_{f.name}"] = value[:, k]
+            else:
+                out[f.name] = value
+        return out
+
+
+def run_chain(
+    t_s: np.ndarray,
+    *,
+    counts: np.ndarray | None = None,
+    angle_deg: np.ndarray | None = None,
+    length_L0: np.ndarray | None = None,
+    intended_angle_deg: np.ndarray | None = None,
+    config: ChainConfig | None = None,
+    fits: LengthFits | None = None,
+) -> ChainTrace:
+    """Run the chain over a whole trace; exactly what :class:`ArmChain` does sample by sample.
+
+    Give the samples' times ``t_s`` (T,) and one of ``counts`` (T,) encoder readings,
+    ``angle_deg`` (T,) elbow angles or ``length_L0`` (T, 2) fibre lengths. The arm starts at
+    rest at the first sample that is valid (its output is that rest state); the other samples
+    are pushed in order (bad ones are handled by the documented rules). ``intended_angle_deg``
+    (T,) switches the fusimotor template to the intended motion.
+    """
+    given = [x is not None for x in (counts, angle_deg, length_L0)]
+    if sum(given) != 1:
+        raise ValueError("give exactly one of counts, angle_deg or length_L0")
+    t = np.asarray(t_s, dtype=float)
+    if t.ndim != 1 or t.size == 0:
+        raise ValueError(f"t_s must be a non-empty 1-D array, got shape {t.shape}")
+    signal = np.asarray(next(x for x in (counts, angle_deg, length_L0) if x is not None),
+                        dtype=float)
+    want = (t.size, 2) if length_L0 is not None else (t.size,)
+    if signal.shape != want:
+        raise ValueError(f"the signal has shape {signal.shape}, expected {want} for t_s "
+                         f"{t.shape}")
+    intended = None
+    if intended_angle_deg is not None:
+        intended = np.asarray(intended_angle_deg, dtype=float)
+        if intended.shape != t.shape:
+            raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected {t.shape}")
+
+    chain = ArmChain(config, fits)
+    start = _first_valid(t, signal, counts is not None, length_L0 is not None, chain)
+    if counts is not None:
+        chain.reset(float(chain.config.calibration.angle_deg(signal[start])), t[start])
+        push = chain.push_counts
+    elif angle_deg is not None:
+        chain.reset(signal[start], t[start])
+        push = chain.push_angle
+    else:
+        lo, hi = chain.angle_range_deg
+        chain.reset(0.5 * (lo + hi), t[start], length_L0=signal[start])
+        push = chain.push_lengths
+    samples = [chain.last] * (start + 1)
+    for i in range(start + 1, t.size):
+        if intended is not None:
+            chain.set_intended_angle(None if np.isnan(intended[i]) else intended[i])
+        samples.append(push(t[i], signal[i]))
+    stacked = {
+        f.name: np.array([getattr(s, f.name) for s in samples]) for f in fields(ArmSample)
+    }
+    stacked["accepted"][:start] = False
+    return ChainTrace(**stacked, counters=dict(chain.counters))
+
+
+def _first_valid(t, signal, is_counts, is_lengths, chain) -> int:
+    for i in range(t.size):
+        if not np.isfinite(t[i]):
+            continue
+        if is_counts:
+            ok = is_valid_reading(signal[i], chain.config.encoder.max_count)
+        elif is_lengths:
+            ok = chain._check_lengths(signal[i]) is not None
+        else:
+            ok = bool(np.isfinite(signal[i]))
+        if ok:
+            return i
+    raise ValueError("the trace holds no valid sample to start from")

@@ -1,0 +1,85 @@
+"""Length conditioning: a low-pass filter that also yields dL/dt and d2L/dt2.
+
+The spindle turns length *velocity* into firing (its Ia ending is most sensitive to it), so
+quantisation steps and sensor noise must not reach it as velocity spikes: differencing raw
+sampled lengths makes the output useless (``scripts/chain_figures.py`` shows how much).
+The design here is a critically damped second-order tracking filter
+
+    x'' = w^2 (u - x) - 2 w x'        (w = 2 pi f_n, f_n = ``natural_hz``)
+
+run on the signal u (each muscle's fibre length). Its states are the filtered length x and
+its velocity x'; the acceleration follows from the equation. It is linear, has unit DC gain,
+never overshoots a step (its impulse response w^2 t e^(-w t) is non-negative, so |x'| never
+exceeds the largest slope of its input), and delays a ramp by 2/w (32 ms at 10 Hz).
+
+Each update holds u constant over the interval that ends at the new sample (zero-order hold)
+and advances the states *exactly* over that interval, so irregular (jittered) sample times
+need no special handling.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def natural_rad_s(natural_hz: float) -> float:
+    """Filter natural frequency w (rad/s) from ``natural_hz``, checked."""
+    if not (np.isfinite(natural_hz) and natural_hz > 0):
+        raise ValueError(f"natural_hz={natural_hz!r} must be finite and > 0")
+    return 2.0 * np.pi * float(natural_hz)
+
+
+def tracking_step(
+    x: np.ndarray, v: np.ndarray, u: np.ndarray, dt_s: float, omega_rad_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Advance the filter by ``dt_s`` with input ``u`` held; return (x, x', x'').
+
+    The error e = x - u obeys e'' + 2 w e' + w^2 e = 0, so e(t) = (e0 + (v0 + w e0) t) e^(-w t)
+    in closed form. Vectorised over any leading shape.
+    """
+    e0 = x - u
+    b = v + omega_rad_s * e0
+    decay = np.exp(-omega_rad_s * dt_s)
+    x1 = u + (e0 + b * dt_s) * decay
+    v1 = (v - omega_rad_s * b * dt_s) * decay
+    a1 = omega_rad_s * omega_rad_s * (u - x1) - 2.0 * omega_rad_s * v1
+    return x1, v1, a1
+
+
+def track(
+    t_s: np.ndarray, u: np.ndarray, natural_hz: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Filter a whole trace ``u`` (time on axis 0) sampled at times ``t_s``.
+
+    Starts at rest on ``u[0]``; returns the filtered signal, its first and second time
+    derivatives, each shaped like ``u``.
+    """
+    t_s = np.asarray(t_s, dtype=float)
+    u = np.asarray(u, dtype=float)
+    if t_s.ndim != 1 or u.shape[:1] != t_s.shape:
+        raise ValueError(f"t_s {t_s.shape} and u {u.shape} must share their first axis")
+    if t_s.size > 1 and not np.all(np.diff(t_s) > 0):
+        raise ValueError("t_s must be strictly increasing")
+    omega = natural_rad_s(natural_hz)
+    x = np.empty_like(u)
+    v = np.zeros_like(u)
+    a = np.zeros_like(u)
+    x[0] = u[0]
+    for k in range(1, t_s.size):
+        x[k], v[k], a[k] = tracking_step(x[k - 1], v[k - 1], u[k], t_s[k] - t_s[k - 1], omega)
+    return x, v, a
+
+
+def difference(t_s: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unfiltered backward differences: (du/dt, d2u/dt2), zero at the first sample(s).
+
+    The naive alternative to :func:`track`, kept to show (and test) what it does to noise.
+    """
+    t_s = np.asarray(t_s, dtype=float)
+    u = np.asarray(u, dtype=float)
+    v = np.zeros_like(u)
+    a = np.zeros_like(u)
+    dt = np.diff(t_s).reshape((-1,) + (1,) * (u.ndim - 1))
+    v[1:] = np.diff(u, axis=0) / dt
+    a[2:] = np.diff(v[1:], axis=0) / dt[1:]
+    return v, a

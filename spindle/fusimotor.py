@@ -1,0 +1,219 @@
+"""The seed paper's fusimotor model: a motion template, h(x) for gamma-static, g(x) for
+gamma-dynamic.
+
+Fusimotor signals are taken to carry a "temporal template" of the expected movement. The
+template of each muscle is the output of a down-sampled proportional-integral (PI) predictor
+that tracks the muscle's length (or, through the chain's switch, its *intended* length):
+
+- every ``1/predictor_rate_hz`` seconds the predictor compares its template p with the input
+  length L, e = L - p, integrates it, w += ki e dt, and sets the template velocity
+  u = kp e + w, which it holds until the next update; between updates p moves at u, so the
+  template is continuous and piecewise linear;
+- the integral w learns the current speed, so a steady movement is tracked without lag, and a
+  sudden stop is overshot: the template runs on and comes back (the behaviour the paper
+  describes). The loop is p'' = kp e' + ki e, a second-order system with natural frequency
+  sqrt(ki) and damping kp / (2 sqrt(ki)).
+
+From the template:
+
+- h(x): gamma_s = 20 + 130 (Lmax - p)/(Lmax - Lmin) pps, clipped to 20..150 pps (the template
+  can overshoot the muscle's range);
+- g(x): gamma_d = 0 pps while the muscle shortens and 100 pps while it is static or
+  lengthening. "Shortening" is decided by a time delay and a magnitude comparison: the muscle
+  shortens when the template fell by more than ``shortening_threshold_L0`` over the last
+  ``delay_s`` seconds, p(t - delay) - p(t) > threshold.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FusimotorParams:
+    """Constants of the fusimotor model (defaults: the seed paper's values where it gives them).
+
+    Attributes:
+        gamma_static_min_pps, gamma_static_max_pps: range of h(x) (paper: 20 and 150 pps).
+        gamma_dynamic_pps: g(x) while static or lengthening (paper: 100 pps; 0 pps while
+            shortening).
+        delay_s: g(x)'s time delay (s).
+        shortening_threshold_L0: g(x)'s magnitude comparison (L0 over ``delay_s``); 0.002 L0
+            in 40 ms is 0.05 L0/s, about 10 deg/s of elbow motion for the brachialis, well
+            above the residual sensor noise after filtering.
+        predictor_rate_hz: update rate of the down-sampled PI predictor (Hz).
+        predictor_kp_1_s: proportional gain (1/s).
+        predictor_ki_1_s2: integral gain (1/s^2). The defaults give a loop natural frequency
+            of 2 Hz with damping 0.5: it follows a 130 deg/s movement and overshoots a
+            sudden stop by a few percent of the movement, settling within about 0.5 s.
+    """
+
+    gamma_static_min_pps: float = 20.0
+    gamma_static_max_pps: float = 150.0
+    gamma_dynamic_pps: float = 100.0
+    delay_s: float = 0.04
+    shortening_threshold_L0: float = 0.002
+    predictor_rate_hz: float = 50.0
+    predictor_kp_1_s: float = 2.0 * 0.5 * (2.0 * math.pi * 2.0)
+    predictor_ki_1_s2: float = (2.0 * math.pi * 2.0) ** 2
+
+    def __post_init__(self) -> None:
+        for name in ("gamma_static_min_pps", "gamma_dynamic_pps", "delay_s",
+                     "shortening_threshold_L0", "predictor_kp_1_s", "predictor_ki_1_s2"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name}={value!r} must be finite and >= 0")
+        if not (np.isfinite(self.gamma_static_max_pps)
+                and self.gamma_static_max_pps >= self.gamma_static_min_pps):
+            raise ValueError(
+                f"gamma_static_max_pps={self.gamma_static_max_pps!r} must be finite and >= "
+                f"gamma_static_min_pps={self.gamma_static_min_pps!r}"
+            )
+        if not (np.isfinite(self.predictor_rate_hz) and self.predictor_rate_hz > 0):
+            raise ValueError(
+                f"predictor_rate_hz={self.predictor_rate_hz!r} must be finite and > 0")
+        # The discrete loop (held velocity, integral updated with the new error) has the
+        # characteristic polynomial z^2 - (2 - a - b) z + (1 - a), a = kp dt, b = ki dt^2;
+        # by Jury's test it is asymptotically stable iff a > 0, b > 0, a < 2 and 2a + b < 4.
+        dt = 1.0 / self.predictor_rate_hz
+        a, b = self.predictor_kp_1_s * dt, self.predictor_ki_1_s2 * dt * dt
+        if not (a > 0 and b > 0 and a < 2 and 2 * a + b < 4):
+            raise ValueError(
+                f"predictor gains kp={self.predictor_kp_1_s!r} 1/s, ki="
+                f"{self.predictor_ki_1_s2!r} 1/s^2 are not stable at {self.predictor_rate_hz!r}"
+                f" Hz: need kp, ki > 0, kp*dt < 2 and 2*kp*dt + ki*dt^2 < 4 (dt = {dt!r} s)"
+            )
+
+    @property
+    def predictor_period_s(self) -> float:
+        return 1.0 / self.predictor_rate_hz
+
+
+SEED_PAPER = FusimotorParams()
+"""The seed paper's fusimotor model with the delay, threshold and PI gains documented above."""
+
+
+def gamma_static_pps(
+    length_L0: np.ndarray | float,
+    length_min_L0: np.ndarray | float,
+    length_max_L0: np.ndarray | float,
+    params: FusimotorParams = SEED_PAPER,
+) -> np.ndarray:
+    """h(x): 20 + 130 (Lmax - L)/(Lmax - Lmin) pps, clipped to the gamma-static range."""
+    lo = np.asarray(length_min_L0, dtype=float)
+    hi = np.asarray(length_max_L0, dtype=float)
+    if np.any(~(hi > lo)):
+        raise ValueError(f"length_max_L0={hi!r} must exceed length_min_L0={lo!r}")
+    span = params.gamma_static_max_pps - params.gamma_static_min_pps
+    g = params.gamma_static_min_pps + span * (hi - np.asarray(length_L0, dtype=float)) / (hi - lo)
+    return np.clip(g, params.gamma_static_min_pps, params.gamma_static_max_pps)
+
+
+def gamma_dynamic_pps(
+    length_now_L0: np.ndarray | float,
+    length_delayed_L0: np.ndarray | float,
+    params: FusimotorParams = SEED_PAPER,
+) -> np.ndarray:
+    """g(x): 0 pps if the length fell by more than the threshold over the delay, else 100."""
+    fall = np.asarray(length_delayed_L0, dtype=float) - np.asarray(length_now_L0, dtype=float)
+    return np.where(fall > params.shortening_threshold_L0, 0.0, params.gamma_dynamic_pps)
+
+
+class MotionPredictor:
+    """The down-sampled PI predictor of each muscle's length (vectorised over muscles).
+
+    :meth:`update` may be called at any rate (e.g. every sensor sample); the PI loop itself
+    updates on its own grid of ``1/predictor_rate_hz`` starting at the reset time.
+    """
+
+    def __init__(self, params: FusimotorParams = SEED_PAPER) -> None:
+        self.params = params
+        n_keep = math.ceil(params.delay_s * params.predictor_rate_hz) + 2
+        # (t_k, p_k, u_k) of the last updates: enough segments to look back by delay_s.
+        self._segments: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=n_keep)
+        self._integral = np.zeros(0)
+
+    def reset(self, t_s: float, length_L0: np.ndarray) -> np.ndarray:
+        """At rest at ``length_L0`` at time ``t_s``; returns the template (= the length)."""
+        p = np.array(length_L0, dtype=float, ndmin=1)
+        self._segments.clear()
+        self._segments.append((float(t_s), p, np.zeros_like(p)))
+        self._integral = np.zeros_like(p)
+        return p.copy()
+
+    @property
+    def integral_L0_s(self) -> np.ndarray:
+        """The integral term w: the predictor's estimate of the current speed (L0/s)."""
+        return self._integral.copy()
+
+    def update(self, t_s: float, length_L0: np.ndarray) -> np.ndarray:
+        """Feed the input length at time ``t_s`` (non-decreasing); return the template."""
+        if not self._segments:
+            raise RuntimeError("MotionPredictor.update before reset")
+        dt = self.params.predictor_period_s
+        kp, ki = self.params.predictor_kp_1_s, self.params.predictor_ki_1_s2
+        t_k, p, u = self._segments[-1]
+        # The input between updates is the latest sample: a sample-and-hold at the PI rate.
+        while t_s >= t_k + dt * (1.0 - 1e-9):
+            t_k = t_k + dt
+            p = p + dt * u
+            error = length_L0 - p
+            self._integral = self._integral + (ki * dt) * error
+            u = kp * error + self._integral
+            self._segments.append((t_k, p, u))
+        return p + u * (t_s - t_k)
+
+    def template_at(self, t_s: float) -> np.ndarray:
+        """The template at an earlier time ``t_s`` (clamped to the oldest kept update)."""
+        for t_k, p, u in reversed(self._segments):
+            if t_k <= t_s:
+                return p + u * (t_s - t_k)
+        return self._segments[0][1].copy()
+
+
+class Fusimotor:
+    """gamma_s and gamma_d of each muscle from its length, through the PI template.
+
+    Args:
+        length_min_L0, length_max_L0: (n_muscles,) the range of each muscle over the joint's
+            range of motion (h(x)'s Lmin and Lmax).
+        params: :class:`FusimotorParams`.
+    """
+
+    def __init__(
+        self,
+        length_min_L0: np.ndarray,
+        length_max_L0: np.ndarray,
+        params: FusimotorParams = SEED_PAPER,
+    ) -> None:
+        self.length_min_L0 = np.array(length_min_L0, dtype=float, ndmin=1)
+        self.length_max_L0 = np.array(length_max_L0, dtype=float, ndmin=1)
+        if np.any(~(self.length_max_L0 > self.length_min_L0)):
+            raise ValueError(
+                f"length_max_L0={self.length_max_L0!r} must exceed length_min_L0="
+                f"{self.length_min_L0!r}"
+            )
+        self.params = params
+        self.predictor = MotionPredictor(params)
+
+    def reset(self, t_s: float, length_L0: np.ndarray) -> tuple[np.ndarray, ...]:
+        """At rest: returns (template_L0, gamma_static_pps, gamma_dynamic_pps)."""
+        template = self.predictor.reset(t_s, length_L0)
+        return self._rates(t_s, template)
+
+    def update(self, t_s: float, length_L0: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Feed the template's input at ``t_s``; returns (template_L0, gamma_s, gamma_d)."""
+        template = self.predictor.update(t_s, np.asarray(length_L0, dtype=float))
+        return self._rates(t_s, template)
+
+    def _rates(self, t_s: float, template: np.ndarray) -> tuple[np.ndarray, ...]:
+        delayed = self.predictor.template_at(t_s - self.params.delay_s)
+        return (
+            template,
+            gamma_static_pps(template, self.length_min_L0, self.length_max_L0, self.params),
+            gamma_dynamic_pps(template, delayed, self.params),
+        )

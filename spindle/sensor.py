@@ -1,0 +1,245 @@
+"""The prosthesis' angle sensor: a servo position encoder, its median filter and f(x).
+
+The seed paper reads the elbow angle from the servo (a Dynamixel AX-12 class actuator):
+integer counts, 0-1023 over 300 degrees (about 0.29 deg per count), updated at about 500 Hz,
+noisy. The first processing step is a median filter of window 7; a linear map f(x) then turns
+counts into the joint angle.
+
+This module holds three small pieces, each usable alone:
+
+- :class:`EncoderParams` and :class:`Encoder`: a model of the device that *produces* readings
+  (for simulation and tests): quantisation, Gaussian noise before rounding, sample-time jitter
+  and rare invalid readings;
+- :class:`Calibration`: f(x), elbow angle = sign * (counts - zero_count) * deg_per_count;
+- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming), causal.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+INVALID_READING = -1
+"""The value :meth:`Encoder.read` returns for a dropped reading (the driver's error code)."""
+
+
+@dataclass(frozen=True)
+class EncoderParams:
+    """A servo position encoder (defaults: Dynamixel AX-12 class, as in the seed paper).
+
+    Attributes:
+        max_count: largest valid reading; valid readings are the integers 0..max_count.
+        full_scale_deg: the angle spanned by 0..max_count (deg).
+        sample_rate_hz: nominal reading rate (Hz).
+        jitter_s: standard deviation of the sample-time jitter (s); each interval is the
+            nominal period plus Gaussian jitter, clipped to +-40 % of the period so samples
+            never reorder.
+        noise_counts: standard deviation of Gaussian noise added before rounding (counts).
+        invalid_rate: probability that a reading is invalid. Half of the invalid readings are
+            dropouts (:data:`INVALID_READING`), half are corrupted 16-bit words (uniform in
+            0..65535, so most fall outside 0..max_count and the rest are spikes).
+    """
+
+    max_count: int = 1023
+    full_scale_deg: float = 300.0
+    sample_rate_hz: float = 500.0
+    jitter_s: float = 1e-4
+    noise_counts: float = 0.6
+    invalid_rate: float = 1e-3
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.max_count, int) and self.max_count >= 1):
+            raise ValueError(f"max_count={self.max_count!r} must be an integer >= 1")
+        for name, low in (("full_scale_deg", 0.0), ("sample_rate_hz", 0.0)):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > low):
+                raise ValueError(f"{name}={value!r} must be finite and > {low}")
+        for name in ("jitter_s", "noise_counts"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name}={value!r} must be finite and >= 0")
+        if not 0.0 <= self.invalid_rate <= 1.0:
+            raise ValueError(f"invalid_rate={self.invalid_rate!r} must lie in [0, 1]")
+
+    @property
+    def deg_per_count(self) -> float:
+        """Resolution (deg per count): 300/1023 = 0.293 for the AX-12."""
+        return self.full_scale_deg / self.max_count
+
+    @property
+    def period_s(self) -> float:
+        """Nominal sample interval (s)."""
+        return 1.0 / self.sample_rate_hz
+
+    def ideal(self) -> EncoderParams:
+        """The same device without noise, jitter or invalid readings (quantisation only)."""
+        return replace(self, jitter_s=0.0, noise_counts=0.0, invalid_rate=0.0)
+
+
+AX12 = EncoderParams()
+"""The seed paper's servo encoder: 0-1023 over 300 deg, ~500 Hz, noisy, rare glitches."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """f(x): the linear map from encoder counts to elbow flexion angle.
+
+    ``angle_deg = sign * (counts - zero_count) * deg_per_count``. The default mounts the
+    servo so that its mid-range count 512 sits at the middle of the elbow's 0-130 deg range
+    (65 deg) and counts grow with flexion: 0 deg reads about 290 and 130 deg about 733.
+
+    Attributes:
+        zero_count: the (fractional) reading at 0 deg elbow flexion.
+        sign: +1 if counts grow with flexion, -1 if the servo is mounted the other way.
+        deg_per_count: encoder resolution (deg per count).
+    """
+
+    zero_count: float = 512.0 - 65.0 / AX12.deg_per_count
+    sign: int = 1
+    deg_per_count: float = AX12.deg_per_count
+
+    def __post_init__(self) -> None:
+        if self.sign not in (1, -1):
+            raise ValueError(f"sign={self.sign!r} must be +1 or -1")
+        if not (np.isfinite(self.deg_per_count) and self.deg_per_count > 0):
+            raise ValueError(f"deg_per_count={self.deg_per_count!r} must be finite and > 0")
+        if not np.isfinite(self.zero_count):
+            raise ValueError(f"zero_count={self.zero_count!r} must be finite")
+
+    def angle_deg(self, counts: np.ndarray | float) -> np.ndarray:
+        """Elbow angle (deg) of encoder reading(s) ``counts``."""
+        return self.sign * (np.asarray(counts, dtype=float) - self.zero_count) * self.deg_per_count
+
+    def counts(self, angle_deg: np.ndarray | float) -> np.ndarray:
+        """The (fractional, unquantised) reading at elbow angle(s) ``angle_deg``."""
+        return self.zero_count + self.sign * np.asarray(angle_deg, dtype=float) / self.deg_per_count
+
+
+class Encoder:
+    """Simulated encoder: jittered sample times and quantised, noisy, occasionally bad readings.
+
+    Args:
+        params: the device (:data:`AX12` by default).
+        calibration: how the servo is mounted on the elbow (f(x) inverted to make readings).
+        rng: a ``numpy.random.Generator`` or a seed; the only source of randomness.
+    """
+
+    def __init__(
+        self,
+        params: EncoderParams = AX12,
+        calibration: Calibration | None = None,
+        rng: np.random.Generator | int | None = None,
+    ) -> None:
+        self.params = params
+        self.calibration = Calibration(deg_per_count=params.deg_per_count) if (
+            calibration is None) else calibration
+        self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+    def next_sample_time_s(self, t_s: float) -> float:
+        """The time of the reading after one taken at ``t_s`` (nominal period + jitter)."""
+        p = self.params
+        jitter = 0.0
+        if p.jitter_s > 0:
+            jitter = float(np.clip(self.rng.normal(0.0, p.jitter_s),
+                                   -0.4 * p.period_s, 0.4 * p.period_s))
+        return t_s + p.period_s + jitter
+
+    def read(self, angle_deg: float) -> int:
+        """One reading (counts) of the servo at elbow angle ``angle_deg``.
+
+        Valid readings are integers in 0..max_count (the device saturates at its ends); an
+        invalid reading is :data:`INVALID_READING` or a corrupted word (see
+        :class:`EncoderParams`).
+        """
+        p = self.params
+        if p.invalid_rate > 0 and self.rng.random() < p.invalid_rate:
+            if self.rng.random() < 0.5:
+                return INVALID_READING
+            return int(self.rng.integers(0, 65536))
+        x = float(self.calibration.counts(angle_deg))
+        if p.noise_counts > 0:
+            x += self.rng.normal(0.0, p.noise_counts)
+        return int(np.clip(np.rint(x), 0, p.max_count))
+
+    def record(
+        self, t_s: np.ndarray, angle_deg: np.ndarray, t_start_s: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Readings of a whole motion: sample times (s) and counts (int64).
+
+        ``angle_deg`` sampled at the (increasing) times ``t_s`` is interpolated linearly at
+        each jittered sample time between ``t_start_s`` (default ``t_s[0]``) and ``t_s[-1]``.
+        """
+        t_s = np.asarray(t_s, dtype=float)
+        angle_deg = np.asarray(angle_deg, dtype=float)
+        if t_s.ndim != 1 or t_s.shape != angle_deg.shape or t_s.size < 2:
+            raise ValueError(
+                f"t_s and angle_deg must be 1-D of one length >= 2, got {t_s.shape} and "
+                f"{angle_deg.shape}"
+            )
+        if not (np.all(np.isfinite(t_s)) and np.all(np.diff(t_s) > 0)):
+            raise ValueError("t_s must be finite and strictly increasing")
+        if not np.all(np.isfinite(angle_deg)):
+            raise ValueError("angle_deg must be finite")
+        times = [t_s[0] if t_start_s is None else float(t_start_s)]
+        while True:
+            nxt = self.next_sample_time_s(times[-1])
+            if nxt > t_s[-1]:
+                break
+            times.append(nxt)
+        t_samples = np.array(times)
+        angles = np.interp(t_samples, t_s, angle_deg)
+        counts = np.array([self.read(a) for a in angles], dtype=np.int64)
+        return t_samples, counts
+
+
+def is_valid_reading(counts: float, max_count: int = AX12.max_count) -> bool:
+    """True for an integer reading in 0..max_count (NaN, fractions and others are invalid)."""
+    try:
+        x = float(counts)
+    except (TypeError, ValueError):
+        return False
+    return bool(np.isfinite(x) and x == np.floor(x) and 0 <= x <= max_count)
+
+
+def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
+    """Causal running median along axis 0: ``out[k] = median(x[k-window+1 .. k])``.
+
+    Before ``window`` samples exist the window is padded with the first sample (as if the
+    signal had rested there), which is how :class:`MedianFilter` starts too.
+    """
+    _check_window(window)
+    x = np.asarray(x, dtype=float)
+    if x.shape[0] == 0:
+        return x.copy()
+    padded = np.concatenate([np.repeat(x[:1], window - 1, axis=0), x], axis=0)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, window, axis=0)
+    return np.median(windows, axis=-1)
+
+
+class MedianFilter:
+    """Streaming causal median of the last ``window`` accepted samples (window odd)."""
+
+    def __init__(self, window: int = 7) -> None:
+        _check_window(window)
+        self.window = window
+        self._buffer: deque[float] = deque(maxlen=window)
+
+    def reset(self, value: float) -> float:
+        """Fill the window with ``value`` (a signal at rest) and return it."""
+        self._buffer.clear()
+        self._buffer.extend([float(value)] * self.window)
+        return float(value)
+
+    def push(self, value: float) -> float:
+        """Add one sample and return the median of the window."""
+        if not self._buffer:
+            return self.reset(value)
+        self._buffer.append(float(value))
+        return sorted(self._buffer)[self.window // 2]
+
+
+def _check_window(window: int) -> None:
+    if not (isinstance(window, int | np.integer) and window >= 1 and window % 2 == 1):
+        raise ValueError(f"median window={window!r} must be an odd integer >= 1")
