@@ -323,7 +323,7 @@ class ArmChain:
             v1 = (x1 - x0) / dt
             a1 = (v1 - v0) / dt
         else:
-            x1, v1, a1 = tracking_step(x0, v0, L_in, dt, self._omega)
+            x1, v1, a1 = tracking_step(x0, v0, self._u, L_in, dt, self._omega)
         template_in = x1 if self._intended_L0 is None else self._intended_L0
         template, gs, gd = self._fusimotor.update(t, template_in)
         ia, ii = self._advance_spindles(x0, v0, x1, v1, gd, gs, dt)

@@ -12,9 +12,9 @@ its velocity x'; the acceleration follows from the equation. It is linear, has u
 never overshoots a step (its impulse response w^2 t e^(-w t) is non-negative, so |x'| never
 exceeds the largest slope of its input), and delays a ramp by 2/w (32 ms at 10 Hz).
 
-Each update holds u constant over the interval that ends at the new sample (zero-order hold)
-and advances the states *exactly* over that interval, so irregular (jittered) sample times
-need no special handling.
+Each update takes u to vary linearly between the previous sample and the new one
+(first-order hold) and advances the states *exactly* over that interval, so irregular
+(jittered) sample times need no special handling and a ramp is tracked at exactly its slope.
 """
 
 from __future__ import annotations
@@ -30,19 +30,24 @@ def natural_rad_s(natural_hz: float) -> float:
 
 
 def tracking_step(
-    x: np.ndarray, v: np.ndarray, u: np.ndarray, dt_s: float, omega_rad_s: float
+    x: np.ndarray, v: np.ndarray, u0: np.ndarray, u1: np.ndarray, dt_s: float,
+    omega_rad_s: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Advance the filter by ``dt_s`` with input ``u`` held; return (x, x', x'').
+    """Advance the filter by ``dt_s`` while its input goes linearly from ``u0`` to ``u1``.
 
-    The error e = x - u obeys e'' + 2 w e' + w^2 e = 0, so e(t) = (e0 + (v0 + w e0) t) e^(-w t)
-    in closed form. Vectorised over any leading shape.
+    Returns (x, x', x'') at the end of the interval. With the input slope s = (u1 - u0)/dt,
+    the error e = x - u obeys e'' + 2 w e' + w^2 e = -2 w s, so
+    e(t) = -2 s/w + (A + B t) e^(-w t) with A = e0 + 2 s/w and B = (x'0 - s) + w A, in
+    closed form. Vectorised over any leading shape.
     """
-    e0 = x - u
-    b = v + omega_rad_s * e0
+    slope = (u1 - u0) / dt_s
+    offset = 2.0 * slope / omega_rad_s
+    A = x - u0 + offset
+    B = v - slope + omega_rad_s * A
     decay = np.exp(-omega_rad_s * dt_s)
-    x1 = u + (e0 + b * dt_s) * decay
-    v1 = (v - omega_rad_s * b * dt_s) * decay
-    a1 = omega_rad_s * omega_rad_s * (u - x1) - 2.0 * omega_rad_s * v1
+    x1 = u1 - offset + (A + B * dt_s) * decay
+    v1 = slope + (B - omega_rad_s * (A + B * dt_s)) * decay
+    a1 = omega_rad_s * omega_rad_s * (u1 - x1) - 2.0 * omega_rad_s * v1
     return x1, v1, a1
 
 
@@ -66,7 +71,8 @@ def track(
     a = np.zeros_like(u)
     x[0] = u[0]
     for k in range(1, t_s.size):
-        x[k], v[k], a[k] = tracking_step(x[k - 1], v[k - 1], u[k], t_s[k] - t_s[k - 1], omega)
+        x[k], v[k], a[k] = tracking_step(x[k - 1], v[k - 1], u[k - 1], u[k],
+                                         t_s[k] - t_s[k - 1], omega)
     return x, v, a
 
 

@@ -1,6 +1,7 @@
-"""The README's main job runs end to end and writes finite signals."""
+"""The README's main job runs the whole chain end to end and writes finite signals."""
 
 import csv
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -13,16 +14,27 @@ pytest.importorskip("matplotlib")
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "demo.py"
 
 
-def test_demo_writes_a_figure_and_finite_signals(tmp_path):
+def test_demo_runs_the_chain_and_writes_a_figure_and_finite_signals(tmp_path):
     run = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path), "--duration",
-                          "1.5"], capture_output=True, text=True, check=True, timeout=120)
+                          "1.5"], capture_output=True, text=True, check=True, timeout=300)
     assert (tmp_path / "demo.png").stat().st_size > 10_000
     with (tmp_path / "demo_signals.csv").open() as fh:
         rows = list(csv.DictReader(fh))
-    assert len(rows) == 1500
+    # ~500 Hz encoder samples over 1.5 s
+    assert 700 <= len(rows) <= 800
     values = np.array([[float(v) for v in row.values()] for row in rows])
     assert np.isfinite(values).all()
-    ia = np.array([float(r["BRA_ia_pps"]) for r in rows])
-    # a human spindle at 70 pps drive fires tens of pps, never hundreds (seed paper: G / 5)
-    assert 5 < ia.max() < 150
-    assert "BRA" in run.stdout
+    col = {name: values[:, i] for i, name in enumerate(rows[0])}
+    for muscle in ("BRA", "TRImed"):
+        for stage in ("counts", "angle_deg", "length_L0", "gamma_static_pps",
+                      "gamma_dynamic_pps", "ia_pps", "ii_pps"):
+            name = stage if stage in ("counts", "angle_deg") else f"{muscle}_{stage}"
+            assert name in col, name
+        # a human spindle fires tens of pps, never hundreds (seed paper: G / 5)
+        assert 5 < col[f"{muscle}_ia_pps"].max() < 150
+        gs = col[f"{muscle}_gamma_static_pps"]
+        assert gs.min() >= 20 and gs.max() <= 150
+        assert set(np.unique(col[f"{muscle}_gamma_dynamic_pps"])) == {0.0, 100.0}
+    # the exact (MuJoCo lengths) and reduced (fits) chains agree to a fraction of a pps
+    diffs = [float(x) for x in re.findall(r"exact vs reduced RMS Ia ([0-9.]+)", run.stdout)]
+    assert len(diffs) == 2 and max(diffs) < 0.5
