@@ -71,7 +71,9 @@ class ChainConfig:
         calibration: f(x), counts to elbow angle.
         median_window: the median filter's window (odd; paper: 7).
         lowpass_hz: natural frequency of the tracking low-pass on the lengths (Hz); ``None``
-            passes lengths unfiltered and differences them (only for clean inputs).
+            passes lengths unfiltered (only for clean inputs). 20 Hz delays a movement by
+            16 ms; it minimised the total Ia/II error of the encoder chain against the
+            noise-free one among 5-50 Hz (``scripts/chain_figures.py``).
         fusimotor: :class:`~spindle.fusimotor.FusimotorParams`.
         params: spindle constants (default :data:`spindle.HUMAN`, G x 1/5).
         method: the spindle integrator (``"trapezoidal"``, ``"backward_euler"``,
@@ -89,7 +91,7 @@ class ChainConfig:
     encoder: EncoderParams = AX12
     calibration: Calibration = field(default_factory=Calibration)
     median_window: int = 7
-    lowpass_hz: float | None = 10.0
+    lowpass_hz: float | None = 20.0
     fusimotor: FusimotorParams = SEED_PAPER
     params: SpindleParams = HUMAN
     method: str = "trapezoidal"

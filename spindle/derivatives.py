@@ -10,7 +10,7 @@ The design here is a critically damped second-order tracking filter
 run on the signal u (each muscle's fibre length). Its states are the filtered length x and
 its velocity x'; the acceleration follows from the equation. It is linear, has unit DC gain,
 never overshoots a step (its impulse response w^2 t e^(-w t) is non-negative, so |x'| never
-exceeds the largest slope of its input), and delays a ramp by 2/w (32 ms at 10 Hz).
+exceeds the largest slope of its input), and delays a ramp by 2/w (16 ms at 20 Hz).
 
 Each update takes u to vary linearly between the previous sample and the new one
 (first-order hold) and advances the states *exactly* over that interval, so irregular
