@@ -1,0 +1,107 @@
+/*
+ * proprio.h -- the one public header of the C port of the proprioception chain.
+ *
+ * C99, no heap, no globals: every function works on caller-owned structs and takes its
+ * inputs as const. Build with -DPS_FLOAT for a float32 build (ps_real = float); the default
+ * is double, which matches the numpy core to round-off.
+ *
+ * Sections: (1) common types and status codes, (2) the Mileusnic 2006 spindle
+ * (spindle.c), (3) the on-prosthesis chain: median filter, f(x), fitted lengths, tracking
+ * low-pass, fusimotor, one arm (chain.c).
+ */
+#ifndef PROPRIO_H
+#define PROPRIO_H
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* ======================================================================================
+ * (1) Common
+ * ====================================================================================== */
+
+#ifdef PS_FLOAT
+typedef float ps_real;
+#else
+typedef double ps_real;
+#endif
+
+/* Status codes: every function that can fail returns one; on failure the state it was
+ * given is left exactly as it was. */
+enum ps_status {
+    PS_OK = 0,
+    PS_ERR_NULL = 1,          /* a required pointer is NULL */
+    PS_ERR_NONFINITE = 2,     /* an input is NaN or infinite */
+    PS_ERR_LENGTH_RANGE = 3,  /* a length outside [PS_LENGTH_MIN_L0, PS_LENGTH_MAX_L0] */
+    PS_ERR_NEGATIVE_DRIVE = 4,/* a fusimotor rate < 0 */
+    PS_ERR_STEP = 5,          /* a step <= 0 or above the method's limit */
+    PS_ERR_SPEED = 6,         /* a length change faster than PS_MAX_SPEED_L0_S */
+    PS_ERR_NO_CONVERGENCE = 7,/* the implicit solve did not converge */
+    PS_ERR_METHOD = 8,        /* theta outside [0, 1] */
+    PS_ERR_CONFIG = 9         /* an unusable configuration (chain) */
+};
+
+#define PS_LENGTH_MIN_L0 0.5
+#define PS_LENGTH_MAX_L0 1.5
+#define PS_MAX_SPEED_L0_S 10.0
+#define PS_NFIBRES 3 /* bag1, bag2, chain */
+
+/* ======================================================================================
+ * (2) Spindle (spindle.c) -- same model, state layout and order of operations as
+ *     spindle/core.py. Fibre arrays are indexed bag1, bag2, chain.
+ * ====================================================================================== */
+
+/* Constants of one spindle: the fields of spindle.FibreParams per fibre, plus S. */
+typedef struct ps_params {
+    ps_real KSR[PS_NFIBRES], KPR[PS_NFIBRES], M[PS_NFIBRES];
+    ps_real beta0[PS_NFIBRES], beta_drive[PS_NFIBRES], Gamma_drive[PS_NFIBRES];
+    ps_real CL[PS_NFIBRES], CS[PS_NFIBRES], R[PS_NFIBRES], a[PS_NFIBRES];
+    ps_real LSR0[PS_NFIBRES], LPR0[PS_NFIBRES], LNSR[PS_NFIBRES], LNPR[PS_NFIBRES];
+    ps_real X[PS_NFIBRES], Lsec[PS_NFIBRES], G_pri[PS_NFIBRES], G_sec[PS_NFIBRES];
+    ps_real freq[PS_NFIBRES], p[PS_NFIBRES], tau[PS_NFIBRES];
+    ps_real S;
+} ps_params;
+
+/* State of one spindle (the fields of spindle.SpindleState for one spindle). */
+typedef struct ps_spindle {
+    ps_real T[PS_NFIBRES]; /* sensory-region tension (FU) */
+    ps_real v[PS_NFIBRES]; /* polar-region velocity (L0/s) */
+    ps_real z[PS_NFIBRES]; /* sgn(v)|v|^(a/3) */
+    ps_real f[PS_NFIBRES]; /* fusimotor activation */
+    ps_real L;             /* fascicle length at the state's time (L0) */
+    ps_real gd, gs;        /* fusimotor drive at the state's time (pps) */
+} ps_spindle;
+
+/* At rest at length L with drive (gd, gs): spindle.equilibrium_state. */
+int ps_spindle_init(ps_spindle *s, const ps_params *p, ps_real L, ps_real gd, ps_real gs);
+
+/* One theta-method step of h seconds to (L1, gd1, gs1): spindle.step without its checks of
+ * the method's step limit (the caller's choice). theta = 0, 0.5, 1: forward Euler,
+ * trapezoidal, backward Euler. Writes Ia, II (pps) if the pointers are not NULL. */
+int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, ps_real gs1,
+                    ps_real h, ps_real theta, ps_real *ia, ps_real *ii);
+
+/* Ia and II (pps) of the state: spindle.afferents. */
+void ps_spindle_afferents(const ps_spindle *s, const ps_params *p, ps_real *ia, ps_real *ii);
+
+/* ---- spindle section: further declarations go below this line (spindle.c owner) ---- */
+
+
+/* ---- end of spindle section ---- */
+
+
+/* ======================================================================================
+ * (3) Chain (chain.c) -- spindle/chain.py, spindle/sensor.py, spindle/derivatives.py,
+ *     spindle/fusimotor.py, spindle/length_fits.py for one arm (BRA, TRImed).
+ * ====================================================================================== */
+
+/* ---- chain section: declarations go below this line (chain.c owner) ---- */
+
+
+/* ---- end of chain section ---- */
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* PROPRIO_H */
