@@ -296,6 +296,29 @@ class ArmChain:
         angle = self._angle if angle_deg is None or not np.isfinite(angle_deg) else angle_deg
         return self._length_stage(float(t_s), L, float(angle), -1.0, -1.0)
 
+    # -- blocks: many samples per call (an env step, a sensor buffer) ---------------------
+    def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray) -> ArmSample:
+        """Push readings ``counts`` (k,) taken at ``t_s`` (k,) in order; return the last output.
+
+        Exactly ``push_counts`` sample by sample (counters included); a backend may do it in
+        one call.
+        """
+        for t, x in zip(*_block("counts", t_s, counts, ()), strict=True):
+            self.push_counts(t, x)
+        return self.last
+
+    def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray) -> ArmSample:
+        """``push_angle`` over (k,) times and angles; return the last output."""
+        for t, x in zip(*_block("angle_deg", t_s, angle_deg, ()), strict=True):
+            self.push_angle(t, x)
+        return self.last
+
+    def push_lengths_block(self, t_s: np.ndarray, length_L0: np.ndarray) -> ArmSample:
+        """``push_lengths`` over (k,) times and (k, 2) lengths; return the last output."""
+        for t, x in zip(*_block("length_L0", t_s, length_L0, (2,)), strict=True):
+            self.push_lengths(t, x)
+        return self.last
+
     # -- stages ----------------------------------------------------------------------------
     def _angle_stage(self, t: float, angle: float, counts: float, filtered: float) -> ArmSample:
         limit = self.config.max_speed_deg_s * (t - self._t)
@@ -497,3 +520,13 @@ def _first_valid(t, signal, is_counts, is_lengths, chain) -> int:
         if ok:
             return i
     raise ValueError("the trace holds no valid sample to start from")
+
+
+def _block(name: str, t_s: np.ndarray, signal: np.ndarray,
+           sample_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(signal, dtype=float)
+    if t.ndim != 1 or x.shape != (t.size, *sample_shape):
+        raise ValueError(f"{name} has shape {x.shape} and t_s {t.shape}; expected "
+                         f"{(t.size, *sample_shape)} for (k,) times")
+    return t, x

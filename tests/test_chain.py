@@ -380,3 +380,20 @@ def test_pushing_before_reset_and_bad_batches_raise():
         run_chain(np.arange(3.0), counts=np.zeros(3), angle_deg=np.zeros(3))
     with pytest.raises(ValueError, match="no valid sample"):
         run_chain(np.arange(3.0), counts=np.full(3, -1))
+
+
+def test_block_pushes_equal_single_pushes():
+    rng = np.random.default_rng(7)
+    t = 0.002 * np.arange(1, 60)
+    counts = np.round(500 + 40 * np.sin(8 * t) + rng.normal(0, 0.6, t.size))
+    counts[[5, 17]] = [-1, 2000]
+    one, block = ArmChain(), ArmChain()
+    for chain in (one, block):
+        chain.reset(angle_deg=float(Calibration().angle_deg(counts[0])), t_s=0.0)
+    for ti, ci in zip(t, counts, strict=True):
+        last = one.push_counts(ti, ci)
+    got = block.push_counts_block(t, counts)
+    assert one.counters == block.counters and one.counters["invalid_reading"] == 2
+    np.testing.assert_array_equal(got.ia_pps, last.ia_pps)
+    with pytest.raises(ValueError, match="expected"):
+        block.push_lengths_block(t, np.ones((t.size, 3)))
