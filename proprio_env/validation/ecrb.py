@@ -33,6 +33,9 @@ from spindle.fusimotor import Fusimotor
 from spindle.length_fits import models_dir
 
 TABLE_FILENAME = "wrist_ecrb.csv"
+SHARED_REFERENCE = (Path(__file__).resolve().parents[3] / "shared" / "reference" / "opensim"
+                    / "wrist_ECRB.csv")
+"""The independent OpenSim output (``../shared`` beside the repository; never committed)."""
 LENGTH_COLUMN = "ECRB_norm_fiber_length"
 SAMPLE_RATE_HZ = 1000.0
 CORNER_S = 0.05
@@ -94,6 +97,16 @@ class EcrbCurve:
         s2 = s * s
         return ((6 * s2 - 6 * s) * (y0 - y1) + (3 * s2 - 4 * s + 1) * m0
                 + (3 * s2 - 2 * s) * m1) / h
+
+
+def compare_with_reference(curve: EcrbCurve, reference: dict[str, np.ndarray]) -> float:
+    """Largest |curve - reference| (L0) at the reference's angles inside the curve's range."""
+    a = reference["wrist_flexion_deg"]
+    lo, hi = curve.range_deg
+    inside = (a >= lo) & (a <= hi)
+    if not inside.any():
+        raise ValueError("the reference has no angle inside the curve's range")
+    return float(np.abs(curve.length_L0(a[inside]) - reference[LENGTH_COLUMN][inside]).max())
 
 
 @dataclass(frozen=True)
