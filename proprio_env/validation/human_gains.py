@@ -213,8 +213,8 @@ def plot(result: GainResult, path: Path) -> Path:
                         color=colors[muscle],
                         lw=0.8, label=f"{muscle} fusimotor model")
             worst = max(result.value("HUMAN", "motion", "swing", m, a) for m in MUSCLES)
-            ax.set_title(f"demo motion, HUMAN: envelope over the settings (largest swing "
-                         f"{worst:.1f} pps)", fontsize=9)
+            ax.set_title(f"demo motion, HUMAN: range over the settings (largest swing "
+                         f"{worst:.1f})", fontsize=9)
             ax.set_ylabel(f"{a.upper()} (pps)")
             ax.set_xlabel("time (s)")
             ax.legend(fontsize=7, ncol=2)
