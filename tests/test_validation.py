@@ -110,6 +110,21 @@ def test_ecrb_protocols_move_as_documented_and_the_human_spindle_answers_stretch
     assert 20 <= run.gamma_static_pps.min() and run.gamma_static_pps.max() <= 150
 
 
+def test_bad_protocols_and_settings_are_refused_with_the_value_named():
+    with pytest.raises(ValueError, match="speed_deg_s=0"):
+        ecrb.Protocol("x", "ramp", speed_deg_s=0.0)
+    with pytest.raises(ValueError, match="freq_hz=-1"):
+        ecrb.Protocol("x", "sine", freq_hz=-1.0)
+    with pytest.raises(ValueError, match="kind='step'"):
+        ecrb.Protocol("x", "step", speed_deg_s=10.0)
+    with pytest.raises(ValueError, match="low_deg < high_deg"):
+        ecrb.Protocol("x", "ramp", low_deg=30.0, high_deg=-30.0, speed_deg_s=10.0)
+    with pytest.raises(ValueError, match="outside the table"):
+        ecrb.run_protocol(ecrb.Protocol("x", "sine", low_deg=-80, high_deg=0, freq_hz=1.0))
+    with pytest.raises(ValueError, match="angle_step_deg=0"):
+        human_gains.run_human_gains(duration_s=0.0, angle_step_deg=0.0)
+
+
 # -- one command ---------------------------------------------------------------------------------
 
 def test_validate_script_runs_end_to_end_in_reduced_mode(tmp_path):

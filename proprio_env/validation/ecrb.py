@@ -126,6 +126,24 @@ class Protocol:
     hold_s: float = 2.0
     rest_s: float = 1.0
 
+    def __post_init__(self) -> None:
+        if self.kind not in ("ramp", "sine"):
+            raise ValueError(f"kind={self.kind!r} must be 'ramp' or 'sine'")
+        if not (np.isfinite(self.low_deg) and np.isfinite(self.high_deg)
+                and self.high_deg > self.low_deg):
+            raise ValueError(f"need finite low_deg < high_deg, got {self.low_deg!r}, "
+                             f"{self.high_deg!r}")
+        if self.kind == "ramp" and not (np.isfinite(self.speed_deg_s) and self.speed_deg_s > 0):
+            raise ValueError(f"speed_deg_s={self.speed_deg_s!r} must be finite and > 0")
+        if self.kind == "sine" and not (np.isfinite(self.freq_hz) and self.freq_hz > 0
+                                        and self.cycles >= 1):
+            raise ValueError(f"freq_hz={self.freq_hz!r} must be > 0 and cycles="
+                             f"{self.cycles!r} >= 1")
+        for name in ("hold_s", "rest_s"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name}={value!r} must be finite and > 0")
+
     def angle_deg(self) -> tuple[np.ndarray, np.ndarray]:
         """(t_s, wrist flexion deg) at :data:`SAMPLE_RATE_HZ`."""
         dt = 1.0 / SAMPLE_RATE_HZ
@@ -140,13 +158,11 @@ class Protocol:
             k = max(1, round(CORNER_S / dt))
             padded = np.pad(a, (k, k), mode="edge")
             return t, np.convolve(padded, np.ones(k) / k, mode="same")[k:-k]
-        if self.kind == "sine":
-            move = self.cycles / self.freq_hz
-            t = np.arange(0.0, 2 * self.rest_s + move + dt / 2, dt)
-            phase = np.clip(t - self.rest_s, 0.0, move)
-            centre = 0.5 * (self.high_deg + self.low_deg)
-            return t, centre + 0.5 * span * np.sin(2 * math.pi * self.freq_hz * phase)
-        raise ValueError(f"kind={self.kind!r} must be 'ramp' or 'sine'")
+        move = self.cycles / self.freq_hz
+        t = np.arange(0.0, 2 * self.rest_s + move + dt / 2, dt)
+        phase = np.clip(t - self.rest_s, 0.0, move)
+        centre = 0.5 * (self.high_deg + self.low_deg)
+        return t, centre + 0.5 * span * np.sin(2 * math.pi * self.freq_hz * phase)
 
     @property
     def peak_speed_deg_s(self) -> float:

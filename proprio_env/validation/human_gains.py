@@ -115,6 +115,10 @@ def demo_motion(duration_s: float) -> tuple[np.ndarray, np.ndarray]:
 def run_human_gains(duration_s: float = 6.0, angle_step_deg: float = 1.0,
                     motion: tuple[np.ndarray, np.ndarray] | None = None) -> GainResult:
     """Static sweep and demo motion for HUMAN and CAT (``duration_s`` <= 0: static only)."""
+    if not (np.isfinite(angle_step_deg) and angle_step_deg > 0):
+        raise ValueError(f"angle_step_deg={angle_step_deg!r} must be finite and > 0")
+    if not np.isfinite(duration_s):
+        raise ValueError(f"duration_s={duration_s!r} must be finite")
     gs, gd = fusimotor_settings()
     gs_all, gd_all = np.append(gs, 0.0), np.append(gd, 0.0)
     fits = spindle.load_length_fits()
