@@ -135,7 +135,7 @@ def run_steps(steps: Sequence[Step], out_dir: Path, quick: bool = False,
         with log.open("w") as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
             try:
                 summaries[step.name] = step.run(step_dir, quick)
-            except BaseException as exc:
+            except Exception as exc:
                 raise RuntimeError(f"validation step {step.name!r} failed ({exc!r}); "
                                    f"see {log}") from exc
         for png in step_dir.glob("*.png"):
