@@ -326,9 +326,10 @@ def test_errors_are_clear_and_leave_the_chain_unchanged():
 
 
 # -- the float build ----------------------------------------------------------------------------
-FLOAT_TOL = {"angle_deg": 1e-3, "length_L0": 1e-5, "velocity_L0_s": 1e-3, "template_L0": 1e-5,
-             "gamma_static_pps": 5e-3, "ia_pps": 0.05, "ii_pps": 0.05}
-"""Measured float-vs-double deviation bounds (docs/c_chain.md quotes the measured values)."""
+FLOAT_TOL = {"angle_deg": 1e-4, "length_L0": 2e-6, "velocity_L0_s": 1e-4, "template_L0": 2e-6,
+             "gamma_static_pps": 5e-4, "ia_pps": 0.01, "ii_pps": 0.005}
+"""Float-vs-double bounds: about 5x the largest deviation measured on 3 s encoder traces
+(docs/c_chain.md: Ia 0.0016 pps, II 0.0008 pps, length 4e-7 L0)."""
 
 
 def float_deviation(duration_s=2.0, seed=0):

@@ -15,6 +15,7 @@
  */
 #include "proprio.h"
 
+#include <float.h>
 #include <math.h>
 #include <stddef.h>
 
@@ -318,7 +319,8 @@ static int config_ok(const ps_chain_config *cfg)
             }
         }
     }
-    if (!(is_finite((double)cfg->fit_lo_rad) && is_finite((double)cfg->fit_hi_rad)
+    /* An elbow range in rad: bounded, so its conversion to degrees cannot overflow. */
+    if (!(cfg->fit_lo_rad >= -2 * PS_PI && cfg->fit_hi_rad <= 2 * PS_PI
           && cfg->fit_lo_rad < cfg->fit_hi_rad)) {
         return 0;
     }
@@ -335,7 +337,7 @@ static int config_ok(const ps_chain_config *cfg)
           && cfg->delay_s >= 0 && is_finite(cfg->delay_s)
           && cfg->shortening_threshold_L0 >= 0
           && is_finite((double)cfg->shortening_threshold_L0)
-          && cfg->predictor_rate_hz > 0 && is_finite((double)cfg->predictor_rate_hz))) {
+          && cfg->predictor_rate_hz >= 1e-3 && cfg->predictor_rate_hz <= 1e6)) {
         return 0;
     }
     /* FusimotorParams' stability condition (Jury's test of the discrete PI loop). */
@@ -352,7 +354,7 @@ static int config_ok(const ps_chain_config *cfg)
     if (keep < 2 || keep > PS_PREDICTOR_MAX_SEGMENTS) {
         return 0;
     }
-    if (!(cfg->theta >= 0 && cfg->theta <= 1 && cfg->step_s > 0 && is_finite(cfg->step_s))) {
+    if (!(cfg->theta >= 0 && cfg->theta <= 1 && cfg->step_s > 0 && cfg->step_s <= 1)) {
         return 0;
     }
     return 1;
@@ -430,7 +432,7 @@ int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_rea
                    ps_arm_sample *out)
 {
     ps_chain_state st;
-    ps_real L[PS_MUSCLES], gs[PS_MUSCLES], gd[PS_MUSCLES];
+    ps_real L[PS_MUSCLES], gs[PS_MUSCLES], gd[PS_MUSCLES], rest_counts;
     ps_chain_counters zero = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
     int k, status;
     if (c == NULL) {
@@ -461,9 +463,17 @@ int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_rea
             L[k] = length_L0[k];
         }
     }
-    status = ps_median_reset(&st.median, c->config.median_window,
-                             c->config.zero_count
-                                 + c->config.count_sign * angle_deg / c->config.deg_per_count);
+    /* The filter starts on the reading at that angle. Clamped to the encoder's range: with
+     * exact lengths the angle is only recorded and may lie anywhere, and a reading no
+     * encoder can give (or an infinite one) must not reach the median's output. */
+    rest_counts = c->config.zero_count + c->config.count_sign * angle_deg / c->config.deg_per_count;
+    if (!(rest_counts >= 0)) {
+        rest_counts = 0;
+    }
+    if (rest_counts > c->config.max_count) {
+        rest_counts = c->config.max_count;
+    }
+    status = ps_median_reset(&st.median, c->config.median_window, rest_counts);
     if (status != PS_OK) {
         return status;
     }
@@ -548,6 +558,13 @@ static int time_ok(ps_chain_state *st, ps_time t)
         st->counters.time_backwards += 1;
         return 0;
     }
+#ifdef PS_FLOAT
+    /* An interval below float's normal range would become a zero or denormal step. */
+    if (t - st->t_s < (double)FLT_MIN) {
+        st->counters.repeated_time += 1;
+        return 0;
+    }
+#endif
     return 1;
 }
 
@@ -600,6 +617,13 @@ static int advance_spindles(const ps_arm_chain *c, ps_chain_state *st, const ps_
     return PS_OK;
 }
 
+/* 1 if the interval to t needs at most PS_CHAIN_MAX_UPDATES spindle sub-steps: checked
+ * before any use of it, so a corrupt huge time never reaches a conversion or a loop. */
+static int interval_ok(const ps_arm_chain *c, const ps_chain_state *st, ps_time t)
+{
+    return (t - st->t_s) / c->config.step_s <= (double)PS_CHAIN_MAX_UPDATES;
+}
+
 /* ArmChain._length_stage on a working copy of the state. */
 static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
                         const ps_real *L_given, ps_real angle, ps_real counts,
@@ -607,13 +631,17 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
 {
     const ps_chain_config *cfg = &c->config;
     ps_time dt_time = t - st->t_s;
-    ps_real dt = (ps_real)dt_time;
-    ps_real limit = cfg->max_speed_L0_s * dt;
+    ps_real dt, limit;
     ps_real L_in[PS_MUSCLES], change[PS_MUSCLES], x1[PS_MUSCLES], v1[PS_MUSCLES],
         a1[PS_MUSCLES], tmpl[PS_MUSCLES], gs[PS_MUSCLES], gd[PS_MUSCLES], ia[PS_MUSCLES],
         ii[PS_MUSCLES];
     const ps_real *template_in;
     int k, limited = 0, status;
+    if (!interval_ok(c, st, t)) {
+        return PS_ERR_INTERVAL;
+    }
+    dt = (ps_real)dt_time;
+    limit = cfg->max_speed_L0_s * dt;
     if (dt_time > cfg->gap_s) {
         st->counters.gaps += 1;
     }
@@ -681,8 +709,11 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
 static int angle_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real angle,
                        ps_real counts, ps_real filtered)
 {
-    ps_real limit = c->config.max_speed_deg_s * (ps_real)(t - st->t_s);
-    ps_real L[PS_MUSCLES];
+    ps_real limit, L[PS_MUSCLES];
+    if (!interval_ok(c, st, t)) {
+        return PS_ERR_INTERVAL;
+    }
+    limit = c->config.max_speed_deg_s * (ps_real)(t - st->t_s);
     if (fabs((double)(angle - st->angle_deg)) > (double)limit) {
         st->counters.slew_limited += 1;
         angle = st->angle_deg + (angle - st->angle_deg < 0 ? -limit : limit);
