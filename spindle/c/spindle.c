@@ -58,10 +58,12 @@ static ps_real activation_target(ps_real drive, ps_real freq, ps_real p, int p_i
     ps_real gp;
     if (p_is_2) {
         gp = drive * drive;
-        return gp / (gp + freq * freq);
+    } else {
+        gp = ps_pow(drive, p);
     }
-    gp = ps_pow(drive, p);
-    return gp / (gp + ps_pow(freq, p));
+    /* A drive so large that g^p overflows is saturated (numpy would give inf/inf = NaN). */
+    if (!is_finite(gp)) return R_(1);
+    return p_is_2 ? gp / (gp + freq * freq) : gp / (gp + ps_pow(freq, p));
 }
 
 static int all_equal(const ps_real x[PS_NFIBRES], ps_real value)
@@ -279,7 +281,9 @@ int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, 
             T1[i] = A - th_h * KSR * v1[i];
             z1[i] = z;
         }
-        if (!is_finite(T1[i]) || !is_finite(v1[i])) return PS_ERR_NONFINITE;
+        if (!is_finite(T1[i]) || !is_finite(v1[i]) || !is_finite(z1[i]) || !is_finite(f1[i])) {
+            return PS_ERR_NONFINITE;
+        }
     }
     for (i = 0; i < PS_NFIBRES; ++i) {
         s->T[i] = T1[i];
