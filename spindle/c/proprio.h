@@ -86,6 +86,20 @@ void ps_spindle_afferents(const ps_spindle *s, const ps_params *p, ps_real *ia, 
 
 /* ---- spindle section: further declarations go below this line (spindle.c owner) ---- */
 
+/* PS_OK if every constant of p is finite and KSR, M, freq, p, CL, CS > 0, 0 < a < 1,
+ * tau >= 0 (the checks of spindle.FibreParams); PS_ERR_CONFIG otherwise. The step functions
+ * assume valid constants (bad ones give a status or non-finite rates, never UB). */
+int ps_params_check(const ps_params *p);
+
+/* n_steps steps of h seconds through L[j], gd[j], gs[j] (j = 0 .. n_steps-1, the values at
+ * the end of step j): ps_spindle_step in a loop. After every `every`-th step (every >= 1)
+ * the rates are written to ia[k], ii[k], k = (j+1)/every - 1 (NULL outputs are skipped).
+ * Stops at the first failing step and returns its status; *done (if not NULL) receives the
+ * number of steps completed, and the state is the one after the last of them. */
+int ps_spindle_run(ps_spindle *s, const ps_params *p, const ps_real *L, const ps_real *gd,
+                   const ps_real *gs, long n_steps, ps_real h, ps_real theta, long every,
+                   ps_real *ia, ps_real *ii, long *done);
+
 
 /* ---- end of spindle section ---- */
 
