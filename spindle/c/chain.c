@@ -56,9 +56,13 @@ int ps_median_reset(ps_median *m, int window, ps_real value)
 ps_real ps_median_push(ps_median *m, ps_real value)
 {
     ps_real sorted[PS_MEDIAN_MAX_WINDOW];
-    int i, j, n = m->window;
+    int i, j, n;
+    if (m == NULL) {
+        return value;
+    }
+    n = m->window;
     if (n < 1 || n > PS_MEDIAN_MAX_WINDOW || m->next < 0 || m->next >= n) {
-        return value; /* a never-reset filter: behave as a window of one */
+        return value; /* a filter never reset: behave as a window of one */
     }
     m->values[m->next] = value;
     m->next = (m->next + 1) % n;

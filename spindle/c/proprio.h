@@ -137,7 +137,7 @@ typedef struct ps_median {
 
 /* Fill the window with `value` (a signal at rest). PS_ERR_CONFIG for a bad window. */
 int ps_median_reset(ps_median *m, int window, ps_real value);
-/* Add one sample (must be finite: the chain validates first); returns the median. */
+/* Add one sample; returns the median (the sample itself if m is NULL or never reset). */
 ps_real ps_median_push(ps_median *m, ps_real value);
 
 /* is_valid_reading: 1 for an integer reading in 0..max_count, else 0 (NaN included). */

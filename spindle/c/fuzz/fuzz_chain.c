@@ -154,6 +154,7 @@ int main(int argc, char **argv)
     ps_time t = 0, times[24];
     ps_real counts = 512, values[48], L[PS_MUSCLES], angle;
     long it, iterations, n_done, statuses[PS_ERR_INTERVAL + 1] = {0};
+    unsigned long accepted_total = 0;
     int status, i, n;
     FILE *f;
 
@@ -196,7 +197,26 @@ int main(int argc, char **argv)
     for (it = 0; it < iterations; ++it) {
         int op = below(100);
         memcpy(&before, &chain, sizeof chain);
-        if (op < 2) { /* a corrupted configuration */
+        if (op < 1) { /* the stages on their own */
+            ps_median m;
+            ps_real coef[PS_FIT_MAX_COEFFS], x1, v1, a1;
+            memset(&m, 0, sizeof m);
+            (void)ps_median_push(&m, extreme()); /* never reset */
+            (void)ps_median_push(NULL, extreme());
+            status = ps_median_reset(&m, below(20) - 2, extreme());
+            for (i = 0; i < 20; ++i) {
+                (void)ps_median_push(&m, extreme());
+            }
+            for (i = 0; i < PS_FIT_MAX_COEFFS; ++i) {
+                coef[i] = below(4) ? (ps_real)uniform() : extreme();
+            }
+            (void)ps_chebval(extreme(), below(8) ? coef : NULL, below(PS_FIT_MAX_COEFFS + 3) - 2);
+            (void)ps_is_valid_reading(extreme(), extreme());
+            ps_tracking_step(extreme(), extreme(), extreme(), extreme(), extreme(), extreme(),
+                             below(2) ? &x1 : NULL, &v1, below(2) ? &a1 : NULL);
+            (void)ps_chain_length_L0(&chain, extreme(), L);
+            (void)ps_chain_length_L0(&chain, 1, NULL);
+        } else if (op < 2) { /* a corrupted configuration */
             bad = good;
             corrupt(&bad);
             status = ps_chain_init(&scratch, &bad);
@@ -266,6 +286,9 @@ int main(int argc, char **argv)
             && memcmp(&before.state, &chain.state, sizeof chain.state) != 0) {
             fail("a failing push changed the chain", it);
         }
+        if (op >= 9 && chain.stage == 2 && before.stage == 2) {
+            accepted_total += chain.state.counters.accepted - before.state.counters.accepted;
+        }
         if (chain.stage == 2) {
             t = chain.state.t_s;
             if (!sample_finite(&chain.state.last)) {
@@ -277,6 +300,6 @@ int main(int argc, char **argv)
     for (i = 0; i <= PS_ERR_INTERVAL; ++i) {
         printf(" %d:%ld", i, statuses[i]);
     }
-    printf(", accepted %lu\n", chain.state.counters.accepted);
+    printf(", accepted samples %lu\n", accepted_total);
     return failures == 0 ? 0 : 1;
 }
