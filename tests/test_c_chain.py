@@ -25,7 +25,7 @@ try:
 except cbuild.CBackendError:  # pragma: no cover - CI has a compiler
     pytest.skip("no C compiler: the C backend cannot be built", allow_module_level=True)
 
-from spindle import cchain  # noqa: E402
+from spindle import cchain
 
 TOL = 1e-6
 C = ChainConfig(backend="c")
@@ -75,7 +75,7 @@ def test_backend_c_builds_a_c_chain_with_the_numpy_chains_ranges():
 def test_missing_compiler_is_a_clear_error(monkeypatch, tmp_path):
     monkeypatch.setenv("CC", "/nonexistent/cc")
     monkeypatch.setenv("PROPRIO_C_CACHE", str(tmp_path))
-    with pytest.raises(cbuild.CBackendError, match="no C compiler.*backend='numpy'"):
+    with pytest.raises(cbuild.CBackendError, match=r"no C compiler.*backend='numpy'"):
         cbuild.library_path("double")
 
 
