@@ -351,3 +351,50 @@ def test_float_build_stays_within_its_documented_tolerance():
     assert gd_flips == 0  # g(x)'s threshold decision is the same at every sample
     for name, tol in FLOAT_TOL.items():
         assert dev[name] <= tol, (name, dev[name])
+
+
+# -- the C-only path a microcontroller build takes -----------------------------------------------
+DEVICE_MAIN = r"""
+#include <stdio.h>
+#include "proprio.h"
+extern const ps_chain_config proprio_chain_config;
+int main(void) {
+    static ps_arm_chain chain; /* static: no large stack frame, as on a device */
+    ps_arm_sample out;
+    double t, counts, angle0;
+    if (ps_chain_init(&chain, &proprio_chain_config) != PS_OK) return 3;
+    if (scanf("%lf %lf", &t, &angle0) != 2) return 4;
+    if (ps_chain_reset(&chain, (ps_real)angle0, t, NULL, &out) != PS_OK) return 5;
+    while (scanf("%lf %lf", &t, &counts) == 2) {
+        if (ps_chain_push_counts(&chain, t, (ps_real)counts, &out) != PS_OK) return 6;
+        printf("%d %.17g %.17g %.17g %.17g\n", out.accepted, (double)out.ia_pps[0],
+               (double)out.ia_pps[1], (double)out.ii_pps[0], (double)out.ii_pps[1]);
+    }
+    return 0;
+}
+"""
+
+
+@pytest.mark.parametrize("variant", cbuild.VARIANTS)
+def test_generated_config_source_runs_the_chain_in_plain_c(tmp_path, variant):
+    """config_c_source + spindle/c/*.c + a main reading counts: the numpy chain's rates."""
+    (tmp_path / "config.c").write_text(cchain.config_c_source())
+    (tmp_path / "main.c").write_text(DEVICE_MAIN)
+    exe = tmp_path / "device"
+    flags = ["-DPS_FLOAT"] if variant == "float" else []
+    subprocess.run([cbuild.find_compiler(), *cbuild.WARNING_FLAGS, "-O2", *flags, "-I",
+                    str(cbuild.SOURCE_DIR), *map(str, cbuild.sources()),
+                    str(tmp_path / "config.c"), str(tmp_path / "main.c"), "-o", str(exe), "-lm"],
+                   check=True)
+    t_s, counts = encoder_trace(1.0, seed=2)
+    angle0 = float(ChainConfig().calibration.angle_deg(counts[0]))
+    stdin = f"{float(t_s[0])!r} {angle0!r}\n" + "".join(
+        f"{float(t)!r} {int(x)}\n" for t, x in zip(t_s[1:], counts[1:], strict=True))
+    result = subprocess.run([str(exe)], input=stdin, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    got = np.loadtxt(result.stdout.splitlines())
+    ref = run_chain(t_s, counts=counts)
+    np.testing.assert_array_equal(got[:, 0], ref.accepted[1:])
+    tol = TOL if variant == "double" else FLOAT_TOL["ia_pps"]
+    np.testing.assert_allclose(got[:, 1:3], ref.ia_pps[1:], rtol=0, atol=tol)
+    np.testing.assert_allclose(got[:, 3:5], ref.ii_pps[1:], rtol=0, atol=tol)
