@@ -108,6 +108,22 @@ def structs(variant: str = "double") -> dict[str, type]:
 
 
 @cache
+def sample_dtype(variant: str = "double") -> np.dtype:
+    """A numpy structured dtype laid out as ``ps_arm_sample`` (an array of them is a table)."""
+    cls = structs(variant)["PsArmSample"]
+    real = np.float32 if variant == "float" else np.float64
+    kinds = {"t_s": (np.float64, ()), "accepted": (np.intc, ())}
+    names, formats, offsets = [], [], []
+    for name, _ in cls._fields_:
+        base, shape = kinds.get(name, (real, (2,) if name in PER_MUSCLE else ()))
+        names.append(name)
+        formats.append((base, shape) if shape else base)
+        offsets.append(getattr(cls, name).offset)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                     "itemsize": ctypes.sizeof(cls)})
+
+
+@cache
 def library(variant: str = "double") -> ctypes.CDLL:
     """The built library with the chain's prototypes declared."""
     lib = cbuild.load(variant)
@@ -130,8 +146,10 @@ def library(variant: str = "double") -> ctypes.CDLL:
         "ps_chain_push_angle_block": [chain_p, ctypes.c_long, ctypes.c_void_p,
                                         ctypes.c_void_p, sample_p, long_p],
         "ps_chain_push_lengths_block": [chain_p, ctypes.c_long, ctypes.c_void_p,
-                                        ctypes.c_void_p, sample_p,
-                                        long_p],
+                                        ctypes.c_void_p, sample_p, long_p],
+        **{f"ps_chain_run_{kind}": [chain_p, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p,
+                                    ctypes.c_void_p, ctypes.c_void_p, long_p]
+           for kind in ("counts", "angle", "lengths")},
     }
     for name, argtypes in protos.items():
         fn = getattr(lib, name)
@@ -320,6 +338,45 @@ class CArmChain(ArmChain):
         return self._block(self._lib.ps_chain_push_lengths_block, "length_L0", t_s, length_L0,
                            (2,))
 
+    def run_trace(self, push: str, t_s: np.ndarray, signal: np.ndarray,
+                  intended_angle_deg: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Push a whole trace in one C call; every output stacked (for :func:`run_chain`).
+
+        ``push`` names the entry point (``"push_counts"``, ``"push_angle"``,
+        ``"push_lengths"``); ``intended_angle_deg`` (k,) sets the switch before each sample
+        (NaN: the measured motion), as :func:`run_chain` does. Returns the fields of
+        :class:`ArmSample` stacked over the k samples (rejected ones included).
+        """
+        kind = push.removeprefix("push_")
+        shape = (2,) if kind == "lengths" else ()
+        t, x = _block(kind, t_s, signal, shape)
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        x = np.ascontiguousarray(x, dtype=self._np_real)
+        intended = None
+        if intended_angle_deg is not None:
+            intended = np.ascontiguousarray(intended_angle_deg, dtype=self._np_real)
+            if intended.shape != t.shape:
+                raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected "
+                                 f"{t.shape}")
+        samples = (self._structs["PsArmSample"] * t.size)()
+        fn = getattr(self._lib, f"ps_chain_run_{kind}")
+        status = fn(self._chain_p, t.size, t.__array_interface__["data"][0],
+                    x.__array_interface__["data"][0],
+                    None if intended is None else intended.__array_interface__["data"][0],
+                    ctypes.addressof(samples), self._n_done_p)
+        done = self._n_done.value
+        if self._last is not None:
+            self._last = self._sample_from(self._chain.state.last)
+        if status != PS_OK:
+            if intended is not None and status == 2:  # PS_ERR_NONFINITE: the switch's input
+                raise ValueError(f"intended_angle_deg={float(intended[done])!r} must be "
+                                 "finite (NaN selects the measured motion)")
+            self._check(status, "push", float(t[done]))
+        table = np.frombuffer(samples, dtype=sample_dtype(self.variant), count=t.size)
+        out = {name: table[name].astype(float) for name in SAMPLE_FIELDS}
+        out["accepted"] = table["accepted"] != 0
+        return out
+
     # -- plumbing ----------------------------------------------------------------------------
     def _block(self, fn, name, t_s, signal, sample_shape) -> ArmSample:
         t, x = _block(name, t_s, signal, sample_shape)
@@ -361,13 +418,19 @@ class CArmChain(ArmChain):
         raise ValueError(f"the C chain refused the {what} ({STATUS.get(status, status)})")
 
     def _sample_out(self, accepted: bool) -> ArmSample:
-        s = self._sample
+        return self._sample_from(self._sample, accepted, self._rows)
+
+    def _sample_from(self, s: ctypes.Structure, accepted: bool = True,
+                     rows: np.ndarray | None = None) -> ArmSample:
+        if rows is None:
+            rows = np.frombuffer(s, dtype=self._np_real, count=2 * len(PER_MUSCLE),
+                                 offset=type(s).length_L0.offset).reshape(-1, 2)
         out = object.__new__(ArmSample)
         # What ArmSample's frozen __init__ does, without its per-field object.__setattr__
         # (4 us, as much as the C work of a 10-sample block).
         out.__dict__.update(zip(SAMPLE_FIELDS, (
             float(s.t_s), accepted, float(s.counts), float(s.counts_filtered),
-            float(s.angle_deg), *self._rows.astype(float)), strict=True))
+            float(s.angle_deg), *rows.astype(float)), strict=True))
         return out
 
 

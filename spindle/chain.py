@@ -510,14 +510,24 @@ def run_chain(
         lo, hi = chain.angle_range_deg
         chain.reset(0.5 * (lo + hi), t[start], length_L0=signal[start])
         push = chain.push_lengths
-    samples = [chain.last] * (start + 1)
-    for i in range(start + 1, t.size):
-        if intended is not None:
-            chain.set_intended_angle(None if np.isnan(intended[i]) else intended[i])
-        samples.append(push(t[i], signal[i]))
-    stacked = {
-        f.name: np.array([getattr(s, f.name) for s in samples]) for f in fields(ArmSample)
-    }
+    run_trace = getattr(chain, "run_trace", None)
+    if run_trace is not None:  # a backend that runs the whole trace in one call
+        first = chain.last
+        rest = run_trace(push.__name__, t[start + 1:], signal[start + 1:],
+                         None if intended is None else intended[start + 1:])
+        stacked = {
+            f.name: np.concatenate([np.array([getattr(first, f.name)] * (start + 1)),
+                                    rest[f.name]]) for f in fields(ArmSample)
+        }
+    else:
+        samples = [chain.last] * (start + 1)
+        for i in range(start + 1, t.size):
+            if intended is not None:
+                chain.set_intended_angle(None if np.isnan(intended[i]) else intended[i])
+            samples.append(push(t[i], signal[i]))
+        stacked = {
+            f.name: np.array([getattr(s, f.name) for s in samples]) for f in fields(ArmSample)
+        }
     stacked["accepted"][:start] = False
     return ChainTrace(**stacked, counters=dict(chain.counters))
 

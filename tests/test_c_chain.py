@@ -398,3 +398,49 @@ def test_generated_config_source_runs_the_chain_in_plain_c(tmp_path, variant):
     tol = TOL if variant == "double" else FLOAT_TOL["ia_pps"]
     np.testing.assert_allclose(got[:, 1:3], ref.ia_pps[1:], rtol=0, atol=tol)
     np.testing.assert_allclose(got[:, 3:5], ref.ii_pps[1:], rtol=0, atol=tol)
+
+
+def test_run_chain_in_one_c_call_with_the_switch_and_a_bad_start_matches_numpy():
+    t, angle = triangle(1.2, dt=2e-3)
+    angle = angle.copy()
+    angle[:3] = math.nan  # the chain starts at the first valid sample
+    angle[200] = math.inf
+    intended = np.full(t.size, math.nan)
+    intended[100:300] = 120.0
+    intended[350:360] = -30.0  # clamped
+    t = t.copy()
+    t[250] = t[249]
+    ref = run_chain(t, angle_deg=angle, intended_angle_deg=intended)
+    got = run_chain(t, angle_deg=angle, intended_angle_deg=intended, config=C)
+    assert got.counters == ref.counters and ref.counters["invalid_angle"] == 1
+    for name, a in ref.columns().items():
+        assert np.max(np.abs(a.astype(float) - got.columns()[name].astype(float))) <= TOL, name
+    # the switch moved the template: gamma_s differs from the measured-motion run
+    plain = run_chain(t, angle_deg=angle, config=C)
+    assert np.max(np.abs(plain.template_L0 - got.template_L0)) > 0.05
+    # lengths too
+    L = load_length_fits().length_L0(np.radians(np.nan_to_num(angle, nan=40.0, posinf=40.0)))
+    ref = run_chain(t, length_L0=L, intended_angle_deg=intended)
+    got = run_chain(t, length_L0=L, intended_angle_deg=intended, config=C)
+    assert got.counters == ref.counters
+    for name, a in ref.columns().items():
+        assert np.max(np.abs(a.astype(float) - got.columns()[name].astype(float))) <= TOL, name
+    intended[400] = math.inf
+    for config in (ChainConfig(), C):
+        with pytest.raises(ValueError, match="finite"):
+            run_chain(t, angle_deg=angle, intended_angle_deg=intended, config=config)
+
+
+def test_run_trace_equals_single_pushes_bit_for_bit():
+    t_s, counts = encoder_trace(0.5, seed=4, invalid_rate=0.05)
+    angle0 = float(ChainConfig().calibration.angle_deg(counts[0]))
+    single, whole = ArmChain(C), ArmChain(C)
+    single.reset(angle0, t_s[0])
+    whole.reset(angle0, t_s[0])
+    outs = [single.push_counts(t, x) for t, x in zip(t_s[1:], counts[1:], strict=True)]
+    table = whole.run_trace("push_counts", t_s[1:], counts[1:])
+    for f in fields(ArmSample):
+        np.testing.assert_array_equal(table[f.name], [getattr(o, f.name) for o in outs])
+    assert whole.counters == single.counters
+    assert all(np.array_equal(getattr(whole.last, f.name), getattr(single.last, f.name))
+               for f in fields(ArmSample))

@@ -852,3 +852,59 @@ int ps_chain_push_lengths_block(ps_arm_chain *c, long n, const ps_time *t_s,
 {
     return push_block(c, PUSH_LENGTHS, n, t_s, length_L0, out, n_done);
 }
+
+static int run_trace(ps_arm_chain *c, enum push_kind kind, long n, const ps_time *t_s,
+                     const ps_real *values, const ps_real *intended_deg,
+                     ps_arm_sample *samples, long *n_done)
+{
+    long i;
+    int status = PS_OK;
+    if (n_done != NULL) {
+        *n_done = 0;
+    }
+    if (c == NULL || (n > 0 && (t_s == NULL || values == NULL || samples == NULL))) {
+        return PS_ERR_NULL;
+    }
+    if (c->stage < 2) {
+        return PS_ERR_NOT_RESET;
+    }
+    for (i = 0; i < n; ++i) {
+        if (intended_deg != NULL) {
+            ps_real angle = intended_deg[i];
+            status = ps_chain_set_intended_angle(c, angle != angle ? NULL : &angle);
+            if (status != PS_OK) {
+                break;
+            }
+        }
+        if (kind == PUSH_LENGTHS) {
+            status = push(c, kind, t_s[i], 0, values + PS_MUSCLES * i, NULL, &samples[i]);
+        } else {
+            status = push(c, kind, t_s[i], values[i], NULL, NULL, &samples[i]);
+        }
+        if (status != PS_OK) {
+            break;
+        }
+        if (n_done != NULL) {
+            *n_done = i + 1;
+        }
+    }
+    return status;
+}
+
+int ps_chain_run_counts(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *counts,
+                        const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
+{
+    return run_trace(c, PUSH_COUNTS, n, t_s, counts, intended_deg, samples, n_done);
+}
+
+int ps_chain_run_angle(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *angle_deg,
+                       const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
+{
+    return run_trace(c, PUSH_ANGLE, n, t_s, angle_deg, intended_deg, samples, n_done);
+}
+
+int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *length_L0,
+                         const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
+{
+    return run_trace(c, PUSH_LENGTHS, n, t_s, length_L0, intended_deg, samples, n_done);
+}

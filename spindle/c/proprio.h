@@ -278,6 +278,18 @@ int ps_chain_push_angle_block(ps_arm_chain *c, long n, const ps_time *t_s,
 int ps_chain_push_lengths_block(ps_arm_chain *c, long n, const ps_time *t_s,
                                 const ps_real *length_L0, ps_arm_sample *out, long *n_done);
 
+/* A whole trace in one call (chain.run_chain after its reset): for i = 0 .. n-1, if
+ * `intended_deg` is not NULL the switch is first set to intended_deg[i] (NaN: the measured
+ * motion; infinite: PS_ERR_NONFINITE), then sample i is pushed and its output written to
+ * samples[i] (rejected samples too, with accepted = 0). Stops at the first error; *n_done
+ * (if not NULL) receives the number of samples pushed. */
+int ps_chain_run_counts(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *counts,
+                        const ps_real *intended_deg, ps_arm_sample *samples, long *n_done);
+int ps_chain_run_angle(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *angle_deg,
+                       const ps_real *intended_deg, ps_arm_sample *samples, long *n_done);
+int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *length_L0,
+                         const ps_real *intended_deg, ps_arm_sample *samples, long *n_done);
+
 
 
 /* ---- end of chain section ---- */

@@ -152,7 +152,8 @@ int main(int argc, char **argv)
     ps_arm_chain chain, scratch, before;
     ps_arm_sample out;
     ps_time t = 0, times[24];
-    ps_real counts = 512, values[48], L[PS_MUSCLES], angle;
+    ps_real counts = 512, values[48], intended[24], L[PS_MUSCLES], angle;
+    ps_arm_sample table[24];
     long it, iterations, n_done, statuses[PS_ERR_INTERVAL + 1] = {0};
     unsigned long accepted_total = 0;
     int status, i, n;
@@ -184,6 +185,7 @@ int main(int argc, char **argv)
         || ps_chain_push_angle(NULL, 1, 30, &out) != PS_ERR_NULL
         || ps_chain_push_lengths(&scratch, 1, NULL, NULL, &out) != PS_ERR_NULL
         || ps_chain_push_angle_block(&scratch, 3, NULL, NULL, &out, &n_done) != PS_ERR_NULL
+        || ps_chain_run_angle(&scratch, 3, times, values, NULL, NULL, &n_done) != PS_ERR_NULL
         || ps_chain_set_intended_angle(NULL, NULL) != PS_ERR_NULL
         || ps_chain_length_L0(&scratch, 0, L) != PS_ERR_NOT_RESET) {
         fail("NULL / unusable chain not refused", -1);
@@ -266,12 +268,32 @@ int main(int argc, char **argv)
                     values[i] = kind == 0 ? counts : random_angle();
                 }
             }
-            if (kind == 0) {
-                status = ps_chain_push_counts_block(&chain, n, times, values, &out, &n_done);
-            } else if (kind == 1) {
-                status = ps_chain_push_angle_block(&chain, n, times, values, &out, &n_done);
+            for (i = 0; i < 24; ++i) {
+                intended[i] = below(3) ? (ps_real)nan("") : random_angle();
+            }
+            if (below(2)) {
+                if (kind == 0) {
+                    status = ps_chain_push_counts_block(&chain, n, times, values, &out, &n_done);
+                } else if (kind == 1) {
+                    status = ps_chain_push_angle_block(&chain, n, times, values, &out, &n_done);
+                } else {
+                    status = ps_chain_push_lengths_block(&chain, n, times, values, &out,
+                                                         &n_done);
+                }
             } else {
-                status = ps_chain_push_lengths_block(&chain, n, times, values, &out, &n_done);
+                const ps_real *sw = below(2) ? intended : NULL;
+                if (kind == 0) {
+                    status = ps_chain_run_counts(&chain, n, times, values, sw, table, &n_done);
+                } else if (kind == 1) {
+                    status = ps_chain_run_angle(&chain, n, times, values, sw, table, &n_done);
+                } else {
+                    status = ps_chain_run_lengths(&chain, n, times, values, sw, table, &n_done);
+                }
+                for (i = 0; i < n_done; ++i) {
+                    if (!sample_finite(&table[i])) {
+                        fail("a run output is not finite", it);
+                    }
+                }
             }
             if (n_done < 0 || n_done > (n > 0 ? n : 0)) {
                 fail("n_done out of range", it);
