@@ -111,9 +111,20 @@ def real_type(variant: str = "double") -> type:
     return ctypes.c_float if variant == "float" else ctypes.c_double
 
 
-@cache
 def structs(variant: str = "double") -> tuple[type, type]:
-    """ctypes mirrors of (``ps_params``, ``ps_spindle``) for ``variant``."""
+    """ctypes mirrors of (``ps_params``, ``ps_spindle``) for ``variant``.
+
+    One pair of classes per variant however it is called (``structs()`` and
+    ``structs("double")`` must agree, or ctypes refuses one's pointers where the other's are
+    declared).
+    """
+    if variant not in VARIANTS:
+        raise ValueError(f"variant={variant!r} is not one of {VARIANTS}")
+    return _structs(variant)
+
+
+@cache
+def _structs(variant: str) -> tuple[type, type]:
     real = real_type(variant)
     fibre = real * 3
 

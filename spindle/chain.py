@@ -53,7 +53,9 @@ from spindle.sensor import AX12, Calibration, EncoderParams, MedianFilter, is_va
 from spindle.simulate import hermite_weights
 
 MUSCLES = ("BRA", "TRImed")
-BACKENDS = ("numpy",)
+BACKENDS = ("numpy", "c")
+"""``ChainConfig.backend``: ``"numpy"`` (this module) or ``"c"`` (``spindle/c/chain.c`` through
+:mod:`spindle.cchain`, compiled on first use: same API, outputs and counters)."""
 
 COUNTERS = (
     "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
@@ -85,7 +87,8 @@ class ChainConfig:
         max_speed_deg_s: slew limit of the conditioned angle (deg/s).
         max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
         fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
-        backend: ``"numpy"``.
+        backend: ``"numpy"`` or ``"c"`` (:data:`BACKENDS`); ``ArmChain(config)`` with
+            ``backend="c"`` is a :class:`spindle.cchain.CArmChain`.
     """
 
     encoder: EncoderParams = AX12
@@ -174,7 +177,19 @@ class ArmChain:
 
     Call :meth:`reset` once, then push samples in increasing time. Each accepted push
     advances the spindles from the previous sample's time to the new one.
+
+    With ``config.backend == "c"`` the constructor returns a
+    :class:`spindle.cchain.CArmChain` (a subclass: the same API, computed in C), so the
+    numpy path below carries no dispatch cost.
     """
+
+    def __new__(cls, config: ChainConfig | None = None, fits: LengthFits | None = None,
+                *args, **kwargs):
+        if cls is ArmChain and config is not None and config.backend == "c":
+            from spindle.cchain import CArmChain
+
+            return super().__new__(CArmChain)
+        return super().__new__(cls)
 
     def __init__(self, config: ChainConfig | None = None, fits: LengthFits | None = None):
         self.config = ChainConfig() if config is None else config
@@ -495,14 +510,24 @@ def run_chain(
         lo, hi = chain.angle_range_deg
         chain.reset(0.5 * (lo + hi), t[start], length_L0=signal[start])
         push = chain.push_lengths
-    samples = [chain.last] * (start + 1)
-    for i in range(start + 1, t.size):
-        if intended is not None:
-            chain.set_intended_angle(None if np.isnan(intended[i]) else intended[i])
-        samples.append(push(t[i], signal[i]))
-    stacked = {
-        f.name: np.array([getattr(s, f.name) for s in samples]) for f in fields(ArmSample)
-    }
+    run_trace = getattr(chain, "run_trace", None)
+    if run_trace is not None:  # a backend that runs the whole trace in one call
+        first = chain.last
+        rest = run_trace(push.__name__, t[start + 1:], signal[start + 1:],
+                         None if intended is None else intended[start + 1:])
+        stacked = {
+            f.name: np.concatenate([np.array([getattr(first, f.name)] * (start + 1)),
+                                    rest[f.name]]) for f in fields(ArmSample)
+        }
+    else:
+        samples = [chain.last] * (start + 1)
+        for i in range(start + 1, t.size):
+            if intended is not None:
+                chain.set_intended_angle(None if np.isnan(intended[i]) else intended[i])
+            samples.append(push(t[i], signal[i]))
+        stacked = {
+            f.name: np.array([getattr(s, f.name) for s in samples]) for f in fields(ArmSample)
+        }
     stacked["accepted"][:start] = False
     return ChainTrace(**stacked, counters=dict(chain.counters))
 

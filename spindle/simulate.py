@@ -56,6 +56,7 @@ def simulate(
     params: SpindleParams = CAT,
     method: str | Method | None = None,
     step: float | None = None,
+    backend: str = "numpy",
 ) -> SpindleResult:
     """Ia and II rates of spindles whose host fascicles follow ``length``.
 
@@ -72,6 +73,10 @@ def simulate(
         method: ``"trapezoidal"`` (default), ``"backward_euler"`` or ``"forward_euler"``.
         step: internal integration step (s). Each sample interval is split into the fewest
             equal sub-steps no longer than ``step``. None means the method's default.
+        backend: ``"numpy"`` (default) or ``"c"``: the C port (spindle/c/spindle.c, compiled
+            on first use; :class:`spindle.cbuild.CBackendError` if no C compiler is found).
+            Both take the same inputs, raise the same ValueErrors and agree to 1e-6 pps
+            (``docs/c_port.md``).
 
     The integrator consumes lengths only (the (T, v) form integrates the dL/dt input exactly
     over a step, see :mod:`spindle.core`); the derivatives shape the length *between* samples
@@ -84,6 +89,14 @@ def simulate(
             length changes faster than :data:`spindle.core.MAX_SPEED_L0_S`, negative drive,
             ``dt`` or ``step`` <= 0 or above the method's limit, shapes that do not match.
     """
+    if backend == "c":
+        from spindle import cbackend
+
+        return cbackend.simulate(length, dt, velocity=velocity, acceleration=acceleration,
+                                 gamma_dyn=gamma_dyn, gamma_stat=gamma_stat, params=params,
+                                 method=method, step=step)
+    if backend != "numpy":
+        raise ValueError(f"backend={backend!r} is not one of ['c', 'numpy']")
     m = get_method(method)
     length = np.asarray(length, dtype=float)
     if length.ndim not in (1, 2) or length.shape[0] < 1:

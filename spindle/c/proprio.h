@@ -86,6 +86,20 @@ void ps_spindle_afferents(const ps_spindle *s, const ps_params *p, ps_real *ia, 
 
 /* ---- spindle section: further declarations go below this line (spindle.c owner) ---- */
 
+/* PS_OK if every constant of p is finite and KSR, M, freq, p, CL, CS > 0, 0 < a < 1,
+ * tau >= 0 (the checks of spindle.FibreParams); PS_ERR_CONFIG otherwise. The step functions
+ * assume valid constants (bad ones give a status or non-finite rates, never UB). */
+int ps_params_check(const ps_params *p);
+
+/* n_steps steps of h seconds through L[j], gd[j], gs[j] (j = 0 .. n_steps-1, the values at
+ * the end of step j): ps_spindle_step in a loop. After every `every`-th step (every >= 1)
+ * the rates are written to ia[k], ii[k], k = (j+1)/every - 1 (NULL outputs are skipped).
+ * Stops at the first failing step and returns its status; *done (if not NULL) receives the
+ * number of steps completed, and the state is the one after the last of them. */
+int ps_spindle_run(ps_spindle *s, const ps_params *p, const ps_real *L, const ps_real *gd,
+                   const ps_real *gs, long n_steps, ps_real h, ps_real theta, long every,
+                   ps_real *ia, ps_real *ii, long *done);
+
 
 /* ---- end of spindle section ---- */
 
@@ -96,6 +110,186 @@ void ps_spindle_afferents(const ps_spindle *s, const ps_params *p, ps_real *ia, 
  * ====================================================================================== */
 
 /* ---- chain section: declarations go below this line (chain.c owner) ---- */
+
+/* Chain-specific status codes (beside enum ps_status). */
+#define PS_ERR_ANGLE_RANGE 10 /* ps_chain_reset: an angle outside the fitted range */
+#define PS_ERR_NOT_RESET 11   /* a chain used before ps_chain_init and ps_chain_reset */
+#define PS_ERR_INTERVAL 12    /* an interval needing more than PS_CHAIN_MAX_UPDATES spindle
+                                 sub-steps or predictor updates (a corrupt, huge time) */
+
+#define PS_MUSCLES 2                 /* BRA, TRImed: the order of every per-muscle array */
+#define PS_MEDIAN_MAX_WINDOW 15      /* largest median window (odd) */
+#define PS_FIT_MAX_COEFFS 16         /* largest Chebyshev series of a length fit */
+#define PS_PREDICTOR_MAX_SEGMENTS 16 /* ceil(delay_s * predictor_rate_hz) + 2 must fit */
+#define PS_CHAIN_MAX_UPDATES 1000000L
+
+/* Times are double in both builds: a float clock cannot resolve 2 ms after a few hours. */
+typedef double ps_time;
+
+/* ---- sensor (spindle/sensor.py) ---- */
+
+/* Streaming causal median of the last `window` samples (MedianFilter). */
+typedef struct ps_median {
+    ps_real values[PS_MEDIAN_MAX_WINDOW]; /* ring buffer */
+    int window;                           /* odd, 1..PS_MEDIAN_MAX_WINDOW */
+    int next;                             /* slot the next sample overwrites */
+} ps_median;
+
+/* Fill the window with `value` (a signal at rest). PS_ERR_CONFIG for a bad window. */
+int ps_median_reset(ps_median *m, int window, ps_real value);
+/* Add one sample; returns the median (the sample itself if m is NULL or never reset). */
+ps_real ps_median_push(ps_median *m, ps_real value);
+
+/* is_valid_reading: 1 for an integer reading in 0..max_count, else 0 (NaN included). */
+int ps_is_valid_reading(ps_real counts, ps_real max_count);
+
+/* ---- length fits (spindle/length_fits.py): Chebyshev series in the elbow angle ---- */
+
+/* sum_k c_k T_k(x) by Clenshaw's recurrence, in numpy.polynomial.chebyshev.chebval's
+ * order of operations; n >= 1 coefficients, lowest first. */
+ps_real ps_chebval(ps_real x, const ps_real *coefficients, int n);
+
+/* ---- tracking low-pass (spindle/derivatives.py) ---- */
+
+/* tracking_step for one signal: advance (x, v) by dt_s while the input goes linearly from
+ * u0 to u1; writes x1, v1, a1. dt_s > 0 and omega > 0 are the caller's duty. */
+void ps_tracking_step(ps_real x, ps_real v, ps_real u0, ps_real u1, ps_real dt_s,
+                      ps_real omega_rad_s, ps_real *x1, ps_real *v1, ps_real *a1);
+
+/* ---- chain (spindle/chain.py, spindle/fusimotor.py) ---- */
+
+/* Every setting of one arm's chain: chain.ChainConfig resolved to numbers. Fill it (the
+ * Python binding shows how: spindle/cchain.py, chain_config_struct) and pass it to
+ * ps_chain_init, which checks it. */
+typedef struct ps_chain_config {
+    /* sensor: valid readings are the integers 0..max_count; f(x) = sign (x - zero) dpc */
+    ps_real max_count;
+    ps_real zero_count, count_sign, deg_per_count;
+    int median_window;
+    /* length fits: per muscle a Chebyshev series in x = (2 angle - (lo + hi)) / (hi - lo) */
+    int n_coefficients[PS_MUSCLES];
+    ps_real coefficients[PS_MUSCLES][PS_FIT_MAX_COEFFS];
+    ps_real fit_lo_rad, fit_hi_rad;
+    /* conditioning */
+    ps_real lowpass_rad_s;   /* natural frequency of the tracking low-pass; 0: none */
+    ps_time gap_s;           /* intervals longer than this count as gaps */
+    ps_real max_speed_deg_s; /* slew limit of the angle */
+    ps_real max_speed_L0_s;  /* slew limit of the lengths, <= PS_MAX_SPEED_L0_S */
+    /* fusimotor (FusimotorParams) */
+    ps_real gamma_static_min_pps, gamma_static_max_pps, gamma_dynamic_pps;
+    ps_time delay_s;
+    ps_real shortening_threshold_L0;
+    ps_real predictor_rate_hz, predictor_kp_1_s, predictor_ki_1_s2;
+    /* spindles */
+    ps_params params;
+    ps_real theta;           /* 0, 0.5, 1: forward Euler, trapezoidal, backward Euler */
+    ps_time step_s;          /* largest spindle sub-step */
+} ps_chain_config;
+
+/* The down-sampled PI predictor of both muscles (MotionPredictor): the last segments
+ * (t_k, p_k, u_k) of its piecewise-linear template, oldest first from `first`. */
+typedef struct ps_predictor {
+    ps_time t[PS_PREDICTOR_MAX_SEGMENTS];
+    ps_real p[PS_PREDICTOR_MAX_SEGMENTS][PS_MUSCLES];
+    ps_real u[PS_PREDICTOR_MAX_SEGMENTS][PS_MUSCLES];
+    ps_real integral[PS_MUSCLES];
+    int first, count;
+} ps_predictor;
+
+/* chain.COUNTERS, in that order (see docs/c_chain.md for each rule). */
+typedef struct ps_chain_counters {
+    unsigned long accepted, invalid_reading, invalid_angle, invalid_length, repeated_time,
+        time_backwards, bad_time, gaps, slew_limited, angle_clamped;
+} ps_chain_counters;
+
+/* chain.ArmSample: the output after one sample; per-muscle arrays are BRA, TRImed. */
+typedef struct ps_arm_sample {
+    ps_time t_s;
+    int accepted; /* 0: the sample was rejected and every other field repeats the last */
+    ps_real counts, counts_filtered; /* -1 when the sample did not come from the encoder */
+    ps_real angle_deg;
+    ps_real length_L0[PS_MUSCLES], velocity_L0_s[PS_MUSCLES],
+        acceleration_L0_s2[PS_MUSCLES], template_L0[PS_MUSCLES];
+    ps_real gamma_static_pps[PS_MUSCLES], gamma_dynamic_pps[PS_MUSCLES];
+    ps_real ia_pps[PS_MUSCLES], ii_pps[PS_MUSCLES];
+} ps_arm_sample;
+
+/* Everything a chain changes while it runs. */
+typedef struct ps_chain_state {
+    ps_median median;
+    ps_predictor predictor;
+    ps_spindle spindle[PS_MUSCLES];
+    ps_real u[PS_MUSCLES];          /* last (slew-limited) input length */
+    ps_real x[PS_MUSCLES], v[PS_MUSCLES], a[PS_MUSCLES]; /* low-passed length, derivatives */
+    ps_real angle_deg;
+    ps_time t_s;
+    int has_intended;
+    ps_real intended_L0[PS_MUSCLES];
+    ps_chain_counters counters;
+    ps_arm_sample last;
+} ps_chain_state;
+
+/* One arm's chain (chain.ArmChain). Caller-owned; ps_chain_init, then ps_chain_reset. */
+typedef struct ps_arm_chain {
+    ps_chain_config config;
+    ps_real angle_min_deg, angle_max_deg;             /* the fitted range in degrees */
+    ps_real length_min_L0[PS_MUSCLES], length_max_L0[PS_MUSCLES]; /* h(x)'s Lmin, Lmax */
+    int predictor_keep;                               /* segments kept for the delay */
+    int stage;                                        /* 0: unusable, 1: init, 2: reset */
+    ps_chain_state state;
+} ps_arm_chain;
+
+/* Check `config` and copy it into `c` (which needs no prior initialisation); computes the
+ * fitted range in degrees and each muscle's length range over it (1301 points, as
+ * ArmChain). PS_ERR_NULL, PS_ERR_NONFINITE or PS_ERR_CONFIG: `c` is marked unusable. */
+int ps_chain_init(ps_arm_chain *c, const ps_chain_config *config);
+
+/* The fibre lengths (L0) at an elbow angle (rad) by the fits; no range check. */
+int ps_chain_length_L0(const ps_arm_chain *c, ps_real angle_rad, ps_real length_L0[PS_MUSCLES]);
+
+/* The arm at rest at `angle_deg` (and, if not NULL, exact lengths `length_L0`) at `t_s`
+ * (ArmChain.reset); counters restart at zero; writes the rest output to `out` if not NULL.
+ * PS_ERR_NONFINITE, PS_ERR_ANGLE_RANGE (without length_L0 the angle must lie in the fitted
+ * range), PS_ERR_LENGTH_RANGE. */
+int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s,
+                   const ps_real *length_L0, ps_arm_sample *out);
+
+/* The switch (ArmChain.set_intended_angle): drive the template from an intended angle
+ * (clamped to the fitted range); NULL returns to the measured motion. PS_ERR_NONFINITE. */
+int ps_chain_set_intended_angle(ps_arm_chain *c, const ps_real *angle_deg);
+
+/* One sample (ArmChain.push_counts / push_angle / push_lengths). A bad sample is handled by
+ * its documented rule (counted, out->accepted = 0) and returns PS_OK. Errors: PS_ERR_NULL,
+ * PS_ERR_NOT_RESET, PS_ERR_INTERVAL, or a spindle step's failure; on an error the chain is
+ * left exactly as it was and `out` is not written. `angle_deg` of push_lengths is only
+ * recorded (NULL or non-finite: the last angle). */
+int ps_chain_push_counts(ps_arm_chain *c, ps_time t_s, ps_real counts, ps_arm_sample *out);
+int ps_chain_push_angle(ps_arm_chain *c, ps_time t_s, ps_real angle_deg, ps_arm_sample *out);
+int ps_chain_push_lengths(ps_arm_chain *c, ps_time t_s, const ps_real length_L0[PS_MUSCLES],
+                          const ps_real *angle_deg, ps_arm_sample *out);
+
+/* n samples in one call, exactly the single pushes in order; writes the last output to
+ * `out` and the number of samples pushed to `n_done` (each may be NULL). On an error the
+ * samples before the failing one stay pushed. `length_L0` is n rows of PS_MUSCLES. */
+int ps_chain_push_counts_block(ps_arm_chain *c, long n, const ps_time *t_s,
+                               const ps_real *counts, ps_arm_sample *out, long *n_done);
+int ps_chain_push_angle_block(ps_arm_chain *c, long n, const ps_time *t_s,
+                              const ps_real *angle_deg, ps_arm_sample *out, long *n_done);
+int ps_chain_push_lengths_block(ps_arm_chain *c, long n, const ps_time *t_s,
+                                const ps_real *length_L0, ps_arm_sample *out, long *n_done);
+
+/* A whole trace in one call (chain.run_chain after its reset): for i = 0 .. n-1, if
+ * `intended_deg` is not NULL the switch is first set to intended_deg[i] (NaN: the measured
+ * motion; infinite: PS_ERR_NONFINITE), then sample i is pushed and its output written to
+ * samples[i] (rejected samples too, with accepted = 0). Stops at the first error; *n_done
+ * (if not NULL) receives the number of samples pushed. */
+int ps_chain_run_counts(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *counts,
+                        const ps_real *intended_deg, ps_arm_sample *samples, long *n_done);
+int ps_chain_run_angle(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *angle_deg,
+                       const ps_real *intended_deg, ps_arm_sample *samples, long *n_done);
+int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *length_L0,
+                         const ps_real *intended_deg, ps_arm_sample *samples, long *n_done);
+
 
 
 /* ---- end of chain section ---- */

@@ -1,0 +1,910 @@
+/*
+ * chain.c -- the on-prosthesis chain of one arm: encoder counts in, Ia and II out.
+ *
+ *   counts -> median filter -> f(x) -> angle -> fitted BRA/TRImed lengths -> tracking
+ *   low-pass (L, dL/dt) -> PI template -> gamma_s = h, gamma_d = g -> spindles -> Ia, II
+ *
+ * A port of spindle/chain.py with spindle/sensor.py, spindle/length_fits.py,
+ * spindle/derivatives.py and spindle/fusimotor.py, in their order of operations, so the
+ * double build agrees with the numpy chain to round-off. Sections follow those modules.
+ *
+ * Differences from the numpy chain, all at failures the numpy chain does not guard:
+ * a push either completes or leaves the chain exactly as it was (it works on a copy of the
+ * state), and an interval needing more than PS_CHAIN_MAX_UPDATES spindle sub-steps or
+ * predictor updates is refused with PS_ERR_INTERVAL instead of running unbounded.
+ */
+#include "proprio.h"
+
+#include <float.h>
+#include <math.h>
+#include <stddef.h>
+
+#define PS_PI 3.141592653589793238462643383279502884
+/* The constants of CPython's math.degrees / math.radians, so the conversions round alike. */
+#define RAD_TO_DEG (180.0 / PS_PI)
+#define DEG_TO_RAD (PS_PI / 180.0)
+#define FIT_RANGE_POINTS 1301 /* ArmChain's grid for each muscle's length range */
+
+static int is_finite(double x)
+{
+    /* x - x is NaN for both NaN and infinities; avoids depending on C99 isfinite macros
+     * the float/double build would instantiate differently. */
+    return x == x && (x - x) == (x - x);
+}
+
+/* ======================================================================================
+ * sensor.py
+ * ====================================================================================== */
+
+int ps_median_reset(ps_median *m, int window, ps_real value)
+{
+    int i;
+    if (m == NULL) {
+        return PS_ERR_NULL;
+    }
+    if (window < 1 || window > PS_MEDIAN_MAX_WINDOW || window % 2 != 1) {
+        return PS_ERR_CONFIG;
+    }
+    m->window = window;
+    m->next = 0;
+    for (i = 0; i < window; ++i) {
+        m->values[i] = value;
+    }
+    return PS_OK;
+}
+
+ps_real ps_median_push(ps_median *m, ps_real value)
+{
+    ps_real sorted[PS_MEDIAN_MAX_WINDOW];
+    int i, j, n;
+    if (m == NULL) {
+        return value;
+    }
+    n = m->window;
+    if (n < 1 || n > PS_MEDIAN_MAX_WINDOW || m->next < 0 || m->next >= n) {
+        return value; /* a filter never reset: behave as a window of one */
+    }
+    m->values[m->next] = value;
+    m->next = (m->next + 1) % n;
+    /* Insertion sort: the window is tiny, and the result is the same element as numpy's
+     * sorted(window)[n // 2]. */
+    for (i = 0; i < n; ++i) {
+        ps_real x = m->values[i];
+        for (j = i; j > 0 && sorted[j - 1] > x; --j) {
+            sorted[j] = sorted[j - 1];
+        }
+        sorted[j] = x;
+    }
+    return sorted[n / 2];
+}
+
+int ps_is_valid_reading(ps_real counts, ps_real max_count)
+{
+    return is_finite((double)counts) && counts == (ps_real)floor((double)counts)
+           && counts >= 0 && counts <= max_count;
+}
+
+static ps_real calibration_angle_deg(const ps_chain_config *cfg, ps_real counts)
+{
+    return cfg->count_sign * (counts - cfg->zero_count) * cfg->deg_per_count;
+}
+
+/* ======================================================================================
+ * length_fits.py
+ * ====================================================================================== */
+
+ps_real ps_chebval(ps_real x, const ps_real *c, int n)
+{
+    ps_real c0, c1, x2, tmp;
+    int i;
+    if (c == NULL || n < 1) {
+        return 0;
+    }
+    if (n == 1) {
+        return c[0] + 0 * x;
+    }
+    if (n == 2) {
+        return c[0] + c[1] * x;
+    }
+    x2 = 2 * x;
+    c0 = c[n - 2];
+    c1 = c[n - 1];
+    for (i = 3; i <= n; ++i) {
+        tmp = c0;
+        c0 = c[n - i] - c1;
+        c1 = tmp + c1 * x2;
+    }
+    return c0 + c1 * x;
+}
+
+static void fit_lengths(const ps_chain_config *cfg, ps_real angle_rad, ps_real *out)
+{
+    ps_real lo = cfg->fit_lo_rad, hi = cfg->fit_hi_rad;
+    ps_real x = (2 * angle_rad - (lo + hi)) / (hi - lo);
+    int k;
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        out[k] = ps_chebval(x, cfg->coefficients[k], cfg->n_coefficients[k]);
+    }
+}
+
+/* ======================================================================================
+ * derivatives.py
+ * ====================================================================================== */
+
+void ps_tracking_step(ps_real x, ps_real v, ps_real u0, ps_real u1, ps_real dt_s,
+                      ps_real omega, ps_real *x1, ps_real *v1, ps_real *a1)
+{
+    ps_real slope = (u1 - u0) / dt_s;
+    ps_real offset = 2 * slope / omega;
+    ps_real A = x - u0 + offset;
+    ps_real B = v - slope + omega * A;
+    ps_real decay = (ps_real)exp((double)(-omega * dt_s));
+    ps_real xe = u1 - offset + (A + B * dt_s) * decay;
+    ps_real ve = slope + (B - omega * (A + B * dt_s)) * decay;
+    if (x1 != NULL) {
+        *x1 = xe;
+    }
+    if (v1 != NULL) {
+        *v1 = ve;
+    }
+    if (a1 != NULL) {
+        *a1 = omega * omega * (u1 - xe) - 2 * omega * ve;
+    }
+}
+
+/* ======================================================================================
+ * fusimotor.py
+ * ====================================================================================== */
+
+static int predictor_index(const ps_predictor *pr, int i)
+{
+    return (pr->first + i) % PS_PREDICTOR_MAX_SEGMENTS;
+}
+
+static void predictor_reset(ps_predictor *pr, ps_time t, const ps_real *L)
+{
+    int k;
+    pr->first = 0;
+    pr->count = 1;
+    pr->t[0] = t;
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        pr->p[0][k] = L[k];
+        pr->u[0][k] = 0;
+        pr->integral[k] = 0;
+    }
+}
+
+/* Append a segment, dropping the oldest beyond `keep` (the deque's maxlen). */
+static void predictor_append(ps_predictor *pr, int keep, ps_time t, const ps_real *p,
+                             const ps_real *u)
+{
+    int slot, k;
+    if (pr->count == keep) {
+        pr->first = (pr->first + 1) % PS_PREDICTOR_MAX_SEGMENTS;
+        pr->count -= 1;
+    }
+    slot = predictor_index(pr, pr->count);
+    pr->t[slot] = t;
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        pr->p[slot][k] = p[k];
+        pr->u[slot][k] = u[k];
+    }
+    pr->count += 1;
+}
+
+/* MotionPredictor.update: PS_ERR_INTERVAL if it would take more than PS_CHAIN_MAX_UPDATES
+ * updates (including a clock so large that t + period == t). */
+static int predictor_update(ps_predictor *pr, const ps_arm_chain *c, ps_time t,
+                            const ps_real *L, ps_real *template_out)
+{
+    const ps_chain_config *cfg = &c->config;
+    ps_time dt = 1.0 / cfg->predictor_rate_hz;
+    ps_real kp = cfg->predictor_kp_1_s, ki = cfg->predictor_ki_1_s2;
+    int newest = predictor_index(pr, pr->count - 1);
+    ps_time tk = pr->t[newest];
+    ps_real p[PS_MUSCLES], u[PS_MUSCLES];
+    long n = 0;
+    int k;
+    if ((t - tk) / dt > (double)PS_CHAIN_MAX_UPDATES) {
+        return PS_ERR_INTERVAL;
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        p[k] = pr->p[newest][k];
+        u[k] = pr->u[newest][k];
+    }
+    while (t >= tk + dt * (1.0 - 1e-9)) {
+        if (++n > PS_CHAIN_MAX_UPDATES) {
+            return PS_ERR_INTERVAL;
+        }
+        tk = tk + dt;
+        for (k = 0; k < PS_MUSCLES; ++k) {
+            ps_real error;
+            p[k] = p[k] + (ps_real)dt * u[k];
+            error = L[k] - p[k];
+            pr->integral[k] = pr->integral[k] + (ki * (ps_real)dt) * error;
+            u[k] = kp * error + pr->integral[k];
+        }
+        predictor_append(pr, c->predictor_keep, tk, p, u);
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        template_out[k] = p[k] + u[k] * (ps_real)(t - tk);
+    }
+    return PS_OK;
+}
+
+/* MotionPredictor.template_at: the template at an earlier time (clamped to the oldest). */
+static void predictor_template_at(const ps_predictor *pr, ps_time t, ps_real *out)
+{
+    int i, k;
+    for (i = pr->count - 1; i >= 0; --i) {
+        int s = predictor_index(pr, i);
+        if (pr->t[s] <= t) {
+            for (k = 0; k < PS_MUSCLES; ++k) {
+                out[k] = pr->p[s][k] + pr->u[s][k] * (ps_real)(t - pr->t[s]);
+            }
+            return;
+        }
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        out[k] = pr->p[pr->first][k];
+    }
+}
+
+/* Fusimotor._rates: h(x) and g(x) of the template at t. */
+static void fusimotor_rates(const ps_arm_chain *c, const ps_predictor *pr, ps_time t,
+                            const ps_real *template_L0, ps_real *gs, ps_real *gd)
+{
+    const ps_chain_config *cfg = &c->config;
+    ps_real delayed[PS_MUSCLES];
+    ps_real span = cfg->gamma_static_max_pps - cfg->gamma_static_min_pps;
+    int k;
+    predictor_template_at(pr, t - cfg->delay_s, delayed);
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        ps_real lo = c->length_min_L0[k], hi = c->length_max_L0[k];
+        ps_real g = cfg->gamma_static_min_pps + span * (hi - template_L0[k]) / (hi - lo);
+        if (g < cfg->gamma_static_min_pps) {
+            g = cfg->gamma_static_min_pps;
+        }
+        if (g > cfg->gamma_static_max_pps) {
+            g = cfg->gamma_static_max_pps;
+        }
+        gs[k] = g;
+        gd[k] = (delayed[k] - template_L0[k] > cfg->shortening_threshold_L0)
+                    ? 0 : cfg->gamma_dynamic_pps;
+    }
+}
+
+/* ======================================================================================
+ * chain.py
+ * ====================================================================================== */
+
+static int config_ok(const ps_chain_config *cfg)
+{
+    int k, i, keep;
+    ps_real dt, a, b;
+    const ps_params *p = &cfg->params;
+    if (!is_finite((double)p->S)) {
+        return 0;
+    }
+    for (k = 0; k < PS_NFIBRES; ++k) {
+        const ps_real fibre[] = {
+            p->KSR[k], p->KPR[k], p->M[k], p->beta0[k], p->beta_drive[k], p->Gamma_drive[k],
+            p->CL[k], p->CS[k], p->R[k], p->a[k], p->LSR0[k], p->LPR0[k], p->LNSR[k],
+            p->LNPR[k], p->X[k], p->Lsec[k], p->G_pri[k], p->G_sec[k], p->freq[k], p->p[k],
+            p->tau[k]};
+        for (i = 0; i < (int)(sizeof(fibre) / sizeof(fibre[0])); ++i) {
+            if (!is_finite((double)fibre[i])) {
+                return 0;
+            }
+        }
+        /* FibreParams' own rules: these divide or exponentiate in the spindle. */
+        if (!(p->KSR[k] > 0 && p->M[k] > 0 && p->freq[k] > 0 && p->p[k] > 0 && p->a[k] > 0
+              && p->CL[k] > 0 && p->CS[k] > 0 && p->tau[k] >= 0)) {
+            return 0;
+        }
+    }
+    if (!(cfg->max_count >= 1 && is_finite((double)cfg->max_count)
+          && (cfg->count_sign == 1 || cfg->count_sign == -1)
+          && cfg->deg_per_count > 0 && is_finite((double)cfg->deg_per_count)
+          && is_finite((double)cfg->zero_count))) {
+        return 0;
+    }
+    if (cfg->median_window < 1 || cfg->median_window > PS_MEDIAN_MAX_WINDOW
+        || cfg->median_window % 2 != 1) {
+        return 0;
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        if (cfg->n_coefficients[k] < 1 || cfg->n_coefficients[k] > PS_FIT_MAX_COEFFS) {
+            return 0;
+        }
+        for (i = 0; i < cfg->n_coefficients[k]; ++i) {
+            if (!is_finite((double)cfg->coefficients[k][i])) {
+                return 0;
+            }
+        }
+    }
+    /* An elbow range in rad: bounded, so its conversion to degrees cannot overflow. */
+    if (!(cfg->fit_lo_rad >= -2 * PS_PI && cfg->fit_hi_rad <= 2 * PS_PI
+          && cfg->fit_lo_rad < cfg->fit_hi_rad)) {
+        return 0;
+    }
+    if (!(cfg->lowpass_rad_s >= 0 && is_finite((double)cfg->lowpass_rad_s)
+          && cfg->gap_s > 0 && is_finite(cfg->gap_s)
+          && cfg->max_speed_deg_s > 0 && is_finite((double)cfg->max_speed_deg_s)
+          && cfg->max_speed_L0_s > 0 && cfg->max_speed_L0_s <= PS_MAX_SPEED_L0_S)) {
+        return 0;
+    }
+    if (!(cfg->gamma_static_min_pps >= 0 && is_finite((double)cfg->gamma_static_min_pps)
+          && cfg->gamma_static_max_pps >= cfg->gamma_static_min_pps
+          && is_finite((double)cfg->gamma_static_max_pps)
+          && cfg->gamma_dynamic_pps >= 0 && is_finite((double)cfg->gamma_dynamic_pps)
+          && cfg->delay_s >= 0 && is_finite(cfg->delay_s)
+          && cfg->shortening_threshold_L0 >= 0
+          && is_finite((double)cfg->shortening_threshold_L0)
+          && cfg->predictor_rate_hz >= 1e-3 && cfg->predictor_rate_hz <= 1e6)) {
+        return 0;
+    }
+    /* FusimotorParams' stability condition (Jury's test of the discrete PI loop). */
+    dt = 1 / cfg->predictor_rate_hz;
+    a = cfg->predictor_kp_1_s * dt;
+    b = cfg->predictor_ki_1_s2 * dt * dt;
+    if (!(a > 0 && b > 0 && a < 2 && 2 * a + b < 4)) {
+        return 0;
+    }
+    keep = 0;
+    if (cfg->delay_s * cfg->predictor_rate_hz < PS_PREDICTOR_MAX_SEGMENTS) {
+        keep = (int)ceil(cfg->delay_s * (double)cfg->predictor_rate_hz) + 2;
+    }
+    if (keep < 2 || keep > PS_PREDICTOR_MAX_SEGMENTS) {
+        return 0;
+    }
+    if (!(cfg->theta >= 0 && cfg->theta <= 1 && cfg->step_s > 0 && cfg->step_s <= 1)) {
+        return 0;
+    }
+    return 1;
+}
+
+int ps_chain_init(ps_arm_chain *c, const ps_chain_config *config)
+{
+    int i, k;
+    ps_real lo, hi, step;
+    if (c == NULL || config == NULL) {
+        return PS_ERR_NULL;
+    }
+    c->stage = 0;
+    if (!config_ok(config)) {
+        return PS_ERR_CONFIG;
+    }
+    c->config = *config;
+    lo = config->fit_lo_rad;
+    hi = config->fit_hi_rad;
+    c->angle_min_deg = (ps_real)((double)lo * RAD_TO_DEG);
+    c->angle_max_deg = (ps_real)((double)hi * RAD_TO_DEG);
+    c->predictor_keep =
+        (int)ceil(config->delay_s * (double)config->predictor_rate_hz) + 2;
+    /* numpy.linspace(lo, hi, 1301): i * step + lo, the last point exactly hi. */
+    step = (hi - lo) / (FIT_RANGE_POINTS - 1);
+    for (i = 0; i < FIT_RANGE_POINTS; ++i) {
+        ps_real angle = (i == FIT_RANGE_POINTS - 1) ? hi : (ps_real)i * step + lo;
+        ps_real L[PS_MUSCLES];
+        fit_lengths(config, angle, L);
+        for (k = 0; k < PS_MUSCLES; ++k) {
+            if (i == 0 || L[k] < c->length_min_L0[k]) {
+                c->length_min_L0[k] = L[k];
+            }
+            if (i == 0 || L[k] > c->length_max_L0[k]) {
+                c->length_max_L0[k] = L[k];
+            }
+        }
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        if (!(c->length_max_L0[k] > c->length_min_L0[k])) {
+            return PS_ERR_CONFIG; /* h(x) needs a range */
+        }
+    }
+    c->stage = 1;
+    return PS_OK;
+}
+
+int ps_chain_length_L0(const ps_arm_chain *c, ps_real angle_rad, ps_real length_L0[PS_MUSCLES])
+{
+    if (c == NULL || length_L0 == NULL) {
+        return PS_ERR_NULL;
+    }
+    if (c->stage < 1) {
+        return PS_ERR_NOT_RESET;
+    }
+    if (!is_finite((double)angle_rad)) {
+        return PS_ERR_NONFINITE;
+    }
+    fit_lengths(&c->config, angle_rad, length_L0);
+    return PS_OK;
+}
+
+static int lengths_ok(const ps_real *L)
+{
+    int k;
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        if (!(is_finite((double)L[k]) && L[k] >= PS_LENGTH_MIN_L0 && L[k] <= PS_LENGTH_MAX_L0)) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_real *length_L0,
+                   ps_arm_sample *out)
+{
+    ps_chain_state st;
+    ps_real L[PS_MUSCLES], gs[PS_MUSCLES], gd[PS_MUSCLES], rest_counts;
+    ps_chain_counters zero = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    int k, status;
+    if (c == NULL) {
+        return PS_ERR_NULL;
+    }
+    if (c->stage < 1) {
+        return PS_ERR_NOT_RESET;
+    }
+    if (!is_finite(t_s) || !is_finite((double)angle_deg)) {
+        return PS_ERR_NONFINITE;
+    }
+    if (length_L0 == NULL) {
+        ps_real angle_rad = (ps_real)((double)angle_deg * DEG_TO_RAD);
+        if (angle_rad < c->config.fit_lo_rad || angle_rad > c->config.fit_hi_rad) {
+            return PS_ERR_ANGLE_RANGE;
+        }
+        fit_lengths(&c->config, angle_rad, L);
+    } else {
+        for (k = 0; k < PS_MUSCLES; ++k) {
+            if (!is_finite((double)length_L0[k])) {
+                return PS_ERR_NONFINITE;
+            }
+        }
+        if (!lengths_ok(length_L0)) {
+            return PS_ERR_LENGTH_RANGE;
+        }
+        for (k = 0; k < PS_MUSCLES; ++k) {
+            L[k] = length_L0[k];
+        }
+    }
+    /* The filter starts on the reading at that angle. Clamped to the encoder's range: with
+     * exact lengths the angle is only recorded and may lie anywhere, and a reading no
+     * encoder can give (or an infinite one) must not reach the median's output. */
+    rest_counts = c->config.zero_count + c->config.count_sign * angle_deg / c->config.deg_per_count;
+    if (!(rest_counts >= 0)) {
+        rest_counts = 0;
+    }
+    if (rest_counts > c->config.max_count) {
+        rest_counts = c->config.max_count;
+    }
+    status = ps_median_reset(&st.median, c->config.median_window, rest_counts);
+    if (status != PS_OK) {
+        return status;
+    }
+    predictor_reset(&st.predictor, t_s, L);
+    fusimotor_rates(c, &st.predictor, t_s, L, gs, gd);
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        status = ps_spindle_init(&st.spindle[k], &c->config.params, L[k], gd[k], gs[k]);
+        if (status != PS_OK) {
+            return status;
+        }
+        st.u[k] = L[k];
+        st.x[k] = L[k];
+        st.v[k] = 0;
+        st.a[k] = 0;
+        st.intended_L0[k] = 0;
+        st.last.length_L0[k] = L[k];
+        st.last.velocity_L0_s[k] = 0;
+        st.last.acceleration_L0_s2[k] = 0;
+        st.last.template_L0[k] = L[k];
+        st.last.gamma_static_pps[k] = gs[k];
+        st.last.gamma_dynamic_pps[k] = gd[k];
+        ps_spindle_afferents(&st.spindle[k], &c->config.params, &st.last.ia_pps[k],
+                             &st.last.ii_pps[k]);
+    }
+    st.angle_deg = angle_deg;
+    st.t_s = t_s;
+    st.has_intended = 0;
+    st.counters = zero;
+    st.last.t_s = t_s;
+    st.last.accepted = 1;
+    st.last.counts = -1;
+    st.last.counts_filtered = -1;
+    st.last.angle_deg = angle_deg;
+    c->state = st;
+    c->stage = 2;
+    if (out != NULL) {
+        *out = st.last;
+    }
+    return PS_OK;
+}
+
+int ps_chain_set_intended_angle(ps_arm_chain *c, const ps_real *angle_deg)
+{
+    ps_real angle;
+    if (c == NULL) {
+        return PS_ERR_NULL;
+    }
+    if (c->stage < 2) {
+        return PS_ERR_NOT_RESET;
+    }
+    if (angle_deg == NULL) {
+        c->state.has_intended = 0;
+        return PS_OK;
+    }
+    angle = *angle_deg;
+    if (!is_finite((double)angle)) {
+        return PS_ERR_NONFINITE;
+    }
+    if (angle < c->angle_min_deg) {
+        angle = c->angle_min_deg;
+    }
+    if (angle > c->angle_max_deg) {
+        angle = c->angle_max_deg;
+    }
+    fit_lengths(&c->config, (ps_real)((double)angle * DEG_TO_RAD), c->state.intended_L0);
+    c->state.has_intended = 1;
+    return PS_OK;
+}
+
+/* ArmChain._time_ok: 1 if t may be pushed, else counts the reason and returns 0. */
+static int time_ok(ps_chain_state *st, ps_time t)
+{
+    if (!is_finite(t)) {
+        st->counters.bad_time += 1;
+        return 0;
+    }
+    if (t == st->t_s) {
+        st->counters.repeated_time += 1;
+        return 0;
+    }
+    if (t < st->t_s) {
+        st->counters.time_backwards += 1;
+        return 0;
+    }
+#ifdef PS_FLOAT
+    /* An interval below float's normal range would become a zero or denormal step. */
+    if (t - st->t_s < (double)FLT_MIN) {
+        st->counters.repeated_time += 1;
+        return 0;
+    }
+#endif
+    return 1;
+}
+
+static void hermite_weights(ps_real s, ps_real *w)
+{
+    ps_real s2 = s * s, s3 = s * s * s;
+    w[0] = 2 * s3 - 3 * s2 + 1;
+    w[1] = -2 * s3 + 3 * s2;
+    w[2] = s3 - 2 * s2 + s;
+    w[3] = s3 - s2;
+}
+
+/* ArmChain._advance_spindles: equal sub-steps no longer than step_s, the length following
+ * the cubic Hermite curve through (x0, v0) and (x1, v1); the drive held at (gd, gs). */
+static int advance_spindles(const ps_arm_chain *c, ps_chain_state *st, const ps_real *x0,
+                            const ps_real *v0, const ps_real *x1, const ps_real *v1,
+                            const ps_real *gd, const ps_real *gs, ps_time dt, ps_real *ia,
+                            ps_real *ii)
+{
+    const ps_chain_config *cfg = &c->config;
+    double steps = ceil(dt / cfg->step_s * (1 - 1e-12));
+    long k, j;
+    ps_real h;
+    int m, status;
+    if (!(steps <= (double)PS_CHAIN_MAX_UPDATES)) {
+        return PS_ERR_INTERVAL;
+    }
+    k = steps < 1 ? 1 : (long)steps;
+    h = (ps_real)(dt / (double)k);
+    for (j = 1; j < k; ++j) {
+        ps_real w[4];
+        hermite_weights((ps_real)((double)j / (double)k), w);
+        for (m = 0; m < PS_MUSCLES; ++m) {
+            ps_real Ls = w[0] * x0[m] + w[1] * x1[m]
+                         + (ps_real)dt * (w[2] * v0[m] + w[3] * v1[m]);
+            status = ps_spindle_step(&st->spindle[m], &cfg->params, Ls, gd[m], gs[m], h,
+                                     cfg->theta, NULL, NULL);
+            if (status != PS_OK) {
+                return status;
+            }
+        }
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        status = ps_spindle_step(&st->spindle[m], &cfg->params, x1[m], gd[m], gs[m], h,
+                                 cfg->theta, &ia[m], &ii[m]);
+        if (status != PS_OK) {
+            return status;
+        }
+    }
+    return PS_OK;
+}
+
+/* 1 if the interval to t needs at most PS_CHAIN_MAX_UPDATES spindle sub-steps: checked
+ * before any use of it, so a corrupt huge time never reaches a conversion or a loop. */
+static int interval_ok(const ps_arm_chain *c, const ps_chain_state *st, ps_time t)
+{
+    return (t - st->t_s) / c->config.step_s <= (double)PS_CHAIN_MAX_UPDATES;
+}
+
+/* ArmChain._length_stage on a working copy of the state. */
+static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
+                        const ps_real *L_given, ps_real angle, ps_real counts,
+                        ps_real filtered)
+{
+    const ps_chain_config *cfg = &c->config;
+    ps_time dt_time = t - st->t_s;
+    ps_real dt, limit;
+    ps_real L_in[PS_MUSCLES], change[PS_MUSCLES], x1[PS_MUSCLES], v1[PS_MUSCLES],
+        a1[PS_MUSCLES], tmpl[PS_MUSCLES], gs[PS_MUSCLES], gd[PS_MUSCLES], ia[PS_MUSCLES],
+        ii[PS_MUSCLES];
+    const ps_real *template_in;
+    int k, limited = 0, status;
+    if (!interval_ok(c, st, t)) {
+        return PS_ERR_INTERVAL;
+    }
+    dt = (ps_real)dt_time;
+    limit = cfg->max_speed_L0_s * dt;
+    if (dt_time > cfg->gap_s) {
+        st->counters.gaps += 1;
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        L_in[k] = L_given[k];
+        change[k] = L_in[k] - st->u[k];
+        if (fabs((double)change[k]) > (double)limit) {
+            limited = 1;
+        }
+    }
+    if (limited) {
+        st->counters.slew_limited += 1;
+        for (k = 0; k < PS_MUSCLES; ++k) {
+            ps_real clipped = change[k] < -limit ? -limit : (change[k] > limit ? limit
+                                                                                : change[k]);
+            L_in[k] = L_in[k] - change[k] + clipped;
+        }
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        if (cfg->lowpass_rad_s > 0) {
+            ps_tracking_step(st->x[k], st->v[k], st->u[k], L_in[k], dt, cfg->lowpass_rad_s,
+                             &x1[k], &v1[k], &a1[k]);
+        } else {
+            x1[k] = L_in[k];
+            v1[k] = (x1[k] - st->x[k]) / dt;
+            a1[k] = (v1[k] - st->v[k]) / dt;
+        }
+    }
+    template_in = st->has_intended ? st->intended_L0 : x1;
+    status = predictor_update(&st->predictor, c, t, template_in, tmpl);
+    if (status != PS_OK) {
+        return status;
+    }
+    fusimotor_rates(c, &st->predictor, t, tmpl, gs, gd);
+    status = advance_spindles(c, st, st->x, st->v, x1, v1, gd, gs, dt_time, ia, ii);
+    if (status != PS_OK) {
+        return status;
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        st->u[k] = L_in[k];
+        st->x[k] = x1[k];
+        st->v[k] = v1[k];
+        st->a[k] = a1[k];
+        st->last.length_L0[k] = x1[k];
+        st->last.velocity_L0_s[k] = v1[k];
+        st->last.acceleration_L0_s2[k] = a1[k];
+        st->last.template_L0[k] = tmpl[k];
+        st->last.gamma_static_pps[k] = gs[k];
+        st->last.gamma_dynamic_pps[k] = gd[k];
+        st->last.ia_pps[k] = ia[k];
+        st->last.ii_pps[k] = ii[k];
+    }
+    st->angle_deg = angle;
+    st->t_s = t;
+    st->counters.accepted += 1;
+    st->last.t_s = t;
+    st->last.accepted = 1;
+    st->last.counts = counts;
+    st->last.counts_filtered = filtered;
+    st->last.angle_deg = angle;
+    return PS_OK;
+}
+
+/* ArmChain._angle_stage: slew limit, clamp to the fitted range, fitted lengths. */
+static int angle_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real angle,
+                       ps_real counts, ps_real filtered)
+{
+    ps_real limit, L[PS_MUSCLES];
+    if (!interval_ok(c, st, t)) {
+        return PS_ERR_INTERVAL;
+    }
+    limit = c->config.max_speed_deg_s * (ps_real)(t - st->t_s);
+    if (fabs((double)(angle - st->angle_deg)) > (double)limit) {
+        st->counters.slew_limited += 1;
+        angle = st->angle_deg + (angle - st->angle_deg < 0 ? -limit : limit);
+    }
+    if (!(c->angle_min_deg <= angle && angle <= c->angle_max_deg)) {
+        st->counters.angle_clamped += 1;
+        angle = angle < c->angle_min_deg ? c->angle_min_deg
+                                         : (angle > c->angle_max_deg ? c->angle_max_deg : angle);
+    }
+    fit_lengths(&c->config, (ps_real)((double)angle * DEG_TO_RAD), L);
+    return length_stage(c, st, t, L, angle, counts, filtered);
+}
+
+enum push_kind { PUSH_COUNTS, PUSH_ANGLE, PUSH_LENGTHS };
+
+/* One push on a copy of the state, committed only if it completes. A rejected sample only
+ * changes a counter, so it is committed too. */
+static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
+                const ps_real *lengths, const ps_real *angle_deg, ps_arm_sample *out)
+{
+    ps_chain_state st;
+    int status = PS_OK, accepted = 0;
+    if (c == NULL || (kind == PUSH_LENGTHS && lengths == NULL)) {
+        return PS_ERR_NULL;
+    }
+    if (c->stage < 2) {
+        return PS_ERR_NOT_RESET;
+    }
+    st = c->state;
+    if (time_ok(&st, t)) {
+        if (kind == PUSH_COUNTS) {
+            if (!ps_is_valid_reading(value, c->config.max_count)) {
+                st.counters.invalid_reading += 1;
+            } else {
+                ps_real filtered = ps_median_push(&st.median, value);
+                status = angle_stage(c, &st, t, calibration_angle_deg(&c->config, filtered),
+                                     value, filtered);
+                accepted = 1;
+            }
+        } else if (kind == PUSH_ANGLE) {
+            if (!is_finite((double)value)) {
+                st.counters.invalid_angle += 1;
+            } else {
+                status = angle_stage(c, &st, t, value, -1, -1);
+                accepted = 1;
+            }
+        } else {
+            if (!lengths_ok(lengths)) {
+                st.counters.invalid_length += 1;
+            } else {
+                ps_real angle = (angle_deg == NULL || !is_finite((double)*angle_deg))
+                                    ? st.angle_deg : *angle_deg;
+                status = length_stage(c, &st, t, lengths, angle, -1, -1);
+                accepted = 1;
+            }
+        }
+    }
+    if (status != PS_OK) {
+        return status;
+    }
+    c->state = st;
+    if (out != NULL) {
+        *out = st.last;
+        out->accepted = accepted;
+    }
+    return PS_OK;
+}
+
+int ps_chain_push_counts(ps_arm_chain *c, ps_time t_s, ps_real counts, ps_arm_sample *out)
+{
+    return push(c, PUSH_COUNTS, t_s, counts, NULL, NULL, out);
+}
+
+int ps_chain_push_angle(ps_arm_chain *c, ps_time t_s, ps_real angle_deg, ps_arm_sample *out)
+{
+    return push(c, PUSH_ANGLE, t_s, angle_deg, NULL, NULL, out);
+}
+
+int ps_chain_push_lengths(ps_arm_chain *c, ps_time t_s, const ps_real length_L0[PS_MUSCLES],
+                          const ps_real *angle_deg, ps_arm_sample *out)
+{
+    return push(c, PUSH_LENGTHS, t_s, 0, length_L0, angle_deg, out);
+}
+
+static int push_block(ps_arm_chain *c, enum push_kind kind, long n, const ps_time *t_s,
+                      const ps_real *values, ps_arm_sample *out, long *n_done)
+{
+    long i;
+    int status = PS_OK;
+    if (n_done != NULL) {
+        *n_done = 0;
+    }
+    if (c == NULL || (n > 0 && (t_s == NULL || values == NULL))) {
+        return PS_ERR_NULL;
+    }
+    if (c->stage < 2) {
+        return PS_ERR_NOT_RESET;
+    }
+    for (i = 0; i < n; ++i) {
+        if (kind == PUSH_LENGTHS) {
+            status = push(c, kind, t_s[i], 0, values + PS_MUSCLES * i, NULL, NULL);
+        } else {
+            status = push(c, kind, t_s[i], values[i], NULL, NULL, NULL);
+        }
+        if (status != PS_OK) {
+            break;
+        }
+        if (n_done != NULL) {
+            *n_done = i + 1;
+        }
+    }
+    if (out != NULL) {
+        *out = c->state.last; /* ArmChain's block pushes return ArmChain.last */
+    }
+    return status;
+}
+
+int ps_chain_push_counts_block(ps_arm_chain *c, long n, const ps_time *t_s,
+                               const ps_real *counts, ps_arm_sample *out, long *n_done)
+{
+    return push_block(c, PUSH_COUNTS, n, t_s, counts, out, n_done);
+}
+
+int ps_chain_push_angle_block(ps_arm_chain *c, long n, const ps_time *t_s,
+                              const ps_real *angle_deg, ps_arm_sample *out, long *n_done)
+{
+    return push_block(c, PUSH_ANGLE, n, t_s, angle_deg, out, n_done);
+}
+
+int ps_chain_push_lengths_block(ps_arm_chain *c, long n, const ps_time *t_s,
+                                const ps_real *length_L0, ps_arm_sample *out, long *n_done)
+{
+    return push_block(c, PUSH_LENGTHS, n, t_s, length_L0, out, n_done);
+}
+
+static int run_trace(ps_arm_chain *c, enum push_kind kind, long n, const ps_time *t_s,
+                     const ps_real *values, const ps_real *intended_deg,
+                     ps_arm_sample *samples, long *n_done)
+{
+    long i;
+    int status = PS_OK;
+    if (n_done != NULL) {
+        *n_done = 0;
+    }
+    if (c == NULL || (n > 0 && (t_s == NULL || values == NULL || samples == NULL))) {
+        return PS_ERR_NULL;
+    }
+    if (c->stage < 2) {
+        return PS_ERR_NOT_RESET;
+    }
+    for (i = 0; i < n; ++i) {
+        if (intended_deg != NULL) {
+            ps_real angle = intended_deg[i];
+            status = ps_chain_set_intended_angle(c, angle != angle ? NULL : &angle);
+            if (status != PS_OK) {
+                break;
+            }
+        }
+        if (kind == PUSH_LENGTHS) {
+            status = push(c, kind, t_s[i], 0, values + PS_MUSCLES * i, NULL, &samples[i]);
+        } else {
+            status = push(c, kind, t_s[i], values[i], NULL, NULL, &samples[i]);
+        }
+        if (status != PS_OK) {
+            break;
+        }
+        if (n_done != NULL) {
+            *n_done = i + 1;
+        }
+    }
+    return status;
+}
+
+int ps_chain_run_counts(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *counts,
+                        const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
+{
+    return run_trace(c, PUSH_COUNTS, n, t_s, counts, intended_deg, samples, n_done);
+}
+
+int ps_chain_run_angle(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *angle_deg,
+                       const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
+{
+    return run_trace(c, PUSH_ANGLE, n, t_s, angle_deg, intended_deg, samples, n_done);
+}
+
+int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *length_L0,
+                         const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
+{
+    return run_trace(c, PUSH_LENGTHS, n, t_s, length_L0, intended_deg, samples, n_done);
+}

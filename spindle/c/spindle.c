@@ -1,0 +1,355 @@
+/*
+ * spindle.c -- the Mileusnic (2006) spindle of spindle/core.py in C99.
+ *
+ * ps_spindle_step follows spindle.core.advance operation by operation (same state, same
+ * theta-method, same Newton iteration in z = sgn(v)|v|^(a/3), same starting guess), so the
+ * double build matches the numpy core to round-off. ps_spindle_step_plan is the embedded
+ * variant: the same equations with every constant that depends only on (params, h, theta)
+ * precomputed by ps_plan_init (no divide left but one per Newton iteration), optionally a
+ * fixed Newton iteration count (PS_NEWTON_ITER) and a polynomial cube root.
+ *
+ * No heap, no globals, no input is modified; on failure nothing is written.
+ */
+#include "proprio.h"
+
+#include <float.h>
+#include <math.h>
+#include <stddef.h>
+
+#define R_(x) ((ps_real)(x))
+
+#ifdef PS_FLOAT
+#define ps_fabs fabsf
+#define ps_pow powf
+#define ps_cbrt cbrtf
+#define PS_TINY FLT_MIN
+#else
+#define ps_fabs fabs
+#define ps_pow pow
+#define ps_cbrt cbrt
+#define PS_TINY 1e-300
+#endif
+
+/* Newton settings of spindle/core.py. The float build stops at a tolerance it can reach:
+ * z is O(1), and float resolves it to ~1e-7. */
+#define PS_NEWTON_MAX_ITER 60
+#ifndef PS_NEWTON_TOL_Z
+#ifdef PS_FLOAT
+#define PS_NEWTON_TOL_Z 2e-6
+#else
+#define PS_NEWTON_TOL_Z 1e-9
+#endif
+#endif
+#define PS_NEWTON_MAX_DZ 0.25
+
+/* ---- shared small pieces ------------------------------------------------------------ */
+
+static int is_finite(ps_real x) { return isfinite(x); }
+
+static ps_real max_r(ps_real a, ps_real b) { return a < b ? b : a; }
+
+static ps_real min_r(ps_real a, ps_real b) { return b < a ? b : a; }
+
+static ps_real sign_r(ps_real x) { return x > R_(0) ? R_(1) : (x < R_(0) ? R_(-1) : R_(0)); }
+
+/* g^p / (g^p + freq^p): spindle.core.activation_target. */
+static ps_real activation_target(ps_real drive, ps_real freq, ps_real p, int p_is_2)
+{
+    ps_real gp;
+    if (p_is_2) {
+        gp = drive * drive;
+    } else {
+        gp = ps_pow(drive, p);
+    }
+    /* A drive so large that g^p overflows is saturated (numpy would give inf/inf = NaN). */
+    if (!is_finite(gp)) return R_(1);
+    return p_is_2 ? gp / (gp + freq * freq) : gp / (gp + ps_pow(freq, p));
+}
+
+static int all_equal(const ps_real x[PS_NFIBRES], ps_real value)
+{
+    return x[0] == value && x[1] == value && x[2] == value;
+}
+
+/* The inputs of a step or of an equilibrium, checked in the order of spindle.core. */
+static int check_inputs(ps_real L, ps_real gd, ps_real gs)
+{
+    if (!is_finite(L) || !is_finite(gd) || !is_finite(gs)) return PS_ERR_NONFINITE;
+    if (L < R_(PS_LENGTH_MIN_L0) || L > R_(PS_LENGTH_MAX_L0)) return PS_ERR_LENGTH_RANGE;
+    if (gd < R_(0) || gs < R_(0)) return PS_ERR_NEGATIVE_DRIVE;
+    return PS_OK;
+}
+
+static ps_real fibre_drive(int i, ps_real gd, ps_real gs) { return i == 0 ? gd : gs; }
+
+/* ---- public API of the contract ----------------------------------------------------- */
+
+int ps_spindle_init(ps_spindle *s, const ps_params *p, ps_real L, ps_real gd, ps_real gs)
+{
+    int i, status, p_is_2;
+    ps_spindle out;
+    if (s == NULL || p == NULL) return PS_ERR_NULL;
+    status = check_inputs(L, gd, gs);
+    if (status != PS_OK) return status;
+    p_is_2 = all_equal(p->p, R_(2));
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        ps_real f = activation_target(fibre_drive(i, gd, gs), p->freq[i], p->p[i], p_is_2);
+        ps_real k1 = R_(1) + p->KPR[i] / p->KSR[i];
+        out.T[i] = (p->Gamma_drive[i] * f + p->KPR[i] * (L - p->LSR0[i] - p->LPR0[i])) / k1;
+        out.v[i] = R_(0);
+        out.z[i] = R_(0);
+        out.f[i] = f;
+    }
+    out.L = L;
+    out.gd = gd;
+    out.gs = gs;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        if (!is_finite(out.T[i]) || !is_finite(out.f[i])) return PS_ERR_CONFIG;
+    }
+    *s = out;
+    return PS_OK;
+}
+
+static void afferents(const ps_real T[PS_NFIBRES], ps_real L, const ps_params *p, ps_real *ia,
+                      ps_real *ii)
+{
+    ps_real stretch[PS_NFIBRES], primary[PS_NFIBRES], sec[PS_NFIBRES];
+    ps_real a_dyn, b_stat;
+    int i;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        stretch[i] = T[i] / p->KSR[i] - (p->LNSR[i] - p->LSR0[i]);
+        primary[i] = max_r(p->G_pri[i] * stretch[i], R_(0));
+    }
+    a_dyn = primary[0];
+    b_stat = primary[1] + primary[2];
+    for (i = 1; i < PS_NFIBRES; ++i) {
+        sec[i] = p->G_sec[i] * (p->X[i] * (p->Lsec[i] / p->LSR0[i]) * stretch[i]
+                                + (R_(1) - p->X[i]) * (p->Lsec[i] / p->LPR0[i])
+                                  * (L - T[i] / p->KSR[i] - p->LSR0[i] - p->LNPR[i]));
+    }
+    if (ia != NULL) *ia = max_r(a_dyn, b_stat) + p->S * min_r(a_dyn, b_stat);
+    if (ii != NULL) *ii = max_r(sec[1], R_(0)) + max_r(sec[2], R_(0));
+}
+
+void ps_spindle_afferents(const ps_spindle *s, const ps_params *p, ps_real *ia, ps_real *ii)
+{
+    if (s == NULL || p == NULL) return;
+    afferents(s->T, s->L, p, ia, ii);
+}
+
+/* v = sgn(z)|z|^(3/a) and dv/dz (spindle.core._velocity_from_z). */
+static void velocity_from_z(ps_real z, ps_real a, int a_is_03, ps_real *w, ps_real *dw)
+{
+    if (a_is_03) {
+        ps_real az = ps_fabs(z);
+        ps_real z4 = z * z;
+        ps_real z8az;
+        z4 *= z4;
+        z8az = z4 * z4;
+        z8az *= az;
+        *w = z8az * z;
+        if (dw != NULL) *dw = R_(10) * z8az;
+    } else {
+        ps_real three_over_a = R_(3) / a;
+        ps_real az_pow = ps_pow(ps_fabs(z), three_over_a - R_(1));
+        *w = z * az_pow;
+        if (dw != NULL) *dw = three_over_a * az_pow;
+    }
+}
+
+/* M dv/dt of fibre i (spindle.core._force); the damping C*beta*sgn(v)|v|^a is C*beta*z^3. */
+static ps_real force(const ps_params *p, int i, ps_real T, ps_real z, ps_real L, ps_real beta,
+                     ps_real Gamma)
+{
+    ps_real polar = L - p->LSR0[i] - T / p->KSR[i];
+    ps_real damping = (z > R_(0) ? p->CL[i] : p->CS[i]) * beta * (z * z * z);
+    return T - Gamma - p->KPR[i] * (polar - p->LPR0[i]) - damping * (polar - p->R[i]);
+}
+
+/* One Newton iteration on g(z) (spindle.core._implicit_solve); returns the step taken. */
+static ps_real newton_update(ps_real *z_io, ps_real a2, ps_real p0, ps_real rhs, ps_real cS,
+                             ps_real dC, ps_real th_h, ps_real a, int a_is_03)
+{
+    ps_real z = *z_io;
+    ps_real w, dw, z2, zp, phi, dphi, q, g, dg, dz;
+    velocity_from_z(z, a, a_is_03, &w, &dw);
+    z2 = z * z;
+    zp = max_r(z, R_(0));
+    phi = cS * (z2 * z) + dC * (zp * z2);
+    dphi = R_(3) * (cS * z2 + dC * (zp * z));
+    q = p0 + th_h * w;
+    g = a2 * w + phi * q - rhs;
+    dg = a2 * dw + dphi * q + th_h * phi * dw;
+    /* NaN propagates through both clamps, as np.maximum/np.minimum do. */
+    dz = g / (dg < R_(PS_TINY) ? R_(PS_TINY) : dg);
+    if (dz > R_(PS_NEWTON_MAX_DZ)) dz = R_(PS_NEWTON_MAX_DZ);
+    if (dz < R_(-PS_NEWTON_MAX_DZ)) dz = R_(-PS_NEWTON_MAX_DZ);
+    *z_io = z - dz;
+    return dz;
+}
+
+/* Newton iterations from z; PS_OK once |dz| <= tol (or after PS_NEWTON_ITER iterations). */
+static int newton(ps_real *z, ps_real a2, ps_real p0, ps_real rhs, ps_real cS, ps_real dC,
+                  ps_real th_h, ps_real a, int a_is_03)
+{
+    int it;
+#if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
+    for (it = 0; it < PS_NEWTON_ITER; ++it) {
+        (void)newton_update(z, a2, p0, rhs, cS, dC, th_h, a, a_is_03);
+    }
+    return PS_OK;
+#else
+    for (it = 0; it < PS_NEWTON_MAX_ITER; ++it) {
+        ps_real dz = newton_update(z, a2, p0, rhs, cS, dC, th_h, a, a_is_03);
+        if (ps_fabs(dz) <= R_(PS_NEWTON_TOL_Z)) return PS_OK;
+    }
+    return PS_ERR_NO_CONVERGENCE;
+#endif
+}
+
+int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, ps_real gs1,
+                    ps_real h, ps_real theta, ps_real *ia, ps_real *ii)
+{
+    ps_real T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES];
+    ps_real dL;
+    int i, status, p_is_2, a_is_03;
+
+    if (s == NULL || p == NULL) return PS_ERR_NULL;
+    if (!(theta >= R_(0) && theta <= R_(1))) return PS_ERR_METHOD;
+    if (!(is_finite(h) && h > R_(0))) return PS_ERR_STEP;
+    status = check_inputs(L1, gd1, gs1);
+    if (status != PS_OK) return status;
+    dL = L1 - s->L;
+    if (ps_fabs(dL) / h > R_(PS_MAX_SPEED_L0_S)) return PS_ERR_SPEED;
+
+    p_is_2 = all_equal(p->p, R_(2));
+    a_is_03 = all_equal(p->a, R_(0.3));
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        const ps_real KSR = p->KSR[i];
+        const ps_real T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i];
+        ps_real a1 = activation_target(fibre_drive(i, gd1, gs1), p->freq[i], p->p[i], p_is_2);
+        ps_real tau_safe = p->tau[i] > R_(0) ? p->tau[i] : R_(1);
+        ps_real rate = h / tau_safe;
+        ps_real beta1, Gamma1, A, F0 = R_(0);
+
+        /* Activation: the same theta-method on df/dt = (a* - f)/tau. */
+        if (theta < R_(1)) {
+            ps_real a0 = activation_target(fibre_drive(i, s->gd, s->gs), p->freq[i], p->p[i],
+                                           p_is_2);
+            f1[i] = (f0 + rate * ((R_(1) - theta) * (a0 - f0) + theta * a1))
+                    / (R_(1) + theta * rate);
+        } else {
+            f1[i] = (f0 + rate * a1) / (R_(1) + rate);
+        }
+        if (!(p->tau[i] > R_(0))) f1[i] = a1;
+
+        beta1 = p->beta0[i] + p->beta_drive[i] * f1[i];
+        Gamma1 = p->Gamma_drive[i] * f1[i];
+        /* The exact integral of dL over the step. */
+        A = T0 + KSR * (L1 - s->L);
+        if (theta == R_(0)) {
+            F0 = force(p, i, T0, z0, s->L, p->beta0[i] + p->beta_drive[i] * f0,
+                       p->Gamma_drive[i] * f0);
+            T1[i] = A - (h * KSR) * v0;
+            v1[i] = v0 + (h / p->M[i]) * F0;
+            z1[i] = sign_r(v1[i]) * ps_pow(ps_fabs(v1[i]), p->a[i] / R_(3));
+        } else {
+            ps_real k1 = R_(1) + p->KPR[i] / KSR;
+            ps_real a2, p0, th_h, rhs, cS, dC, z0_7, slope, z;
+            if (theta < R_(1)) {
+                F0 = force(p, i, T0, z0, s->L, p->beta0[i] + p->beta_drive[i] * f0,
+                           p->Gamma_drive[i] * f0);
+                A = A - ((R_(1) - theta) * h) * KSR * v0;
+            }
+            a2 = p->M[i] / h + (theta * theta * h) * k1 * KSR;
+            p0 = L1 - p->LSR0[i] - p->R[i] - A / KSR;
+            th_h = theta * h;
+            rhs = (p->M[i] / h) * v0
+                  + theta * (k1 * A - Gamma1 - p->KPR[i] * (L1 - p->LSR0[i] - p->LPR0[i]));
+            if (theta < R_(1)) rhs += (R_(1) - theta) * F0;
+            cS = (theta * p->CS[i]) * beta1;
+            dC = (theta * (p->CL[i] - p->CS[i])) * beta1;
+            /* Starting guess as in spindle.core (for a != 0.3 it also keeps its exponent). */
+            z0_7 = z0 * z0;
+            z0_7 *= a_is_03 ? z0_7 * z0_7 * ps_fabs(z0)
+                            : ps_pow(ps_fabs(z0), R_(3) / p->a[i] - R_(3));
+            slope = a2 * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
+            z = ps_cbrt(rhs / slope);
+            status = newton(&z, a2, p0, rhs, cS, dC, th_h, p->a[i], a_is_03);
+            if (status != PS_OK) return status;
+            velocity_from_z(z, p->a[i], a_is_03, &v1[i], NULL);
+            T1[i] = A - th_h * KSR * v1[i];
+            z1[i] = z;
+        }
+        if (!is_finite(T1[i]) || !is_finite(v1[i]) || !is_finite(z1[i]) || !is_finite(f1[i])) {
+            return PS_ERR_NONFINITE;
+        }
+    }
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        s->T[i] = T1[i];
+        s->v[i] = v1[i];
+        s->z[i] = z1[i];
+        s->f[i] = f1[i];
+    }
+    s->L = L1;
+    s->gd = gd1;
+    s->gs = gs1;
+    afferents(s->T, L1, p, ia, ii);
+    return PS_OK;
+}
+
+static int positive_all(const ps_real x[PS_NFIBRES])
+{
+    return x[0] > R_(0) && x[1] > R_(0) && x[2] > R_(0);
+}
+
+int ps_params_check(const ps_params *p)
+{
+    const ps_real *fields[21];
+    int i, k;
+    if (p == NULL) return PS_ERR_NULL;
+    fields[0] = p->KSR; fields[1] = p->KPR; fields[2] = p->M; fields[3] = p->beta0;
+    fields[4] = p->beta_drive; fields[5] = p->Gamma_drive; fields[6] = p->CL;
+    fields[7] = p->CS; fields[8] = p->R; fields[9] = p->a; fields[10] = p->LSR0;
+    fields[11] = p->LPR0; fields[12] = p->LNSR; fields[13] = p->LNPR; fields[14] = p->X;
+    fields[15] = p->Lsec; fields[16] = p->G_pri; fields[17] = p->G_sec; fields[18] = p->freq;
+    fields[19] = p->p; fields[20] = p->tau;
+    for (k = 0; k < 21; ++k) {
+        for (i = 0; i < PS_NFIBRES; ++i) {
+            if (!is_finite(fields[k][i])) return PS_ERR_CONFIG;
+        }
+    }
+    if (!is_finite(p->S)) return PS_ERR_CONFIG;
+    if (!(positive_all(p->KSR) && positive_all(p->M) && positive_all(p->freq)
+          && positive_all(p->p) && positive_all(p->CL) && positive_all(p->CS)
+          && positive_all(p->a))) {
+        return PS_ERR_CONFIG;
+    }
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        if (!(p->a[i] < R_(1)) || p->tau[i] < R_(0)) return PS_ERR_CONFIG;
+    }
+    return PS_OK;
+}
+
+int ps_spindle_run(ps_spindle *s, const ps_params *p, const ps_real *L, const ps_real *gd,
+                   const ps_real *gs, long n_steps, ps_real h, ps_real theta, long every,
+                   ps_real *ia, ps_real *ii, long *done)
+{
+    long j;
+    int status = PS_OK;
+    if (done != NULL) *done = 0;
+    if (s == NULL || p == NULL || L == NULL || gd == NULL || gs == NULL) return PS_ERR_NULL;
+    if (every < 1 || n_steps < 0) return PS_ERR_CONFIG;
+    for (j = 0; j < n_steps; ++j) {
+        ps_real r_ia, r_ii;
+        status = ps_spindle_step(s, p, L[j], gd[j], gs[j], h, theta, &r_ia, &r_ii);
+        if (status != PS_OK) break;
+        if ((j + 1) % every == 0) {
+            long k = (j + 1) / every - 1;
+            if (ia != NULL) ia[k] = r_ia;
+            if (ii != NULL) ii[k] = r_ii;
+        }
+        if (done != NULL) *done = j + 1;
+    }
+    return status;
+}

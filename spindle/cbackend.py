@@ -1,0 +1,213 @@
+"""ctypes binding of the C spindle (spindle/c/spindle.c) and the C path of ``simulate``.
+
+The library is compiled on first use by :mod:`spindle.cbuild` (a clear
+:class:`~spindle.cbuild.CBackendError` if no C compiler is found). :func:`simulate` is
+``spindle.simulate(..., backend="c")``: the same validation and ValueErrors as the numpy path,
+the same sub-step lengths (Hermite curves computed here with the numpy path's weights), then
+one ``ps_spindle_run`` call per spindle.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from functools import cache
+
+import numpy as np
+
+from spindle import cbuild, core
+from spindle.methods import Method, get_method
+from spindle.params import CAT, SpindleParams
+
+STATUS = {
+    0: "PS_OK",
+    1: "PS_ERR_NULL",
+    2: "PS_ERR_NONFINITE",
+    3: "PS_ERR_LENGTH_RANGE",
+    4: "PS_ERR_NEGATIVE_DRIVE",
+    5: "PS_ERR_STEP",
+    6: "PS_ERR_SPEED",
+    7: "PS_ERR_NO_CONVERGENCE",
+    8: "PS_ERR_METHOD",
+    9: "PS_ERR_CONFIG",
+}
+"""enum ps_status of proprio.h: value -> name."""
+
+PS_OK = 0
+
+
+@cache
+def library(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
+    """The C library with the spindle functions' prototypes declared."""
+    lib = cbuild.load(variant, sanitize)
+    real = cbuild.real_type(variant)
+    P = ctypes.POINTER
+    PsParams, PsSpindle = cbuild.structs(variant)
+    ptr_real = P(real)
+    lib.ps_spindle_init.argtypes = [P(PsSpindle), P(PsParams), real, real, real]
+    lib.ps_spindle_init.restype = ctypes.c_int
+    lib.ps_spindle_step.argtypes = [P(PsSpindle), P(PsParams), real, real, real, real, real,
+                                    ptr_real, ptr_real]
+    lib.ps_spindle_step.restype = ctypes.c_int
+    lib.ps_spindle_afferents.argtypes = [P(PsSpindle), P(PsParams), ptr_real, ptr_real]
+    lib.ps_spindle_afferents.restype = None
+    lib.ps_params_check.argtypes = [P(PsParams)]
+    lib.ps_params_check.restype = ctypes.c_int
+    lib.ps_spindle_run.argtypes = [P(PsSpindle), P(PsParams), ptr_real, ptr_real, ptr_real,
+                                   ctypes.c_long, real, real, ctypes.c_long, ptr_real,
+                                   ptr_real, P(ctypes.c_long)]
+    lib.ps_spindle_run.restype = ctypes.c_int
+    return lib
+
+
+def status_name(code: int) -> str:
+    return STATUS.get(code, f"unknown status {code}")
+
+
+def _np_real(variant: str) -> type:
+    return np.float32 if variant == "float" else np.float64
+
+
+def _pointer(arr: np.ndarray, variant: str):
+    return arr.ctypes.data_as(ctypes.POINTER(cbuild.real_type(variant)))
+
+
+def run_spindle(
+    lengths_L0: np.ndarray,
+    gamma_dyn_pps: np.ndarray,
+    gamma_stat_pps: np.ndarray,
+    h_s: float,
+    theta: float,
+    every: int,
+    params: SpindleParams = CAT,
+    variant: str = "double",
+    sanitize: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One spindle from rest at the first sample through the rest, in C.
+
+    ``lengths_L0`` etc. are (1 + n_steps,) arrays: the start and the value at the end of
+    every step. Returns (Ia, II) at the start and after every ``every``-th step. Raises
+    FloatingPointError if a step fails (no convergence, non-finite result), ValueError for
+    inputs the C code refuses.
+    """
+    lib = library(variant, sanitize)
+    dtype = _np_real(variant)
+    L, gd, gs = (np.ascontiguousarray(x, dtype=dtype) for x in
+                 (lengths_L0, gamma_dyn_pps, gamma_stat_pps))
+    n_steps = L.shape[0] - 1
+    n_out = n_steps // every
+    p = cbuild.params_struct(params, variant)
+    _, PsSpindle = cbuild.structs(variant)
+    s = PsSpindle()
+    code = lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), L[0], gd[0], gs[0])
+    if code != PS_OK:
+        raise ValueError(f"ps_spindle_init refused the first sample: {status_name(code)}")
+    ia = np.empty(n_out + 1, dtype=dtype)
+    ii = np.empty(n_out + 1, dtype=dtype)
+    real = cbuild.real_type(variant)
+    r_ia, r_ii = real(), real()
+    lib.ps_spindle_afferents(ctypes.byref(s), ctypes.byref(p), ctypes.byref(r_ia),
+                             ctypes.byref(r_ii))
+    ia[0], ii[0] = r_ia.value, r_ii.value
+    done = ctypes.c_long()
+    code = lib.ps_spindle_run(
+        ctypes.byref(s), ctypes.byref(p), _pointer(L[1:], variant), _pointer(gd[1:], variant),
+        _pointer(gs[1:], variant), n_steps, h_s, theta, every, _pointer(ia[1:], variant),
+        _pointer(ii[1:], variant), ctypes.byref(done))
+    if code != PS_OK:
+        message = (f"C spindle step {done.value + 1} of {n_steps} failed with "
+                   f"{status_name(code)} (step {h_s!r} s, theta {theta!r})")
+        if code in (2, 7):
+            raise FloatingPointError(message)
+        raise ValueError(message)
+    return ia, ii
+
+
+def simulate(
+    length: np.ndarray,
+    dt: float,
+    *,
+    velocity: np.ndarray | None = None,
+    acceleration: np.ndarray | None = None,
+    gamma_dyn: float | np.ndarray = 0.0,
+    gamma_stat: float | np.ndarray = 0.0,
+    params: SpindleParams = CAT,
+    method: str | Method | None = None,
+    step: float | None = None,
+    variant: str = "double",
+    sanitize: bool = False,
+):
+    """:func:`spindle.simulate` in C; ``variant="float"`` runs the float32 build."""
+    from spindle.simulate import SpindleResult, _broadcast_trace, hermite_weights, substeps
+
+    m = get_method(method)
+    length = np.asarray(length, dtype=float)
+    if length.ndim not in (1, 2) or length.shape[0] < 1:
+        raise ValueError(f"length must have shape (T,) or (T, n), got {length.shape}")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt={dt!r} s must be finite and > 0")
+    h_max = m.default_step_s if step is None else float(step)
+    core.check_step(h_max, m)
+    k = substeps(dt, h_max)
+    h = dt / k
+
+    shape = length.shape
+    L = length.reshape(shape[0], -1)
+    gd = _broadcast_trace("gamma_dyn", gamma_dyn, shape).reshape(L.shape)
+    gs = _broadcast_trace("gamma_stat", gamma_stat, shape).reshape(L.shape)
+    core.check_inputs(L, gd, gs)
+    core.check_speed(np.diff(L, axis=0), dt)
+    derivatives = []
+    if k > 1:
+        if velocity is None:
+            dL = np.gradient(L, dt, axis=0) if shape[0] > 1 else np.zeros_like(L)
+        else:
+            dL = _broadcast_trace("velocity", velocity, shape).reshape(L.shape)
+        derivatives.append(dL)
+        if acceleration is not None:
+            derivatives.append(_broadcast_trace("acceleration", acceleration, shape)
+                               .reshape(L.shape))
+    else:
+        derivatives = [
+            _broadcast_trace(name, x, shape)
+            for name, x in (("velocity", velocity), ("acceleration", acceleration))
+            if x is not None
+        ]
+    for name, arr in zip(("velocity", "acceleration"), derivatives, strict=False):
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name} contains non-finite values; every value must be finite")
+
+    L_steps = substep_lengths(L, derivatives if k > 1 else [], k, dt, hermite_weights)
+    n = L.shape[1]
+    ia = np.empty_like(L)
+    ii = np.empty_like(L)
+    for col in range(n):
+        ia[:, col], ii[:, col] = run_spindle(
+            np.concatenate(([L[0, col]], L_steps[:, col])),
+            np.concatenate(([gd[0, col]], np.repeat(gd[1:, col], k))),
+            np.concatenate(([gs[0, col]], np.repeat(gs[1:, col], k))),
+            h, m.theta, k, params, variant, sanitize,
+        )
+    t = np.arange(shape[0]) * dt
+    return SpindleResult(t, ia.reshape(shape), ii.reshape(shape), m.name, h)
+
+
+def substep_lengths(L: np.ndarray, derivatives: list[np.ndarray], k: int, dt: float,
+                    hermite_weights) -> np.ndarray:
+    """The length at the end of every internal step, shape ((T-1)*k, n).
+
+    Sub-step j of interval i is the numpy path's Hermite curve at fraction j/k, evaluated with
+    the same operations (so the C path sees bit-identical lengths); step k ends on L[i].
+    """
+    T, n = L.shape
+    out = np.empty((T - 1, k, n))
+    order = len(derivatives)
+    for j in range(1, k):
+        w = hermite_weights(j / k, order)
+        val = w[0] * L[:-1] + w[1] * L[1:]
+        scale = dt
+        for q, d in enumerate(derivatives):
+            val = val + scale * (w[2 + 2 * q] * d[:-1] + w[3 + 2 * q] * d[1:])
+            scale *= dt
+        out[:, j - 1] = val
+    out[:, k - 1] = L[1:]
+    return out.reshape((T - 1) * k, n)

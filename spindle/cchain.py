@@ -1,0 +1,467 @@
+"""The C backend of the arm chain: :class:`CArmChain`, ``spindle/c/chain.c`` through ctypes.
+
+``ArmChain(ChainConfig(backend="c"))`` returns a :class:`CArmChain`: the same API, outputs
+and counters as the numpy :class:`~spindle.chain.ArmChain` (the double build agrees to
+round-off), with every push done in C and each block push in ONE C call. The library is
+compiled on first use (:mod:`spindle.cbuild`); without a C compiler the constructor raises
+:class:`~spindle.cbuild.CBackendError` saying so.
+
+Differences from the numpy chain, only where the numpy chain has no rule (see
+``docs/c_chain.md``): a push that fails (a spindle step that does not converge, or an
+interval needing more than ``PS_CHAIN_MAX_UPDATES`` sub-steps, i.e. a corrupt huge time)
+raises and leaves the chain exactly as it was.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+from dataclasses import fields
+from functools import cache
+
+import numpy as np
+
+from spindle import cbuild, core
+from spindle.chain import COUNTERS, MUSCLES, ArmChain, ArmSample, ChainConfig, _block
+from spindle.derivatives import natural_rad_s
+from spindle.length_fits import LengthFits, load_length_fits
+from spindle.methods import get_method
+
+# Constants of proprio.h's chain section (checked against the header by the tests).
+MEDIAN_MAX_WINDOW = 15
+FIT_MAX_COEFFS = 16
+PREDICTOR_MAX_SEGMENTS = 16
+MAX_UPDATES = 1_000_000
+
+STATUS = {
+    0: "PS_OK", 1: "PS_ERR_NULL", 2: "PS_ERR_NONFINITE", 3: "PS_ERR_LENGTH_RANGE",
+    4: "PS_ERR_NEGATIVE_DRIVE", 5: "PS_ERR_STEP", 6: "PS_ERR_SPEED", 7: "PS_ERR_NO_CONVERGENCE",
+    8: "PS_ERR_METHOD", 9: "PS_ERR_CONFIG", 10: "PS_ERR_ANGLE_RANGE", 11: "PS_ERR_NOT_RESET",
+    12: "PS_ERR_INTERVAL",
+}
+PS_OK, PS_ERR_NOT_RESET, PS_ERR_INTERVAL = 0, 11, 12
+
+PER_MUSCLE = ("length_L0", "velocity_L0_s", "acceleration_L0_s2", "template_L0",
+              "gamma_static_pps", "gamma_dynamic_pps", "ia_pps", "ii_pps")
+"""ArmSample's per-muscle fields, in the order ps_arm_sample stores them (contiguous)."""
+SAMPLE_FIELDS = tuple(f.name for f in fields(ArmSample))
+assert SAMPLE_FIELDS[5:] == PER_MUSCLE
+
+
+@cache
+def structs(variant: str = "double") -> dict[str, type]:
+    """ctypes mirrors of the chain section's structs for ``variant``."""
+    real = cbuild.real_type(variant)
+    PsParams, PsSpindle = cbuild.structs(variant)
+    pair = real * 2
+    n_muscles = len(MUSCLES)
+
+    class PsMedian(ctypes.Structure):
+        _fields_ = [("values", real * MEDIAN_MAX_WINDOW), ("window", ctypes.c_int),
+                    ("next", ctypes.c_int)]
+
+    class PsPredictor(ctypes.Structure):
+        _fields_ = [("t", ctypes.c_double * PREDICTOR_MAX_SEGMENTS),
+                    ("p", pair * PREDICTOR_MAX_SEGMENTS), ("u", pair * PREDICTOR_MAX_SEGMENTS),
+                    ("integral", pair), ("first", ctypes.c_int), ("count", ctypes.c_int)]
+
+    class PsCounters(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_ulong) for name in COUNTERS]
+
+    class PsArmSample(ctypes.Structure):
+        _fields_ = [("t_s", ctypes.c_double), ("accepted", ctypes.c_int), ("counts", real),
+                    ("counts_filtered", real), ("angle_deg", real),
+                    *[(name, pair) for name in PER_MUSCLE]]
+
+    class PsChainConfig(ctypes.Structure):
+        _fields_ = [
+            ("max_count", real), ("zero_count", real), ("count_sign", real),
+            ("deg_per_count", real), ("median_window", ctypes.c_int),
+            ("n_coefficients", ctypes.c_int * n_muscles),
+            ("coefficients", (real * FIT_MAX_COEFFS) * n_muscles),
+            ("fit_lo_rad", real), ("fit_hi_rad", real), ("lowpass_rad_s", real),
+            ("gap_s", ctypes.c_double), ("max_speed_deg_s", real), ("max_speed_L0_s", real),
+            ("gamma_static_min_pps", real), ("gamma_static_max_pps", real),
+            ("gamma_dynamic_pps", real), ("delay_s", ctypes.c_double),
+            ("shortening_threshold_L0", real), ("predictor_rate_hz", real),
+            ("predictor_kp_1_s", real), ("predictor_ki_1_s2", real), ("params", PsParams),
+            ("theta", real), ("step_s", ctypes.c_double),
+        ]
+
+    class PsChainState(ctypes.Structure):
+        _fields_ = [
+            ("median", PsMedian), ("predictor", PsPredictor), ("spindle", PsSpindle * n_muscles),
+            ("u", pair), ("x", pair), ("v", pair), ("a", pair), ("angle_deg", real),
+            ("t_s", ctypes.c_double), ("has_intended", ctypes.c_int), ("intended_L0", pair),
+            ("counters", PsCounters), ("last", PsArmSample),
+        ]
+
+    class PsArmChain(ctypes.Structure):
+        _fields_ = [
+            ("config", PsChainConfig), ("angle_min_deg", real), ("angle_max_deg", real),
+            ("length_min_L0", pair), ("length_max_L0", pair), ("predictor_keep", ctypes.c_int),
+            ("stage", ctypes.c_int), ("state", PsChainState),
+        ]
+
+    return {cls.__name__: cls for cls in (PsMedian, PsPredictor, PsCounters, PsArmSample,
+                                          PsChainConfig, PsChainState, PsArmChain)}
+
+
+@cache
+def sample_dtype(variant: str = "double") -> np.dtype:
+    """A numpy structured dtype laid out as ``ps_arm_sample`` (an array of them is a table)."""
+    cls = structs(variant)["PsArmSample"]
+    real = np.float32 if variant == "float" else np.float64
+    kinds = {"t_s": (np.float64, ()), "accepted": (np.intc, ())}
+    names, formats, offsets = [], [], []
+    for name, _ in cls._fields_:
+        base, shape = kinds.get(name, (real, (2,) if name in PER_MUSCLE else ()))
+        names.append(name)
+        formats.append((base, shape) if shape else base)
+        offsets.append(getattr(cls, name).offset)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                     "itemsize": ctypes.sizeof(cls)})
+
+
+@cache
+def library(variant: str = "double") -> ctypes.CDLL:
+    """The built library with the chain's prototypes declared."""
+    lib = cbuild.load(variant)
+    real = cbuild.real_type(variant)
+    s = structs(variant)
+    chain_p = ctypes.POINTER(s["PsArmChain"])
+    sample_p = ctypes.POINTER(s["PsArmSample"])
+    real_p = ctypes.POINTER(real)
+    long_p = ctypes.POINTER(ctypes.c_long)
+    protos = {
+        "ps_chain_init": [chain_p, ctypes.POINTER(s["PsChainConfig"])],
+        "ps_chain_length_L0": [chain_p, real, real_p],
+        "ps_chain_reset": [chain_p, real, ctypes.c_double, real_p, sample_p],
+        "ps_chain_set_intended_angle": [chain_p, real_p],
+        "ps_chain_push_counts": [chain_p, ctypes.c_double, real, sample_p],
+        "ps_chain_push_angle": [chain_p, ctypes.c_double, real, sample_p],
+        "ps_chain_push_lengths": [chain_p, ctypes.c_double, real_p, real_p, sample_p],
+        "ps_chain_push_counts_block": [chain_p, ctypes.c_long, ctypes.c_void_p,
+                                        ctypes.c_void_p, sample_p, long_p],
+        "ps_chain_push_angle_block": [chain_p, ctypes.c_long, ctypes.c_void_p,
+                                        ctypes.c_void_p, sample_p, long_p],
+        "ps_chain_push_lengths_block": [chain_p, ctypes.c_long, ctypes.c_void_p,
+                                        ctypes.c_void_p, sample_p, long_p],
+        **{f"ps_chain_run_{kind}": [chain_p, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p,
+                                    ctypes.c_void_p, ctypes.c_void_p, long_p]
+           for kind in ("counts", "angle", "lengths")},
+    }
+    for name, argtypes in protos.items():
+        fn = getattr(lib, name)
+        fn.argtypes = argtypes
+        fn.restype = ctypes.c_int
+    return lib
+
+
+def chain_config_struct(config: ChainConfig, fits: LengthFits,
+                        variant: str = "double") -> ctypes.Structure:
+    """``config`` and ``fits`` resolved into a filled ``ps_chain_config``."""
+    if len(fits.fits) != len(MUSCLES):
+        raise ValueError(f"length fits are for {fits.muscles}, the chain needs {MUSCLES}")
+    if config.median_window > MEDIAN_MAX_WINDOW:
+        raise ValueError(f"median_window={config.median_window} exceeds the C backend's "
+                         f"PS_MEDIAN_MAX_WINDOW={MEDIAN_MAX_WINDOW}")
+    out = structs(variant)["PsChainConfig"]()
+    enc, cal, fm = config.encoder, config.calibration, config.fusimotor
+    out.max_count = enc.max_count
+    out.zero_count, out.count_sign, out.deg_per_count = (cal.zero_count, cal.sign,
+                                                         cal.deg_per_count)
+    out.median_window = config.median_window
+    for k, fit in enumerate(fits.fits):
+        if len(fit.coefficients) > FIT_MAX_COEFFS:
+            raise ValueError(f"the {fit.muscle} fit has {len(fit.coefficients)} coefficients, "
+                             f"above the C backend's PS_FIT_MAX_COEFFS={FIT_MAX_COEFFS}")
+        out.n_coefficients[k] = len(fit.coefficients)
+        out.coefficients[k][:len(fit.coefficients)] = fit.coefficients
+    out.fit_lo_rad, out.fit_hi_rad = fits.valid_range_rad
+    out.lowpass_rad_s = 0.0 if config.lowpass_hz is None else natural_rad_s(config.lowpass_hz)
+    out.gap_s = config.gap_s
+    out.max_speed_deg_s = config.max_speed_deg_s
+    out.max_speed_L0_s = config.max_speed_L0_s
+    out.gamma_static_min_pps = fm.gamma_static_min_pps
+    out.gamma_static_max_pps = fm.gamma_static_max_pps
+    out.gamma_dynamic_pps = fm.gamma_dynamic_pps
+    out.delay_s = fm.delay_s
+    out.shortening_threshold_L0 = fm.shortening_threshold_L0
+    out.predictor_rate_hz = fm.predictor_rate_hz
+    out.predictor_kp_1_s = fm.predictor_kp_1_s
+    out.predictor_ki_1_s2 = fm.predictor_ki_1_s2
+    if math.ceil(fm.delay_s * fm.predictor_rate_hz) + 2 > PREDICTOR_MAX_SEGMENTS:
+        raise ValueError(
+            f"delay_s={fm.delay_s!r} at predictor_rate_hz={fm.predictor_rate_hz!r} needs more "
+            f"than the C backend's PS_PREDICTOR_MAX_SEGMENTS={PREDICTOR_MAX_SEGMENTS} segments")
+    out.params = cbuild.params_struct(config.params, variant)
+    out.theta = get_method(config.method).theta
+    out.step_s = config.spindle_step_s
+    return out
+
+
+def _float(value: object) -> float:
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return math.nan
+
+
+class CArmChain(ArmChain):
+    """:class:`~spindle.chain.ArmChain` computed by ``spindle/c/chain.c``.
+
+    Args:
+        config, fits: as for :class:`~spindle.chain.ArmChain` (``config.backend`` is not
+            read: this class is the C backend).
+        variant: ``"double"`` (agrees with numpy to round-off) or ``"float"`` (what a
+            microcontroller without an FPU runs; see ``docs/c_chain.md`` for its accuracy).
+    """
+
+    def __init__(self, config: ChainConfig | None = None, fits: LengthFits | None = None,
+                 variant: str = "double"):
+        self.config = ChainConfig() if config is None else config
+        self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
+        if self.fits.muscles != MUSCLES:
+            raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
+        self.variant = variant
+        self._lib = library(variant)
+        self._structs = structs(variant)
+        self._real = cbuild.real_type(variant)
+        self._np_real = np.float32 if variant == "float" else np.float64
+        self._config_struct = chain_config_struct(self.config, self.fits, variant)
+        self._chain = self._structs["PsArmChain"]()
+        self._chain_p = ctypes.pointer(self._chain)
+        self._sample = self._structs["PsArmSample"]()
+        self._sample_p = ctypes.pointer(self._sample)
+        self._n_done = ctypes.c_long()
+        self._n_done_p = ctypes.pointer(self._n_done)
+        self._pair = (self._real * 2)()
+        self._pair_p = ctypes.cast(self._pair, ctypes.POINTER(self._real))
+        self._scalar = self._real()
+        self._scalar_p = ctypes.pointer(self._scalar)
+        status = self._lib.ps_chain_init(self._chain_p, ctypes.byref(self._config_struct))
+        if status != PS_OK:
+            raise ValueError(f"the C chain refused the configuration ({STATUS[status]})")
+        c = self._chain
+        self.angle_range_deg = (float(c.angle_min_deg), float(c.angle_max_deg))
+        self.length_min_L0 = np.array(c.length_min_L0[:], dtype=float)
+        self.length_max_L0 = np.array(c.length_max_L0[:], dtype=float)
+        # A numpy view of the sample struct's per-muscle block (it lives as long as self).
+        self._rows = np.frombuffer(self._sample, dtype=self._np_real, count=2 * len(PER_MUSCLE),
+                                   offset=type(self._sample).length_L0.offset).reshape(-1, 2)
+        self._last: ArmSample | None = None
+
+    # -- state ---------------------------------------------------------------------------
+    def reset(self, angle_deg: float, t_s: float = 0.0,
+              length_L0: np.ndarray | None = None) -> ArmSample:
+        if not np.isfinite(t_s):
+            raise ValueError(f"t_s={t_s!r} must be finite")
+        angle = self._check_angle(angle_deg)
+        lengths_p = None
+        if length_L0 is not None:
+            L = self._check_lengths(length_L0)
+            if L is None:
+                raise ValueError(f"length_L0={length_L0!r} must be 2 finite lengths within "
+                                 f"{core.LENGTH_RANGE_L0} L0")
+            self._pair[:] = L
+            lengths_p = self._pair_p
+        status = self._lib.ps_chain_reset(self._chain_p, angle, float(t_s), lengths_p,
+                                          self._sample_p)
+        if status == 10:  # PS_ERR_ANGLE_RANGE: the fits' own error and message
+            self.fits.length_L0(math.radians(angle))
+        self._check(status, "reset")
+        self._last = self._sample_out(True)
+        return self._last
+
+    def set_intended_angle(self, angle_deg: float | None) -> None:
+        if angle_deg is None:
+            self._check(self._lib.ps_chain_set_intended_angle(self._chain_p, None), "switch")
+            return
+        self._scalar.value = self._check_angle(angle_deg)
+        self._check(self._lib.ps_chain_set_intended_angle(self._chain_p, self._scalar_p),
+                    "switch")
+
+    @property
+    def counters(self) -> dict[str, int]:  # type: ignore[override]
+        """Counts of each handling rule since the last reset (as ArmChain.counters)."""
+        counted = self._chain.state.counters
+        return {name: int(getattr(counted, name)) for name in COUNTERS}
+
+    @property
+    def spindle_state(self) -> core.SpindleState:
+        """A copy of the spindles' state (2 spindles: BRA, TRImed)."""
+        if self._last is None:
+            raise RuntimeError("call ArmChain.reset before using the chain")
+        sp = self._chain.state.spindle
+
+        def fibres(name):
+            return np.array([getattr(sp[k], name)[:] for k in range(len(MUSCLES))], dtype=float)
+
+        def scalar(name):
+            return np.array([getattr(sp[k], name) for k in range(len(MUSCLES))], dtype=float)
+
+        return core.SpindleState(fibres("T"), fibres("v"), fibres("z"), fibres("f"),
+                                 scalar("L"), scalar("gd"), scalar("gs"))
+
+    # -- pushes ----------------------------------------------------------------------------
+    def push_counts(self, t_s: float, counts: float) -> ArmSample:
+        status = self._lib.ps_chain_push_counts(self._chain_p, _float(t_s), _float(counts),
+                                                self._sample_p)
+        return self._pushed(status, t_s)
+
+    def push_angle(self, t_s: float, angle_deg: float) -> ArmSample:
+        status = self._lib.ps_chain_push_angle(self._chain_p, _float(t_s), _float(angle_deg),
+                                               self._sample_p)
+        return self._pushed(status, t_s)
+
+    def push_lengths(self, t_s: float, length_L0: np.ndarray,
+                     angle_deg: float | None = None) -> ArmSample:
+        L = np.asarray(length_L0, dtype=float)
+        self._pair[:] = L.tolist() if L.shape == (2,) else [math.nan, math.nan]
+        angle_p = None
+        if angle_deg is not None:
+            self._scalar.value = _float(angle_deg)
+            angle_p = self._scalar_p
+        status = self._lib.ps_chain_push_lengths(self._chain_p, _float(t_s), self._pair_p,
+                                                 angle_p, self._sample_p)
+        return self._pushed(status, t_s)
+
+    def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray) -> ArmSample:
+        return self._block(self._lib.ps_chain_push_counts_block, "counts", t_s, counts, ())
+
+    def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray) -> ArmSample:
+        return self._block(self._lib.ps_chain_push_angle_block, "angle_deg", t_s, angle_deg,
+                           ())
+
+    def push_lengths_block(self, t_s: np.ndarray, length_L0: np.ndarray) -> ArmSample:
+        return self._block(self._lib.ps_chain_push_lengths_block, "length_L0", t_s, length_L0,
+                           (2,))
+
+    def run_trace(self, push: str, t_s: np.ndarray, signal: np.ndarray,
+                  intended_angle_deg: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Push a whole trace in one C call; every output stacked (for :func:`run_chain`).
+
+        ``push`` names the entry point (``"push_counts"``, ``"push_angle"``,
+        ``"push_lengths"``); ``intended_angle_deg`` (k,) sets the switch before each sample
+        (NaN: the measured motion), as :func:`run_chain` does. Returns the fields of
+        :class:`ArmSample` stacked over the k samples (rejected ones included).
+        """
+        kind = push.removeprefix("push_")
+        shape = (2,) if kind == "lengths" else ()
+        t, x = _block(kind, t_s, signal, shape)
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        x = np.ascontiguousarray(x, dtype=self._np_real)
+        intended = None
+        if intended_angle_deg is not None:
+            intended = np.ascontiguousarray(intended_angle_deg, dtype=self._np_real)
+            if intended.shape != t.shape:
+                raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected "
+                                 f"{t.shape}")
+        samples = (self._structs["PsArmSample"] * t.size)()
+        fn = getattr(self._lib, f"ps_chain_run_{kind}")
+        status = fn(self._chain_p, t.size, t.__array_interface__["data"][0],
+                    x.__array_interface__["data"][0],
+                    None if intended is None else intended.__array_interface__["data"][0],
+                    ctypes.addressof(samples), self._n_done_p)
+        done = self._n_done.value
+        if self._last is not None:
+            self._last = self._sample_from(self._chain.state.last)
+        if status != PS_OK:
+            if intended is not None and status == 2:  # PS_ERR_NONFINITE: the switch's input
+                raise ValueError(f"intended_angle_deg={float(intended[done])!r} must be "
+                                 "finite (NaN selects the measured motion)")
+            self._check(status, "push", float(t[done]))
+        table = np.frombuffer(samples, dtype=sample_dtype(self.variant), count=t.size)
+        out = {name: table[name].astype(float) for name in SAMPLE_FIELDS}
+        out["accepted"] = table["accepted"] != 0
+        return out
+
+    # -- plumbing ----------------------------------------------------------------------------
+    def _block(self, fn, name, t_s, signal, sample_shape) -> ArmSample:
+        t, x = _block(name, t_s, signal, sample_shape)
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        x = np.ascontiguousarray(x, dtype=self._np_real)
+        # Raw addresses: the arrays outlive the call, and .ctypes.data_as costs microseconds.
+        status = fn(self._chain_p, t.size, t.__array_interface__["data"][0],
+                    x.__array_interface__["data"][0], self._sample_p, self._n_done_p)
+        if status != PS_OK:
+            i = self._n_done.value
+            if self._n_done.value > 0:
+                self._last = self._sample_out(True)
+            self._check(status, "push", float(t[i]))
+        if t.size:
+            self._last = self._sample_out(True)
+        return self.last
+
+    def _pushed(self, status: int, t_s: object) -> ArmSample:
+        self._check(status, "push", _float(t_s))
+        if self._sample.accepted:
+            self._last = self._sample_out(True)
+            return self._last
+        return self._rejected()
+
+    def _check(self, status: int, what: str, t_s: float | None = None) -> None:
+        if status == PS_OK:
+            return
+        if status == PS_ERR_NOT_RESET:
+            raise RuntimeError(f"call ArmChain.reset before using the chain ({what})")
+        if status == PS_ERR_INTERVAL:
+            raise ValueError(
+                f"the sample at t_s={t_s!r} is too far after the last accepted one at "
+                f"{float(self._chain.state.t_s)!r} s: the interval needs more than "
+                f"{MAX_UPDATES} spindle sub-steps or predictor updates; chain left unchanged")
+        if what == "push":
+            raise FloatingPointError(
+                f"the C chain failed at t_s={t_s!r} ({STATUS.get(status, status)}): a spindle "
+                "step did not produce a valid state; chain left unchanged")
+        raise ValueError(f"the C chain refused the {what} ({STATUS.get(status, status)})")
+
+    def _sample_out(self, accepted: bool) -> ArmSample:
+        return self._sample_from(self._sample, accepted, self._rows)
+
+    def _sample_from(self, s: ctypes.Structure, accepted: bool = True,
+                     rows: np.ndarray | None = None) -> ArmSample:
+        if rows is None:
+            rows = np.frombuffer(s, dtype=self._np_real, count=2 * len(PER_MUSCLE),
+                                 offset=type(s).length_L0.offset).reshape(-1, 2)
+        out = object.__new__(ArmSample)
+        # What ArmSample's frozen __init__ does, without its per-field object.__setattr__
+        # (4 us, as much as the C work of a 10-sample block).
+        out.__dict__.update(zip(SAMPLE_FIELDS, (
+            float(s.t_s), accepted, float(s.counts), float(s.counts_filtered),
+            float(s.angle_deg), *rows.astype(float)), strict=True))
+        return out
+
+
+def config_c_source(config: ChainConfig | None = None, fits: LengthFits | None = None,
+                    name: str = "proprio_chain_config") -> str:
+    """C99 source defining ``const ps_chain_config <name>`` for ``config`` and ``fits``.
+
+    What a microcontroller build compiles beside ``spindle/c/*.c`` (no Python, no JSON on
+    the device). Values are C99 hexadecimal floating constants, so the double build gets
+    exactly the numbers the Python binding passes. ``python -m spindle.cchain > config.c``
+    writes it for the default chain.
+    """
+    config = ChainConfig() if config is None else config
+    fits = fits if fits is not None else load_length_fits(config.fits_path)
+    filled = chain_config_struct(config, fits, "double")
+
+    def literal(value) -> str:
+        if isinstance(value, int):
+            return str(value)
+        if isinstance(value, ctypes.Array):
+            return "{" + ", ".join(literal(v) for v in value) + "}"
+        if isinstance(value, ctypes.Structure):
+            return "{" + ", ".join(f".{f} = {literal(getattr(value, f))}"
+                                   for f, _ in value._fields_) + "}"
+        return float(value).hex()
+
+    body = ",\n".join(f"    .{f} = {literal(getattr(filled, f))}" for f, _ in filled._fields_)
+    return (f"/* Generated by spindle.cchain.config_c_source: {config.method}, "
+            f"fits of {', '.join(fits.muscles)} (elbow.xml sha256 {fits.model_sha256[:12]}). */\n"
+            f'#include "proprio.h"\n\nconst ps_chain_config {name} = {{\n{body}\n}};\n')
+
+
+if __name__ == "__main__":
+    print(config_c_source(), end="")

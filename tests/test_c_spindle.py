@@ -1,0 +1,272 @@
+"""The C spindle (spindle/c/spindle.c) against the numpy core and the stiff reference.
+
+The double build follows spindle.core operation by operation, so on contractive settings
+(trapezoidal rule, backward Euler) it agrees with numpy to ~1e-12 pps. Forward Euler is
+chaotic where the polar velocity crosses 0 (the |v|^0.3 damping has an infinite slope there),
+so it amplifies the one implementation difference between the two, numpy's SIMD ``**``
+against the C library's ``pow`` (1 ulp apart); with numpy's power replaced by the same libm
+``pow`` the two agree to 1e-6 pps there too (in practice bit for bit).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+
+import numpy as np
+import pytest
+
+import spindle
+from spindle import cbackend, cbuild, core
+
+try:
+    cbuild.find_compiler()
+except cbuild.CBackendError as exc:  # pragma: no cover - depends on the machine
+    pytest.skip(str(exc), allow_module_level=True)
+
+TOL_PPS = 1e-6
+# float32 build vs the double numpy core on the protocols below (docs/c_port.md has the
+# measured figures: <= 0.0075 pps on Fig. 3, implicit settings).
+FLOAT_TOL_PPS = 0.05
+
+SPEEDS = (0.11, 0.66, 1.55)
+DRIVES = ((0.0, 0.0), (70.0, 0.0), (0.0, 70.0))
+
+
+def fig3_protocol(dt_s: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Mileusnic 2006 Fig. 3: 0.95 -> 1.08 L0 ramps from 1 s, 3.3 s; the 9 runs as columns."""
+    t = np.arange(round(3.3 / dt_s) + 1) * dt_s
+    runs = [(v, gd, gs) for v in SPEEDS for gd, gs in DRIVES]
+    speed = np.array([r[0] for r in runs])
+    end = 1.0 + (1.08 - 0.95) / speed
+    length = 0.95 + speed * np.clip(t[:, None] - 1.0, 0.0, end - 1.0)
+    velocity = np.where((t[:, None] > 1.0) & (t[:, None] < end), speed, 0.0)
+    return length, velocity, np.array([r[1] for r in runs]), np.array([r[2] for r in runs])
+
+
+def random_trajectories(seed: int, n: int = 4, duration_s: float = 2.0, dt_s: float = 2e-3):
+    """Smooth random lengths in [0.6, 1.4] L0 (|dL/dt| < 4 L0/s) and stepwise random drive."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(round(duration_s / dt_s) + 1) * dt_s
+    freq = rng.uniform(0.2, 3.0, size=(5, n))
+    amp = rng.uniform(0.0, 0.08, size=(5, n))
+    phase = rng.uniform(0, 2 * np.pi, size=(5, n))
+    arg = 2 * np.pi * freq[None] * t[:, None, None] + phase[None]
+    length = 1.0 + rng.uniform(-0.1, 0.1, n) + (amp[None] * np.sin(arg)).sum(axis=1)
+    velocity = (amp[None] * 2 * np.pi * freq[None] * np.cos(arg)).sum(axis=1)
+    accel = -(amp[None] * (2 * np.pi * freq[None]) ** 2 * np.sin(arg)).sum(axis=1)
+    hold = max(1, round(0.25 / dt_s))
+    gd = np.repeat(rng.uniform(0, 150, size=(len(t) // hold + 1, n)), hold, axis=0)[:len(t)]
+    gs = np.repeat(rng.uniform(0, 150, size=(len(t) // hold + 1, n)), hold, axis=0)[:len(t)]
+    gd[rng.random(gd.shape) < 0.3] = 0.0
+    return length, velocity, accel, gd, gs, dt_s
+
+
+@pytest.fixture
+def libm_pow_in_numpy(monkeypatch):
+    """numpy's z = sgn(v)|v|^(a/3) with the C library's pow (what spindle.c calls)."""
+    libm_pow = np.frompyfunc(math.pow, 2, 1)
+
+    def z_from_velocity(v, c):
+        return np.sign(v) * libm_pow(np.abs(v), np.broadcast_to(c.a / 3.0, v.shape)) \
+            .astype(float)
+
+    monkeypatch.setattr(core, "_z_from_velocity", z_from_velocity)
+
+
+def assert_close(a, b, tol):
+    assert a.ia.shape == b.ia.shape
+    assert np.isfinite(b.ia).all() and np.isfinite(b.ii).all()
+    d_ia = np.abs(a.ia - b.ia).max()
+    d_ii = np.abs(a.ii - b.ii).max()
+    assert d_ia <= tol and d_ii <= tol, (d_ia, d_ii)
+
+
+@pytest.mark.parametrize(("method", "step_s"), [
+    ("trapezoidal", 1e-3), ("trapezoidal", 0.25e-3), ("backward_euler", 1e-3),
+])
+def test_fig3_double_matches_numpy(method, step_s):
+    length, velocity, gd, gs = fig3_protocol()
+    kw = dict(velocity=velocity, gamma_dyn=gd, gamma_stat=gs, method=method, step=step_s)
+    assert_close(spindle.simulate(length, 1e-3, **kw),
+                 spindle.simulate(length, 1e-3, backend="c", **kw), TOL_PPS)
+
+
+@pytest.mark.usefixtures("libm_pow_in_numpy")
+@pytest.mark.parametrize("step_s", [1e-3, 0.25e-3])
+def test_fig3_forward_euler_double_matches_numpy_with_the_same_pow(step_s):
+    length, velocity, gd, gs = fig3_protocol()
+    kw = dict(velocity=velocity, gamma_dyn=gd, gamma_stat=gs, method="forward_euler",
+              step=step_s)
+    assert_close(spindle.simulate(length, 1e-3, **kw),
+                 spindle.simulate(length, 1e-3, backend="c", **kw), TOL_PPS)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("libm_pow_in_numpy")
+@pytest.mark.parametrize("method", ["forward_euler", "backward_euler", "trapezoidal"])
+def test_fig3_default_steps_double_matches_numpy(method):
+    length, velocity, gd, gs = fig3_protocol()
+    kw = dict(velocity=velocity, gamma_dyn=gd, gamma_stat=gs, method=method)
+    assert_close(spindle.simulate(length, 1e-3, **kw),
+                 spindle.simulate(length, 1e-3, backend="c", **kw), TOL_PPS)
+
+
+@pytest.mark.usefixtures("libm_pow_in_numpy")
+@pytest.mark.parametrize("method", ["forward_euler", "backward_euler", "trapezoidal"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_trajectories_double_matches_numpy(method, seed):
+    length, velocity, accel, gd, gs, dt = random_trajectories(seed)
+    step = {"forward_euler": 0.5e-3, "backward_euler": 0.5e-3, "trapezoidal": 1e-3}[method]
+    for extra in ({}, {"velocity": velocity}, {"velocity": velocity, "acceleration": accel}):
+        kw = dict(gamma_dyn=gd, gamma_stat=gs, method=method, step=step, **extra)
+        assert_close(spindle.simulate(length, dt, **kw),
+                     spindle.simulate(length, dt, backend="c", **kw), TOL_PPS)
+
+
+def test_one_spindle_trace_and_human_params():
+    length, _, _, gd, _, dt = random_trajectories(5, n=1)
+    kw = dict(gamma_dyn=gd[:, 0], gamma_stat=30.0, params=spindle.HUMAN, step=0.5e-3)
+    a = spindle.simulate(length[:, 0], dt, **kw)
+    b = spindle.simulate(length[:, 0], dt, backend="c", **kw)
+    assert b.ia.shape == (length.shape[0],) and b.step_s == a.step_s
+    assert_close(a, b, TOL_PPS)
+
+
+@pytest.mark.parametrize("method", ["backward_euler", "trapezoidal"])
+def test_float_build_within_documented_tolerance(method):
+    length, velocity, gd, gs = fig3_protocol()
+    kw = dict(velocity=velocity, gamma_dyn=gd, gamma_stat=gs, method=method, step=1e-3)
+    ref = spindle.simulate(length, 1e-3, **kw)
+    f32 = cbackend.simulate(length, 1e-3, variant="float", **kw)
+    assert f32.ia.dtype == np.float64  # returned as double, computed in float
+    assert_close(ref, f32, FLOAT_TOL_PPS)
+    length, _, _, gd, gs, dt = random_trajectories(3)
+    kw = dict(gamma_dyn=gd, gamma_stat=gs, method=method, step=1e-3)
+    assert_close(spindle.simulate(length, dt, **kw),
+                 cbackend.simulate(length, dt, variant="float", **kw), FLOAT_TOL_PPS)
+
+
+def test_c_backend_against_the_stiff_reference():
+    pytest.importorskip("scipy")
+    from spindle.reference import ramp_and_hold, solve_reference
+
+    stim = ramp_and_hold(speed_L0_s=1.55, gamma_dyn_pps=70.0, duration_s=1.6)
+    t = np.arange(0, 1.6 + 5e-4, 1e-3)
+    length = np.array([stim.length_L0(x) for x in t])
+    ref = solve_reference(stim, t)
+    r = spindle.simulate(length, 1e-3, gamma_dyn=70.0, backend="c")
+    # the numpy core's documented figure for the default setting (tests/test_spindle_reference)
+    assert np.sqrt(np.mean((r.ia - ref.ia) ** 2)) <= 0.5
+    assert np.sqrt(np.mean((r.ii - ref.ii) ** 2)) <= 0.5
+
+
+# ---- the same ValueErrors as the numpy path ---------------------------------------------
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    (dict(length=np.full(10, 1.6)), "outside the model's range"),
+    (dict(length=np.r_[1.0, np.nan]), "finite"),
+    (dict(gamma_dyn=-1.0), "negative"),
+    (dict(length=np.r_[1.0, 1.1]), "L0/s"),
+    (dict(step=0.0), "step"),
+    (dict(step=0.02), "limit"),
+    (dict(dt=-1e-3), "dt="),
+    (dict(gamma_stat=np.zeros(3)), "broadcast"),
+    (dict(length=np.ones((2, 2, 2))), "shape"),
+])
+def test_bad_inputs_raise_the_numpy_errors(kwargs, match):
+    base = dict(length=np.ones(10), dt=1e-3)
+    base.update(kwargs)
+    length, dt = base.pop("length"), base.pop("dt")
+    with pytest.raises(ValueError, match=match):
+        spindle.simulate(length, dt, **base)
+    with pytest.raises(ValueError, match=match):
+        spindle.simulate(length, dt, backend="c", **base)
+
+
+def test_unknown_backend_is_refused():
+    with pytest.raises(ValueError, match="backend='fortran'"):
+        spindle.simulate(np.ones(3), 1e-3, backend="fortran")
+
+
+# ---- the C API directly: status codes, state unchanged on failure -----------------------
+
+def c_api(variant="double"):
+    lib = cbackend.library(variant)
+    p = cbuild.params_struct(spindle.CAT, variant)
+    _, PsSpindle = cbuild.structs(variant)
+    s = PsSpindle()
+    assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), 1.0, 20.0, 30.0) == 0
+    return lib, p, s
+
+
+def state_bytes(s) -> bytes:
+    return ctypes.string_at(ctypes.addressof(s), ctypes.sizeof(s))
+
+
+def test_init_equals_equilibrium_state():
+    _, _, s = c_api()
+    ref = core.equilibrium_state(1.0, 20.0, 30.0)
+    np.testing.assert_allclose(np.array(s.T), ref.tension_FU[0], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.array(s.f), ref.activation[0], rtol=0, atol=1e-15)
+    assert list(s.v) == [0.0] * 3 and list(s.z) == [0.0] * 3
+
+
+def test_step_matches_core_step_and_afferents():
+    lib, p, s = c_api()
+    state = core.equilibrium_state(1.0, 20.0, 30.0)
+    ia, ii = ctypes.c_double(), ctypes.c_double()
+    for j in range(1, 200):
+        L = 1.0 + 0.05 * math.sin(j / 15)
+        e_ia, e_ii = core.step(state, L, 20.0 + j % 7, 30.0, 1e-3)
+        assert lib.ps_spindle_step(ctypes.byref(s), ctypes.byref(p), L, 20.0 + j % 7, 30.0,
+                                   1e-3, 0.5, ctypes.byref(ia), ctypes.byref(ii)) == 0
+        assert abs(ia.value - e_ia[0]) <= TOL_PPS and abs(ii.value - e_ii[0]) <= TOL_PPS
+    np.testing.assert_allclose(np.array(s.T), state.tension_FU[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.array(s.z), state.velocity_root[0], rtol=0, atol=1e-9)
+    lib.ps_spindle_afferents(ctypes.byref(s), ctypes.byref(p), ctypes.byref(ia), None)
+    assert abs(ia.value - e_ia[0]) <= TOL_PPS
+
+
+@pytest.mark.parametrize("variant", ["double", "float"])
+@pytest.mark.parametrize(("args", "status"), [
+    ((math.nan, 0.0, 0.0, 1e-3, 0.5), "PS_ERR_NONFINITE"),
+    ((1.0, math.inf, 0.0, 1e-3, 0.5), "PS_ERR_NONFINITE"),
+    ((1.0, 0.0, -math.inf, 1e-3, 0.5), "PS_ERR_NONFINITE"),
+    ((1.51, 0.0, 0.0, 1e-3, 0.5), "PS_ERR_LENGTH_RANGE"),
+    ((0.49, 0.0, 0.0, 1e-3, 0.5), "PS_ERR_LENGTH_RANGE"),
+    ((1e30, 0.0, 0.0, 1e-3, 0.5), "PS_ERR_LENGTH_RANGE"),
+    ((1.0, -1e-9, 0.0, 1e-3, 0.5), "PS_ERR_NEGATIVE_DRIVE"),
+    ((1.0, 0.0, -5.0, 1e-3, 0.5), "PS_ERR_NEGATIVE_DRIVE"),
+    ((1.0, 0.0, 0.0, 0.0, 0.5), "PS_ERR_STEP"),
+    ((1.0, 0.0, 0.0, -1e-3, 0.5), "PS_ERR_STEP"),
+    ((1.0, 0.0, 0.0, math.nan, 0.5), "PS_ERR_STEP"),
+    ((1.0, 0.0, 0.0, 1e-3, 1.5), "PS_ERR_METHOD"),
+    ((1.0, 0.0, 0.0, 1e-3, -0.1), "PS_ERR_METHOD"),
+    ((1.0, 0.0, 0.0, 1e-3, math.nan), "PS_ERR_METHOD"),
+    ((1.2, 0.0, 0.0, 1e-3, 0.5), "PS_ERR_SPEED"),
+])
+def test_bad_step_inputs_give_their_status_and_leave_the_state(variant, args, status):
+    lib, p, s = c_api(variant)
+    before = state_bytes(s)
+    ia = cbuild.real_type(variant)(-7.0)
+    code = lib.ps_spindle_step(ctypes.byref(s), ctypes.byref(p), *args, ctypes.byref(ia), None)
+    assert cbackend.status_name(code) == status
+    assert state_bytes(s) == before
+    assert ia.value == -7.0
+
+
+def test_null_pointers_and_bad_params():
+    lib, p, s = c_api()
+    assert lib.ps_spindle_step(None, ctypes.byref(p), 1.0, 0, 0, 1e-3, 0.5, None, None) == 1
+    assert lib.ps_spindle_step(ctypes.byref(s), None, 1.0, 0, 0, 1e-3, 0.5, None, None) == 1
+    assert lib.ps_spindle_init(None, ctypes.byref(p), 1.0, 0, 0) == 1
+    assert lib.ps_params_check(None) == 1
+    assert lib.ps_params_check(ctypes.byref(p)) == 0
+    lib.ps_spindle_afferents(None, None, None, None)  # documented no-op
+    bad = cbuild.params_struct(spindle.CAT)
+    bad.a[1] = 1.0
+    assert cbackend.status_name(lib.ps_params_check(ctypes.byref(bad))) == "PS_ERR_CONFIG"
+    bad = cbuild.params_struct(spindle.CAT)
+    bad.KSR[0] = math.nan
+    assert cbackend.status_name(lib.ps_params_check(ctypes.byref(bad))) == "PS_ERR_CONFIG"
