@@ -229,7 +229,11 @@ class ArmChain:
             if L is None:
                 raise ValueError(f"length_L0={length_L0!r} must be 2 finite lengths within "
                                  f"{core.LENGTH_RANGE_L0} L0")
-        counts = float(self.config.calibration.counts(angle))
+        # The filter starts on the reading at that angle, clamped to what an encoder can
+        # read: with exact lengths the angle is only recorded and may lie anywhere.
+        with np.errstate(over="ignore"):
+            counts = float(self.config.calibration.counts(angle))
+        counts = min(max(counts, 0.0), float(self.config.encoder.max_count))
         self._median.reset(counts)
         self._u = L.copy()
         self._x = L.copy()

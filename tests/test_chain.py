@@ -397,3 +397,12 @@ def test_block_pushes_equal_single_pushes():
     np.testing.assert_array_equal(got.ia_pps, last.ia_pps)
     with pytest.raises(ValueError, match="expected"):
         block.push_lengths_block(t, np.ones((t.size, 3)))
+
+
+def test_reset_with_exact_lengths_at_an_extreme_angle_keeps_outputs_finite():
+    chain = ArmChain()
+    chain.reset(angle_deg=1e308, t_s=0.0, length_L0=np.array([1.0, 1.0]))
+    s = chain.push_counts(0.002, 500)
+    assert np.isfinite(s.counts_filtered) and 0 <= s.counts_filtered <= AX12.max_count
+    assert np.isfinite(s.angle_deg)
+    assert np.isfinite(s.ia_pps).all() and np.isfinite(s.ii_pps).all()
