@@ -27,6 +27,7 @@ the arithmetic runs on.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -196,6 +197,14 @@ class _Columns:
         # With a = 0.3, v = z^10 * sgn(z): a polynomial, many times cheaper than a power.
         self.a_is_03 = bool(np.all(self.a == 0.3))
         self.three_over_a = 3.0 / self.a
+        self.step_constants: _StepConstants | None = None
+        # Afferent constants of each fibre as Python floats, for the few-spindle path.
+        self.afferent_floats = tuple(
+            (float(f.KSR_FU_L0), float(f.LNSR_L0 - f.LSR0_L0), float(f.G_primary_pps_L0),
+             float(f.G_secondary_pps_L0), float(f.X * (f.Lsec_L0 / f.LSR0_L0)),
+             float((1.0 - f.X) * (f.Lsec_L0 / f.LPR0_L0)), float(f.LSR0_L0 + f.LNPR_L0))
+            for f in params.fibres
+        )
 
 
 _COLUMNS_CACHE: dict[int, tuple[SpindleParams, _Columns]] = {}
@@ -278,6 +287,8 @@ def afferents(state: SpindleState, params: SpindleParams = CAT) -> tuple[np.ndar
 
 
 def _afferents(T: np.ndarray, L: np.ndarray, c: _Columns) -> tuple[np.ndarray, np.ndarray]:
+    if T.shape[1] <= SMALL_N:
+        return _afferents_small(T, L, c)
     # Every fibre's potential is clipped at 0 before they are combined (a slack fibre neither
     # excites nor inhibits the shared ending); the totals are then >= 0 by construction.
     stretch = T / c.KSR - (c.LNSR - c.LSR0)
@@ -337,125 +348,606 @@ def commit(state: SpindleState, new, L, gd, gs) -> None:
 
 
 def advance(state, L1, gd1, gs1, h, theta, c):
-    """One theta-method step from the state to (L1, gd1, gs1), unchecked; returns new arrays.
+    """One theta-method step from the state to (L1, gd1, gs1), unchecked.
 
-    Nothing in ``state`` is modified: the caller commits the result once it is known to be
-    finite, so a failed step leaves the state as it was.
+    Returns (T1, v1, u1, f1), each (3, n). Nothing in ``state`` is modified: the caller
+    commits the result once it is known to be finite, so a failed step leaves the state as it
+    was. For the implicit settings the returned arrays are buffers that the state's workspace
+    reuses: they are valid until the next ``advance`` of the same state (``commit`` copies
+    them into the state, ``_afferents`` reads them).
     """
+    if theta == 0.0:
+        return _advance_explicit(state, L1, gd1, gs1, h, c)
+    if state.n <= SMALL_N:
+        return _advance_small(state, L1, gd1, gs1, h, theta, c)
+    return _workspace(state, _step_constants(c, h, theta)).advance(state, L1, gd1, gs1)
+
+
+def _advance_explicit(state, L1, gd1, gs1, h, c):
+    """Forward Euler (theta = 0): every term from the state at the start of the step."""
     T0 = state.tension_FU.T
     v0 = state.polar_velocity_L0_s.T
     u0 = state.velocity_root.T
     f0 = state.activation.T
     L0 = state.length_L0
-
-    # Activation: the same theta-method on df/dt = (a* - f)/tau; instantaneous fibres take a*.
     a1 = activation_target(_drive_rows(gd1, gs1), c.freq, c.p)
-    rate = h / c.tau_safe
-    if theta < 1.0:
-        a0 = activation_target(_drive_rows(state.gamma_dyn_pps, state.gamma_stat_pps),
-                               c.freq, c.p)
-        f1 = (f0 + rate * ((1.0 - theta) * (a0 - f0) + theta * a1)) / (1.0 + theta * rate)
-    else:
-        f1 = (f0 + rate * a1) / (1.0 + rate)
+    a0 = activation_target(_drive_rows(state.gamma_dyn_pps, state.gamma_stat_pps), c.freq, c.p)
+    f1 = f0 + (h / c.tau_safe) * (a0 - f0)
     f1[~c.lagged] = a1[~c.lagged]
+    F0 = _force(T0, u0, L0, c.beta0 + c.beta_drive * f0, c.Gamma_drive * f0, c)
+    T1 = T0 + c.KSR * (L1 - L0) - (h * c.KSR) * v0
+    v1 = v0 + (h / c.M) * F0
+    u1 = _z_from_velocity(v1, c)
+    _check_finite(T1, v1, h)
+    return T1, v1, u1, f1
 
-    beta1 = c.beta0 + c.beta_drive * f1
-    Gamma1 = c.Gamma_drive * f1
-    # The exact integral of dL over the step (see module docstring).
-    A = T0 + c.KSR * (L1 - L0)
-    if theta == 0.0:
-        F0 = _force(T0, u0, L0, c.beta0 + c.beta_drive * f0, c.Gamma_drive * f0, c)
-        T1 = A - (h * c.KSR) * v0
-        v1 = v0 + (h / c.M) * F0
-        u1 = _z_from_velocity(v1, c)
-    else:
-        if theta < 1.0:
-            F0 = _force(T0, u0, L0, c.beta0 + c.beta_drive * f0, c.Gamma_drive * f0, c)
-            A = A - ((1.0 - theta) * h) * c.KSR * v0
-        else:
-            F0 = None
-        T1, v1, u1 = _implicit_solve(A, v0, u0, F0, L1, beta1, Gamma1, h, theta, c)
-    if not (np.isfinite(T1).all() and np.isfinite(v1).all()):
+
+def _check_finite(T1, v1, h):
+    # A sum is finite only if every term is (the values are far below overflow).
+    if not math.isfinite(float(T1.sum()) + float(v1.sum())):
         raise FloatingPointError(
             "the spindle step produced a non-finite tension or velocity; state left unchanged "
             f"(step {h!r} s)"
         )
-    return T1, v1, u1, f1
 
 
-def _implicit_solve(A, v0, z0, F0, L1, beta1, Gamma1, h, theta, c):
-    """Solve the theta-method's equation for the new z by Newton iteration.
+class _StepConstants:
+    """Per-fibre constants of one implicit step (step h, weight theta), shape (3, 1).
 
-    The unknown is z = sgn(v)|v|^(a/3): the damping sgn(v)|v|^a is z^3 and v = sgn(z)|z|^(3/a)
-    (z^10 for a = 0.3), both polynomials, so no iteration evaluates a fractional power. With
-    w = v1 and T1 = A - theta*h*KSR*w (A holds everything known), the step equation
-    M*(v1 - v0)/h = (1 - theta)*F0 + theta*F1 becomes
+    The theta-method's equation for the new z is written with everything known at the start
+    of the step collected in
 
-        g(z) = a2*w + theta*Cb(z)*z^3*(p0 + theta*h*w) - rhs = 0
+        A   = T0 + KSR*(L1 - L0) - (1 - theta)*h*KSR*v0
+        p0  = L1 - LSR0 - R - A/KSR
+        rhs = (M/h)*v0 + theta*(k1*A - Gamma1 - KPR*(L1 - LSR0 - LPR0)) + (1 - theta)*F0
 
-    with a2 = M/h + theta^2*h*k1*KSR and p0 the new polar length minus R at w = 0. g rises
-    monotonically (convex for z > 0, concave below) wherever the polar region is longer than
-    R, so Newton from the previous z converges after at most one overshoot; steps are capped
-    at NEWTON_MAX_DZ, which also covers a start at z = 0 where g' vanishes.
+    (see :func:`_implicit_residual`); ``rhs`` is expanded here into one coefficient per
+    input (T0, v0, L1 - L0, the lengths, f0, f1) so a step makes one pass per term.
     """
-    KSR = c.KSR
-    a2 = c.M / h + (theta * theta * h) * c.k1 * KSR
-    p0 = L1 - c.LSR0 - c.R - A / KSR
-    th_h = theta * h
-    rhs = (c.M / h) * v0 + theta * (c.k1 * A - Gamma1 - c.KPR * (L1 - c.LSR0 - c.LPR0))
-    if F0 is not None:
-        rhs += (1.0 - theta) * F0
-    # Cb(z)*z^3 = cS*z^3 + dC*max(z, 0)*z^2 with cS = theta*CS*beta, dC = theta*(CL-CS)*beta.
-    cS = (theta * c.CS) * beta1
-    dC = (theta * (c.CL - c.CS)) * beta1
 
-    # Starting guess: g with |v|/|u| frozen at its previous value |z0|^7 (for a = 0.3) is
-    # linear in u = z^3; its root already has the right sign and, in holds where the
-    # trapezoidal rule rings, the right size, which the previous z has not.
-    z0_7 = z0 * z0
-    z0_7 *= z0_7 * z0_7 * np.abs(z0) if c.a_is_03 else np.abs(z0) ** (c.three_over_a - 3.0)
-    slope = a2 * z0_7 + np.where(rhs > 0, cS + dC, cS) * np.maximum(p0, 0.0)
-    z = np.cbrt(rhs / slope)
-    active = None
-    dz = np.zeros_like(z)
-    for iteration in range(NEWTON_MAX_ITER):
-        if active is None and iteration >= NEWTON_FULL_ITER and c.a_is_03:
-            # Once few fibres are still moving (e.g. a polar velocity changing sign), they go
-            # on alone; gathering them costs more than it saves while many are.
-            moving = np.abs(dz) > NEWTON_TOL_Z
-            if np.count_nonzero(moving) > moving.size // 8:
-                moving = None
-        else:
-            moving = None
-        if moving is not None:
-            active = np.nonzero(moving)
-            z_all = z
-            z = z_all[active]
-            a2, p0, rhs, cS, dC = (np.broadcast_to(x, z_all.shape)[active]
-                                   for x in (a2, p0, rhs, cS, dC))
-        w, dw = _velocity_from_z(z, c)
-        z2 = z * z
-        zp = np.maximum(z, 0.0)
-        phi = cS * (z2 * z) + dC * (zp * z2)
-        dphi = 3.0 * (cS * z2 + dC * (zp * z))
-        q = p0 + th_h * w
-        g = a2 * w + phi * q - rhs
-        dg = a2 * dw + dphi * q + th_h * phi * dw
-        dz = g / np.maximum(dg, 1e-300)
-        np.minimum(dz, NEWTON_MAX_DZ, out=dz)
-        np.maximum(dz, -NEWTON_MAX_DZ, out=dz)
-        z = z - dz
-        if z.size == 0 or np.abs(dz).max() <= NEWTON_TOL_Z:
-            break
-    else:
-        raise FloatingPointError(
-            f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
-            f"(last change in z {np.abs(dz).max():.3g}); state left unchanged"
+    def __init__(self, c: _Columns, h: float, theta: float):
+        self.h, self.theta = h, theta
+        rate = h / c.tau_safe
+        den = 1.0 + theta * rate
+        lag = c.lagged[:, None]
+        # f1 = keep*f0 + from_a0*a0 + from_a1*a1; instantaneous fibres take f1 = a1.
+        self.keep = np.where(lag, (1.0 - (1.0 - theta) * rate) / den, 0.0)
+        self.from_a0 = np.where(lag, (1.0 - theta) * rate / den, 0.0)
+        self.from_a1 = np.where(lag, theta * rate / den, 1.0)
+        self.freq_p = c.freq**c.p
+        self.p_is_2 = bool(np.all(c.p == 2.0))
+        self.KSR = c.KSR
+        self.inv_KSR = 1.0 / c.KSR
+        self.A_v0 = (1.0 - theta) * h * c.KSR
+        self.LR = c.LSR0 + c.R
+        self.rhs_T0 = c.k1
+        self.rhs_v0 = c.M / h - theta * (1.0 - theta) * h * c.k1 * c.KSR
+        self.rhs_dL = theta * c.k1 * c.KSR
+        self.rhs_L = c.KPR
+        self.rhs_f0 = -(1.0 - theta) * c.Gamma_drive
+        self.rhs_f1 = -theta * c.Gamma_drive
+        self.rhs_const = c.KPR * (c.LSR0 + c.LPR0)
+        # Damping C(z)*beta*z^3 = (Cmid*z + Chalf*|z|)*beta*z^2, C = CL for z > 0, CS else.
+        c_mid = 0.5 * (c.CL + c.CS)
+        c_half = 0.5 * (c.CL - c.CS)
+        self.c_mid, self.c_half = c_mid, c_half
+        self.beta0_old = (1.0 - theta) * c.beta0
+        self.beta_drive_old = (1.0 - theta) * c.beta_drive
+        # The new step's damping coefficients theta*C*beta1, as cM +- cD.
+        self.cM0 = theta * c_mid * c.beta0
+        self.cMd = theta * c_mid * c.beta_drive
+        self.cD0 = theta * c_half * c.beta0
+        self.cDd = theta * c_half * c.beta_drive
+        self.a2 = c.M / h + (theta * theta * h) * c.k1 * c.KSR
+        self.th_h = theta * h
+        self.th_h_KSR = theta * h * c.KSR
+        self.a_is_03 = c.a_is_03
+        self.three_over_a = c.three_over_a
+        self.blend_exp = (c.three_over_a - 3.0) / 3.0
+        # Python floats per fibre for the one-spindle path.
+        names = ("keep", "from_a0", "from_a1", "KSR", "inv_KSR", "A_v0", "LR",
+                 "rhs_T0", "rhs_v0", "rhs_dL", "rhs_L", "rhs_f0", "rhs_f1", "rhs_const",
+                 "c_mid", "c_half", "beta0_old", "beta_drive_old", "cM0", "cMd", "cD0", "cDd",
+                 "a2", "th_h_KSR", "blend_exp")
+        self.fibre = tuple(
+            tuple(float(np.broadcast_to(getattr(self, name), (3, 1))[i, 0]) for name in names)
+            for i in range(3)
         )
-    if active is not None:
-        z_all = z_all.copy()
-        z_all[active] = z
-        z = z_all
-    v1, _ = _velocity_from_z(z, c)
-    T1 = A - th_h * KSR * v1
-    return T1, v1, z
+        self.p = tuple(float(x) for x in c.p[:, 0])
+        self.freq_p_floats = tuple(float(x) for x in self.freq_p[:, 0])
+
+
+def _step_constants(c: _Columns, h: float, theta: float) -> _StepConstants:
+    hit = c.step_constants
+    if hit is None or hit.h != h or hit.theta != theta:
+        hit = c.step_constants = _StepConstants(c, h, theta)
+    return hit
+
+
+CHUNK_SPINDLES = 4096
+"""Spindles per block of the vectorised step: every working array of a block stays in the
+core's cache (the step makes ~150 passes over them), and each block leaves the Newton loop
+as soon as all of its own fibres have converged."""
+
+TAIL_FRACTION = 8
+"""A block hands its still-unconverged fibres to a common tail once at most 1/TAIL_FRACTION
+of them remain (a few sign changes of v need more iterations than the rest)."""
+
+
+class _Block:
+    """Scratch arrays for a block of ``w`` spindles: flat (3*w,) buffers and (3, w) views."""
+
+    NAMES = ("f1", "a0", "a1", "cM", "cD", "A", "p0", "rhs", "z", "az", "sq", "t9", "w", "cb",
+             "phi", "q", "g", "dg", "dz", "tmp")
+
+    def __init__(self, w: int):
+        self.w = w
+        self.flat = {name: np.empty(3 * w) for name in self.NAMES}
+        self.rows = {name: a.reshape(3, w) for name, a in self.flat.items()}
+        self.dL = np.empty(w)
+        self.Lmix = np.empty(w)
+        self.moving = np.empty(3 * w, dtype=bool)
+        self.k: _StepConstants | None = None
+
+    def prepare(self, k: _StepConstants) -> None:
+        """Expand the step's per-fibre constants that the Newton loop uses to (3*w,)."""
+        if self.k is not k:
+            self.a2 = np.repeat(k.a2[:, 0], self.w)
+            self.a2_10 = 10.0 * self.a2
+            self.th_h_KSR = np.repeat(np.broadcast_to(k.th_h_KSR, (3, 1))[:, 0], self.w)
+            self.k = k
+
+
+class _Workspace:
+    """Reused buffers of the vectorised implicit step of one state (n spindles).
+
+    :func:`advance` returns the output arrays ``T1, v1, z1, f1`` themselves; they hold the
+    result until the next ``advance`` of the same state.
+    """
+
+    def __init__(self, n: int):
+        self.n = n
+        self.T1 = np.empty((3, n))
+        self.v1 = np.empty((3, n))
+        self.z1 = np.empty((3, n))
+        self.f1 = np.empty((3, n))
+        m = min(n, CHUNK_SPINDLES)
+        self.blocks = {m: _Block(m)}
+        if n % m:
+            self.blocks[n % m] = _Block(n % m)
+        self.k: _StepConstants | None = None
+
+    def prepare(self, k: _StepConstants) -> None:
+        self.k = k
+        for b in self.blocks.values():
+            b.prepare(k)
+
+    def advance(self, state, L1, gd1, gs1):
+        k, n = self.k, self.n
+        T0 = state.tension_FU.T
+        v0 = state.polar_velocity_L0_s.T
+        z0 = state.velocity_root.T
+        f0 = state.activation.T
+        L0 = state.length_L0
+        gd0, gs0 = state.gamma_dyn_pps, state.gamma_stat_pps
+        L1 = np.broadcast_to(L1, (n,))
+        gd1 = np.broadcast_to(gd1, (n,))
+        gs1 = np.broadcast_to(gs1, (n,))
+        # An unchanged drive (the common case) has an unchanged activation target.
+        same_drive = k.theta < 1.0 and np.array_equal(gd0, gd1) and np.array_equal(gs0, gs1)
+        tail = []
+        for j0 in range(0, n, CHUNK_SPINDLES):
+            j1 = min(n, j0 + CHUNK_SPINDLES)
+            b = self.blocks[j1 - j0]
+            cols = slice(j0, j1)
+            self._setup(b, T0[:, cols], v0[:, cols], z0[:, cols], f0[:, cols], L0[cols],
+                        L1[cols], gd0[cols], gs0[cols], gd1[cols], gs1[cols], same_drive)
+            left = _newton_block(b, k)
+            if left is not None:
+                rows, idx = np.divmod(left, b.w)
+                f = b.flat
+                tail.append((rows * n + (idx + j0), *(x[left] for x in (
+                    f["z"], b.a2, f["p0"], f["rhs"], f["cM"], f["cD"], f["A"], b.th_h_KSR))))
+            self._finish(b, cols)
+        if tail:
+            self._finish_tail(tail)
+        _check_finite(self.T1, self.v1, k.h)
+        return self.T1, self.v1, self.z1, self.f1
+
+    def _setup(self, b, T0, v0, z0, f0, L0, L1, gd0, gs0, gd1, gs1, same_drive):
+        k = self.k
+        r = b.rows
+        mul, add, sub = np.multiply, np.add, np.subtract
+        a1, f1, tmp = r["a1"], r["f1"], r["tmp"]
+        _activation_rows(gd1, gs1, k, a1, tmp)
+        mul(f0, k.keep, out=f1)
+        if k.theta < 1.0:
+            a0 = a1 if same_drive else _activation_rows(gd0, gs0, k, r["a0"], tmp)
+            mul(a0, k.from_a0, out=tmp)
+            add(f1, tmp, out=f1)
+        mul(a1, k.from_a1, out=tmp)
+        add(f1, tmp, out=f1)
+        cM, cD = r["cM"], r["cD"]
+        mul(f1, k.cMd, out=cM)
+        add(cM, k.cM0, out=cM)
+        mul(f1, k.cDd, out=cD)
+        add(cD, k.cD0, out=cD)
+        # A and p0
+        dL = sub(L1, L0, out=b.dL)
+        A, p0, rhs = r["A"], r["p0"], r["rhs"]
+        mul(k.KSR, dL, out=A)
+        add(A, T0, out=A)
+        if k.theta < 1.0:
+            mul(v0, k.A_v0, out=tmp)
+            sub(A, tmp, out=A)
+        mul(A, k.inv_KSR, out=p0)
+        sub(L1, k.LR, out=tmp)
+        sub(tmp, p0, out=p0)
+        # rhs, one term per input
+        mul(T0, k.rhs_T0, out=rhs)
+        mul(v0, k.rhs_v0, out=tmp)
+        add(rhs, tmp, out=rhs)
+        mul(k.rhs_dL, dL, out=tmp)
+        add(rhs, tmp, out=rhs)
+        Lmix = b.Lmix
+        if k.theta < 1.0:
+            mul(L1, k.theta, out=Lmix)
+            mul(L0, 1.0 - k.theta, out=b.dL)
+            add(Lmix, b.dL, out=Lmix)
+        else:
+            Lmix[...] = L1
+        mul(k.rhs_L, Lmix, out=tmp)
+        sub(rhs, tmp, out=rhs)
+        mul(f1, k.rhs_f1, out=tmp)
+        add(rhs, tmp, out=rhs)
+        add(rhs, k.rhs_const, out=rhs)
+        z, az, sq = r["z"], r["az"], r["sq"]
+        np.abs(z0, out=az)
+        if k.theta < 1.0:
+            mul(f0, k.rhs_f0, out=tmp)
+            add(rhs, tmp, out=rhs)
+            # (1 - theta) times the damping term of the force at the start of the step
+            cb, q = r["cb"], r["q"]
+            mul(z0, k.c_mid, out=cb)
+            mul(az, k.c_half, out=tmp)
+            add(cb, tmp, out=cb)
+            mul(f0, k.beta_drive_old, out=tmp)
+            add(tmp, k.beta0_old, out=tmp)
+            mul(cb, tmp, out=cb)
+            mul(z0, z0, out=sq)
+            mul(cb, sq, out=cb)
+            mul(T0, k.inv_KSR, out=tmp)
+            sub(L0, k.LR, out=q)
+            sub(q, tmp, out=q)
+            mul(cb, q, out=cb)
+            sub(rhs, cb, out=rhs)
+        else:
+            mul(z0, z0, out=sq)
+        # Starting guess: g with |v|/|z^3| frozen at its previous value |z0|^7 (a = 0.3) is
+        # linear in z^3; its root already has the right sign and, in holds where the
+        # trapezoidal rule rings, the right size, which the previous z has not.
+        slope, t = r["g"], r["t9"]
+        if k.a_is_03:
+            mul(sq, sq, out=t)
+            mul(t, sq, out=t)
+            mul(t, az, out=t)
+        else:
+            np.power(az, k.three_over_a - 3.0, out=t)
+        mul(t, k.a2, out=slope)
+        np.copysign(cD, rhs, out=tmp)
+        add(tmp, cM, out=tmp)
+        np.maximum(p0, 0.0, out=r["q"])
+        mul(tmp, r["q"], out=tmp)
+        add(slope, tmp, out=slope)
+        np.divide(rhs, slope, out=z)
+        np.cbrt(z, out=z)
+        # The frozen factor's error: log z_guess - log z ~ e*s*(log z - log z0) with e the
+        # exponent of |z| in it (7/3 for a = 0.3) and s the share of the |v| term in the
+        # slope; solving that to first order blends the guess toward z0 by e*s/(1 + e*s).
+        # Only where z0 and the guess share a sign (no blend across a reversal of v).
+        blend = r["dg"]
+        mul(t, k.a2, out=blend)
+        np.divide(blend, slope, out=blend)
+        mul(blend, k.blend_exp, out=blend)
+        add(blend, 1.0, out=tmp)
+        np.divide(blend, tmp, out=blend)
+        mul(z0, z, out=tmp)
+        same_sign = b.moving.reshape(tmp.shape)
+        np.greater(tmp, 0.0, out=same_sign)
+        mul(blend, same_sign, out=blend)
+        sub(z0, z, out=tmp)
+        mul(tmp, blend, out=tmp)
+        add(z, tmp, out=z)
+
+    def _finish(self, b, cols):
+        r = b.rows
+        v = _velocity_into(b.flat["z"], b.flat, self.k)
+        T1 = self.T1[:, cols]
+        np.multiply(r["w"], self.k.th_h_KSR, out=T1)
+        np.subtract(r["A"], T1, out=T1)
+        self.v1[:, cols] = v.reshape(3, b.w)
+        self.z1[:, cols] = r["z"]
+        self.f1[:, cols] = r["f1"]
+
+    def _finish_tail(self, tail):
+        idx, z, a2, p0, rhs, cM, cD, A, th_h_KSR = (
+            np.concatenate(x) for x in zip(*tail, strict=True))
+        s = {name: np.empty(z.size) for name in _Block.NAMES}
+        s["z"] = z
+        _newton_loop(z, a2, 10.0 * a2, p0, rhs, cM, cD, self.k, s, first=0)
+        v = _velocity_into(z, s, self.k)
+        self.z1.reshape(-1)[idx] = z
+        self.v1.reshape(-1)[idx] = v
+        self.T1.reshape(-1)[idx] = A - th_h_KSR * v
+
+
+def _activation_rows(gd, gs, k, out, tmp):
+    """Activation targets of (bag1, bag2, chain) into ``out`` (3, w)."""
+    if k.p_is_2:
+        np.multiply(gd, gd, out=out[0])
+        np.multiply(gs, gs, out=out[1])
+    else:
+        np.power(gd, k.p[0], out=out[0])
+        np.power(gs, k.p[1], out=out[1])
+    if k.p[2] == k.p[1]:
+        out[2] = out[1]
+    else:
+        np.power(gs, k.p[2], out=out[2])
+    np.add(out, k.freq_p, out=tmp)
+    np.divide(out, tmp, out=out)
+    return out
+
+
+def _velocity_into(z, s, k):
+    """v = sgn(z)|z|^(3/a) into s["w"], with |z|^(3/a - 1) left in s["t9"]."""
+    w, t = s["w"], s["t9"]
+    if k.a_is_03:
+        sq = s["sq"]
+        np.multiply(z, z, out=sq)
+        np.multiply(sq, sq, out=t)
+        np.multiply(t, t, out=t)
+        np.abs(z, out=s["az"])
+        np.multiply(t, s["az"], out=t)
+    else:
+        np.abs(z, out=s["az"])
+        np.power(s["az"], k.three_over_a - 1.0, out=t)
+    np.multiply(t, z, out=w)
+    return w
+
+
+def _newton_block(b, k):
+    """Newton on one block; returns the flat indices handed to the tail, or None."""
+    f = b.flat
+    return _newton_loop(f["z"], b.a2, b.a2_10, f["p0"], f["rhs"], f["cM"], f["cD"], k, f,
+                        first=NEWTON_FULL_ITER - 1, moving=b.moving)
+
+
+def _newton_loop(z, a2, a2_10, p0, rhs, cM, cD, k, s, first, moving=None):
+    """Iterate z in place until every |dz| <= NEWTON_TOL_Z (see :func:`_implicit_residual`).
+
+    From iteration ``first`` on, if at most 1/TAIL_FRACTION of the fibres still move, return
+    their indices (the caller finishes them together with other blocks'); else None.
+    """
+    mul, add = np.multiply, np.add
+    t, w, az, cb, phi, q, g, dg, dz, tmp = (
+        s[name] for name in ("t9", "w", "az", "cb", "phi", "q", "g", "dg", "dz", "tmp"))
+    th_h = k.th_h
+    th_h_10 = 10.0 * th_h
+    for iteration in range(NEWTON_MAX_ITER):
+        _velocity_into(z, s, k)
+        # Cb*z^2 with Cb = theta*C*beta1 (C = CL for z > 0, CS else)
+        mul(cM, z, out=cb)
+        mul(cD, az, out=tmp)
+        add(cb, tmp, out=cb)
+        mul(cb, z, out=cb)
+        mul(cb, z, out=phi)
+        mul(w, th_h, out=q)
+        add(q, p0, out=q)
+        mul(a2, w, out=g)
+        mul(phi, q, out=tmp)
+        add(g, tmp, out=g)
+        np.subtract(g, rhs, out=g)
+        mul(phi, th_h_10, out=dg)
+        add(dg, a2_10, out=dg)
+        if not k.a_is_03:
+            # dv/dz = (3/a)|z|^(3/a - 1): the 10 above stands for 3/a
+            mul(dg, k.three_over_a / 10.0, out=dg)
+        mul(dg, t, out=dg)
+        mul(cb, q, out=tmp)
+        mul(tmp, 3.0, out=tmp)
+        add(dg, tmp, out=dg)
+        np.maximum(dg, 1e-300, out=dg)
+        np.divide(g, dg, out=dz)
+        hi = dz.max()
+        lo = dz.min()
+        if hi > NEWTON_MAX_DZ or lo < -NEWTON_MAX_DZ:
+            np.clip(dz, -NEWTON_MAX_DZ, NEWTON_MAX_DZ, out=dz)
+        np.subtract(z, dz, out=z)
+        if hi <= NEWTON_TOL_Z and lo >= -NEWTON_TOL_Z:
+            return None
+        if moving is not None and iteration >= first:
+            np.abs(dz, out=tmp)
+            np.greater(tmp, NEWTON_TOL_Z, out=moving)
+            left = np.flatnonzero(moving)
+            if left.size <= moving.size // TAIL_FRACTION:
+                # none left: the only fibres not converged are NaN, which the finite check
+                # after the step reports
+                return left if left.size else None
+    raise FloatingPointError(
+        f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
+        f"(last change in z {max(hi, -lo):.3g}); state left unchanged"
+    )
+
+
+SMALL_N = 4
+"""Up to this many spindles the step runs on Python floats, fibre by fibre: for a few
+spindles numpy's per-call overhead costs more than the arithmetic."""
+
+
+def _as_floats(x, n: int) -> list[float]:
+    if isinstance(x, np.ndarray):
+        return np.broadcast_to(x, (n,)).tolist()
+    return [float(x)] * n
+
+
+def _advance_small(state, L1, gd1, gs1, h, theta, c):
+    """:func:`advance` for a few spindles, on Python floats (same arithmetic, per fibre)."""
+    k = _step_constants(c, h, theta)
+    n = state.n
+    T0 = state.tension_FU.tolist()
+    v0 = state.polar_velocity_L0_s.tolist()
+    z0 = state.velocity_root.tolist()
+    f0 = state.activation.tolist()
+    L0 = state.length_L0.tolist()
+    gd0 = state.gamma_dyn_pps.tolist()
+    gs0 = state.gamma_stat_pps.tolist()
+    L1, gd1, gs1 = (_as_floats(x, n) for x in (L1, gd1, gs1))
+    out = [_step_floats(k, T0[i], v0[i], z0[i], f0[i], L0[i], gd0[i], gs0[i], L1[i], gd1[i],
+                        gs1[i]) for i in range(n)]
+    # (n spindles) x (T, v, z, f) x 3 fibres -> four (3, n) arrays
+    arr = np.array(out).transpose(1, 2, 0)
+    return arr[0], arr[1], arr[2], arr[3]
+
+
+def _activation_floats(gd: float, gs: float, k: _StepConstants) -> tuple[float, float, float]:
+    p = k.p
+    fp = k.freq_p_floats
+    if k.p_is_2:
+        gd_p, gs_p = gd * gd, gs * gs
+        return gd_p / (gd_p + fp[0]), gs_p / (gs_p + fp[1]), gs_p / (gs_p + fp[2])
+    out = []
+    for g, pi, fpi in zip((gd, gs, gs), p, fp, strict=True):
+        gp = g**pi
+        out.append(gp / (gp + fpi))
+    return tuple(out)
+
+
+def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
+    """One implicit step of one spindle on floats; returns ((T1,), (v1,), (z1,), (f1,)) per
+    fibre. The arithmetic is that of the vectorised step, term by term."""
+    theta = k.theta
+    a1 = _activation_floats(gd1, gs1, k)
+    a0 = _activation_floats(gd0, gs0, k) if theta < 1.0 else a1
+    dL = L1 - L0
+    Lmix = L1 * theta + L0 * (1.0 - theta)
+    T1, v1, z1, f1 = [], [], [], []
+    for i in range(3):
+        (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, LR, rhs_T0, rhs_v0, rhs_dL, rhs_L,
+         rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd, cD0,
+         cDd, a2, th_h_KSR, blend_exp) = k.fibre[i]
+        T, v, z, f = T0[i], v0[i], z0[i], f0[i]
+        fn = f * keep
+        if theta < 1.0:
+            fn = fn + a0[i] * from_a0
+        fn = fn + a1[i] * from_a1
+        cM = fn * cMd + cM0
+        cD = fn * cDd + cD0
+        A = KSR * dL + T
+        if theta < 1.0:
+            A = A - v * A_v0
+        p0 = (L1 - LR) - A * inv_KSR
+        rhs = T * rhs_T0 + v * rhs_v0 + rhs_dL * dL - rhs_L * Lmix + fn * rhs_f1 + rhs_const
+        az = abs(z)
+        sq = z * z
+        if theta < 1.0:
+            rhs = rhs + f * rhs_f0
+            damping = (z * c_mid + az * c_half) * (f * beta_drive_old + beta0_old) * sq
+            rhs = rhs - damping * ((L0 - LR) - T * inv_KSR)
+        t = sq * sq * sq * az if k.a_is_03 else az ** (k.three_over_a - 3.0)
+        a2t = t * a2
+        slope = a2t + (math.copysign(cD, rhs) + cM) * max(p0, 0.0)
+        if slope:
+            zg = math.cbrt(rhs / slope)
+            blend = a2t / slope * blend_exp
+            blend = blend / (blend + 1.0)
+            z = zg + (z - zg) * blend if z * zg > 0.0 else zg
+        else:
+            z = math.nan
+        z = _newton_float(z, a2, p0, rhs, cM, cD, k)
+        az = abs(z)
+        if k.a_is_03:
+            sq = z * z
+            t = sq * sq
+            t = t * t * az
+        else:
+            t = az ** (k.three_over_a - 1.0)
+        w = t * z
+        T1.append(A - w * th_h_KSR)
+        v1.append(w)
+        z1.append(z)
+        f1.append(fn)
+    if not all(math.isfinite(x) for x in T1 + v1):
+        raise FloatingPointError(
+            "the spindle step produced a non-finite tension or velocity; state left unchanged "
+            f"(step {k.h!r} s)"
+        )
+    return T1, v1, z1, f1
+
+
+def _newton_float(z, a2, p0, rhs, cM, cD, k):
+    th_h = k.th_h
+    th_h_10 = 10.0 * th_h
+    a2_10 = 10.0 * a2
+    a_is_03 = k.a_is_03
+    power = k.three_over_a - 1.0
+    dv_scale = k.three_over_a / 10.0
+    dz = math.inf
+    for _ in range(NEWTON_MAX_ITER):
+        az = abs(z)
+        if a_is_03:
+            sq = z * z
+            t = sq * sq
+            t = t * t * az
+        else:
+            t = az**power
+        w = t * z
+        cb = (cM * z + cD * az) * z
+        phi = cb * z
+        q = w * th_h + p0
+        g = a2 * w + phi * q - rhs
+        dg = phi * th_h_10 + a2_10
+        if not a_is_03:
+            dg = dg * dv_scale
+        dg = dg * t + cb * q * 3.0
+        dz = g / max(dg, 1e-300)  # a NaN dg stays NaN (max keeps its first argument)
+        if dz > NEWTON_MAX_DZ:
+            dz = NEWTON_MAX_DZ
+        elif dz < -NEWTON_MAX_DZ:
+            dz = -NEWTON_MAX_DZ
+        z = z - dz
+        if abs(dz) <= NEWTON_TOL_Z:
+            return z
+    raise FloatingPointError(
+        f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
+        f"(last change in z {abs(dz):.3g}); state left unchanged"
+    )
+
+
+def _afferents_small(T: np.ndarray, L: np.ndarray, c: _Columns):
+    """:func:`_afferents` on Python floats for a few spindles (same formula)."""
+    rows = T.tolist()
+    lengths = np.broadcast_to(L, (T.shape[1],)).tolist()
+    (K0, n0, G0, _, _, _, _), *sec_fibres = c.afferent_floats
+    S = float(c.S)
+    ia, ii = [], []
+    for j, length in enumerate(lengths):
+        a_dyn = max(G0 * (rows[0][j] / K0 - n0), 0.0)
+        b_stat = 0.0
+        total = 0.0
+        for i, (K, nsr, G, Gs, x_sr, x_pr, lpr) in enumerate(sec_fibres, start=1):
+            t = rows[i][j]
+            stretch = t / K - nsr
+            b_stat += max(G * stretch, 0.0)
+            total += max(Gs * (x_sr * stretch + x_pr * (length - t / K - lpr)), 0.0)
+        ia.append(max(a_dyn, b_stat) + S * min(a_dyn, b_stat))
+        ii.append(total)
+    return np.array(ia), np.array(ii)
+
+
+def _workspace(state: SpindleState, k: _StepConstants) -> _Workspace:
+    """The reusable buffers of ``state`` (kept on the state object, not a module global)."""
+    ws = state.__dict__.get("_workspace")
+    if ws is None or ws.n != state.n:
+        ws = state.__dict__["_workspace"] = _Workspace(state.n)
+    ws.prepare(k)
+    return ws

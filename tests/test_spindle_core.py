@@ -216,3 +216,192 @@ def test_params_refuse_invalid_constants():
         dataclasses.replace(spindle.CAT.bag1, tau_s=-0.1)
     with pytest.raises(ValueError, match="factor=0"):
         spindle.CAT.scale_gains(0)
+
+
+# -- the optimised step against a plain reference step ------------------------------------
+
+
+def reference_advance(state, L1, gd1, gs1, h, theta, params=spindle.CAT):
+    """One theta-method step written plainly from the model equations (no rearrangement).
+
+    The unknown is z = sgn(v)|v|^(a/3) as in the core; Newton on the step residual
+    M*(v1 - v0)/h - (1 - theta)*F0 - theta*F1 with its analytic derivative, from the previous
+    z, capped steps, to |dz| <= 1e-13 (tighter than the core's 1e-9).
+    """
+    c = core.columns(params)
+    T0, v0, z0, f0 = (a.T for a in (state.tension_FU, state.polar_velocity_L0_s,
+                                     state.velocity_root, state.activation))
+    L0 = state.length_L0
+
+    def target(gd, gs):
+        g = np.stack((gd, gs, gs)) ** c.p
+        return g / (g + c.freq**c.p)
+
+    a0, a1 = target(state.gamma_dyn_pps, state.gamma_stat_pps), target(gd1, gs1)
+    rate = h / c.tau_safe
+    f1 = (f0 + rate * ((1 - theta) * (a0 - f0) + theta * a1)) / (1 + theta * rate)
+    f1 = np.where(c.lagged[:, None], f1, a1)
+
+    def force(T, z, L, f):
+        polar = L - c.LSR0 - T / c.KSR
+        damping = np.where(z > 0, c.CL, c.CS) * (c.beta0 + c.beta_drive * f) * z**3
+        return T - c.Gamma_drive * f - c.KPR * (polar - c.LPR0) - damping * (polar - c.R)
+
+    F0 = force(T0, z0, L0, f0)
+    A = T0 + c.KSR * (L1 - L0) - (1 - theta) * h * c.KSR * v0
+    if theta == 0:
+        v1 = v0 + h / c.M * F0
+        T1 = A
+        return T1, v1, np.sign(v1) * np.abs(v1) ** (c.a / 3), f1
+    z = z0.copy()
+    for _ in range(500):
+        v = np.sign(z) * np.abs(z) ** (3 / c.a)
+        dv = (3 / c.a) * np.abs(z) ** (3 / c.a - 1)
+        T1 = A - theta * h * c.KSR * v
+        C_beta = np.where(z > 0, c.CL, c.CS) * (c.beta0 + c.beta_drive * f1)
+        polar = L1 - c.LSR0 - T1 / c.KSR
+        residual = c.M * (v - v0) / h - (1 - theta) * F0 - theta * force(T1, z, L1, f1)
+        dT = -theta * h * c.KSR * dv
+        dF = dT * (1 + c.KPR / c.KSR + C_beta * z**3 / c.KSR) - 3 * C_beta * z**2 * (polar - c.R)
+        slope = c.M / h * dv - theta * dF
+        dz = np.clip(residual / np.maximum(slope, 1e-300), -0.25, 0.25)
+        z = z - dz
+        if np.abs(dz).max() <= 1e-13:
+            break
+    else:
+        raise AssertionError("reference Newton did not converge")
+    v1 = np.sign(z) * np.abs(z) ** (3 / c.a)
+    return A - theta * h * c.KSR * v1, v1, z, f1
+
+
+def random_states(n, seed):
+    """Spindles in random but valid states: lengths, drives, tensions off equilibrium, and
+    polar velocities from exactly 0 through tiny to ~1 L0/s of either sign."""
+    rng = np.random.default_rng(seed)
+    L = rng.uniform(0.75, 1.25, n)
+    state = spindle.equilibrium_state(L, rng.uniform(0, 150, n), rng.uniform(0, 150, n))
+    v = rng.choice([0.0, 1e-9, 1e-4, 0.02, 0.5, 1.2], size=(n, 3)) * rng.choice([-1, 1], (n, 3))
+    state.polar_velocity_L0_s[...] = v
+    state.velocity_root[...] = np.sign(v) * np.abs(v) ** 0.1
+    state.tension_FU[...] += rng.normal(0, 0.01, (n, 3))
+    state.activation[...] = np.clip(state.activation + rng.normal(0, 0.05, (n, 3)), 0, 1)
+    # half keep their drive over the step, half change it
+    gd1 = np.where(rng.random(n) < 0.5, state.gamma_dyn_pps, rng.uniform(0, 150, n))
+    gs1 = np.where(rng.random(n) < 0.5, state.gamma_stat_pps, rng.uniform(0, 150, n))
+    L1 = L + rng.uniform(-1.5e-3, 1.5e-3, n)
+    return state, L1, gd1, gs1
+
+
+@pytest.mark.parametrize("theta", [0.5, 1.0, 0.0])
+@pytest.mark.parametrize("n", [1, 3, 6, core.CHUNK_SPINDLES + 37])
+@pytest.mark.parametrize("h", [1e-3, 1e-4])
+def test_optimised_step_matches_the_plain_reference_step(theta, n, h):
+    state, L1, gd1, gs1 = random_states(n, seed=n)
+    before = state.copy()
+    c = core.columns(spindle.CAT)
+    T1, v1, z1, f1 = core.advance(state, L1, gd1, gs1, h, theta, c)
+    assert_state_unchanged(state, before)
+    T_ref, v_ref, z_ref, f_ref = reference_advance(state, L1, gd1, gs1, h, theta)
+    np.testing.assert_allclose(f1, f_ref, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(v1, v_ref, rtol=1e-11, atol=1e-13)
+    np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.sign(z1) * np.abs(z1) ** 10, v1, rtol=1e-13, atol=0)
+    np.testing.assert_allclose(z1, z_ref, rtol=0, atol=1e-9 if theta else 1e-12)
+    ia, ii = core._afferents(T1, L1, c)
+    ia_ref, ii_ref = core._afferents(T_ref, L1, c)
+    np.testing.assert_allclose(ia, ia_ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ii, ii_ref, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["trapezoidal", "backward_euler"])
+def test_optimised_trajectory_stays_on_the_reference_trajectory(method):
+    """300 steps of 1 ms along random smooth inputs, both started at rest: the afferent rates
+    of the optimised core stay within 1e-9 pps of the plain reference step."""
+    rng = np.random.default_rng(11)
+    n = 40
+    t = np.arange(301)[:, None] * 1e-3
+    L = 1.0 + 0.1 * np.sin(2 * np.pi * rng.uniform(0.5, 4, n) * t) * rng.uniform(0, 1, n)
+    gd = 60 * (1 + np.sin(2 * np.pi * rng.uniform(0.2, 2, n) * t))
+    gs = np.full_like(L, 40.0)
+    theta = spindle.METHODS[method].theta
+    c = core.columns(spindle.CAT)
+    fast = spindle.equilibrium_state(L[0], gd[0], gs[0])
+    plain = fast.copy()
+    worst = 0.0
+    for i in range(1, L.shape[0]):
+        core.commit(fast, core.advance(fast, L[i], gd[i], gs[i], 1e-3, theta, c),
+                    L[i], gd[i], gs[i])
+        core.commit(plain, reference_advance(plain, L[i], gd[i], gs[i], 1e-3, theta),
+                    L[i], gd[i], gs[i])
+        rates = np.concatenate(spindle.afferents(fast))
+        rates_ref = np.concatenate(spindle.afferents(plain))
+        worst = max(worst, np.abs(rates - rates_ref).max())
+    assert worst < 1e-9
+    assert np.abs(plain.polar_velocity_L0_s).max() > 0.05  # the test did move the spindles
+
+
+@pytest.mark.parametrize("theta", [0.5, 1.0])
+def test_few_spindle_float_path_equals_the_vectorised_path(theta):
+    """The Python-float path (n <= SMALL_N) and the numpy path give the same step."""
+    n = 2 * core.SMALL_N + 1
+    state, L1, gd1, gs1 = random_states(n, seed=5)
+    c = core.columns(spindle.CAT)
+    vectorised = [a.copy() for a in core.advance(state, L1, gd1, gs1, 1e-3, theta, c)]
+    for j in range(0, n, core.SMALL_N):
+        cols = slice(j, j + core.SMALL_N)
+        sub = core.SpindleState(*(a[cols].copy() for a in state._arrays()))
+        assert sub.n <= core.SMALL_N
+        small = core.advance(sub, L1[cols], gd1[cols], gs1[cols], 1e-3, theta, c)
+        for got, want in zip(small, vectorised, strict=True):
+            np.testing.assert_allclose(got, want[:, cols], rtol=1e-12, atol=1e-14)
+        for got, want in zip(core._afferents(small[0], L1[cols], c),
+                             core._afferents(vectorised[0][:, cols], L1[cols], c), strict=True):
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
+
+
+def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch):
+    """Fibres whose v reverses need more Newton iterations than the rest of their block; the
+    block hands them on and they are finished together. Still the reference result."""
+    n = 3000
+    state, L1, gd1, gs1 = random_states(n, seed=9)
+    # mostly at rest and held: quick convergence; a few reverse a fast polar velocity
+    state.polar_velocity_L0_s[...] = 0.0
+    state.velocity_root[...] = 0.0
+    L1 = state.length_L0.copy()
+    gd1, gs1 = state.gamma_dyn_pps.copy(), state.gamma_stat_pps.copy()
+    fast = np.arange(0, n, 97)
+    state.polar_velocity_L0_s[fast] = 1.5
+    state.velocity_root[fast] = 1.5**0.1
+    calls = []
+    finish_tail = core._Workspace._finish_tail
+    monkeypatch.setattr(core._Workspace, "_finish_tail",
+                        lambda self, tail: calls.append(len(tail)) or finish_tail(self, tail))
+    c = core.columns(spindle.CAT)
+    T1, v1, _, _ = core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)
+    assert calls, "the tail was not used"
+    T_ref, v_ref, _, _ = reference_advance(state, L1, gd1, gs1, 1e-3, 0.5)
+    np.testing.assert_allclose(v1, v_ref, rtol=1e-11, atol=1e-13)
+    np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("n", [1, 50])
+def test_a_non_finite_step_raises_and_leaves_the_state_as_it_was(n):
+    state = spindle.equilibrium_state(np.full(n, 1.0), 20.0, 20.0)
+    state.velocity_root[0, 1] = np.nan
+    before = state.copy()
+    with pytest.raises(FloatingPointError):
+        spindle.step(state, 1.0, 20.0, 20.0, 1e-3)
+    for a, b in zip(state._arrays(), before._arrays(), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_advance_output_is_valid_until_the_next_advance():
+    """advance returns reused buffers; commit copies them, so later steps do not alter the
+    committed state."""
+    state = spindle.equilibrium_state(np.linspace(0.9, 1.1, 20))
+    c = core.columns(spindle.CAT)
+    new = core.advance(state, state.length_L0 + 1e-3, 0.0, 0.0, 1e-3, 0.5, c)
+    core.commit(state, new, state.length_L0 + 1e-3, 0.0, 0.0)
+    kept = state.copy()
+    core.advance(state, state.length_L0 + 1e-3, 50.0, 0.0, 1e-3, 0.5, c)
+    assert_state_unchanged(state, kept)
