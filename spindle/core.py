@@ -198,6 +198,7 @@ class _Columns:
         self.a_is_03 = bool(np.all(self.a == 0.3))
         self.three_over_a = 3.0 / self.a
         self.step_constants: _StepConstants | None = None
+        self.S_float = float(params.S)
         # Afferent constants of each fibre as Python floats, for the few-spindle path.
         self.afferent_floats = tuple(
             (float(f.KSR_FU_L0), float(f.LNSR_L0 - f.LSR0_L0), float(f.G_primary_pps_L0),
@@ -925,23 +926,24 @@ def _newton_float(z, a2, p0, rhs, cM, cD, k):
 
 def _afferents_small(T: np.ndarray, L: np.ndarray, c: _Columns):
     """:func:`_afferents` on Python floats for a few spindles (same formula)."""
-    rows = T.tolist()
-    lengths = np.broadcast_to(L, (T.shape[1],)).tolist()
+    n = T.shape[1]
+    columns_of_T = T.T.tolist()
+    lengths = np.broadcast_to(L, (n,)).tolist()
+    rates = [_afferents_one(columns_of_T[j], lengths[j], c) for j in range(n)]
+    return np.array([r[0] for r in rates]), np.array([r[1] for r in rates])
+
+
+def _afferents_one(T: list[float], L: float, c: _Columns) -> tuple[float, float]:
+    """Ia and II (pps) of one spindle from its three fibre tensions, on floats."""
     (K0, n0, G0, _, _, _, _), *sec_fibres = c.afferent_floats
-    S = float(c.S)
-    ia, ii = [], []
-    for j, length in enumerate(lengths):
-        a_dyn = max(G0 * (rows[0][j] / K0 - n0), 0.0)
-        b_stat = 0.0
-        total = 0.0
-        for i, (K, nsr, G, Gs, x_sr, x_pr, lpr) in enumerate(sec_fibres, start=1):
-            t = rows[i][j]
-            stretch = t / K - nsr
-            b_stat += max(G * stretch, 0.0)
-            total += max(Gs * (x_sr * stretch + x_pr * (length - t / K - lpr)), 0.0)
-        ia.append(max(a_dyn, b_stat) + S * min(a_dyn, b_stat))
-        ii.append(total)
-    return np.array(ia), np.array(ii)
+    a_dyn = max(G0 * (T[0] / K0 - n0), 0.0)
+    b_stat = 0.0
+    ii = 0.0
+    for t, (K, nsr, G, Gs, x_sr, x_pr, lpr) in zip(T[1:], sec_fibres, strict=True):
+        stretch = t / K - nsr
+        b_stat += max(G * stretch, 0.0)
+        ii += max(Gs * (x_sr * stretch + x_pr * (L - t / K - lpr)), 0.0)
+    return max(a_dyn, b_stat) + c.S_float * min(a_dyn, b_stat), ii
 
 
 def _workspace(state: SpindleState, k: _StepConstants) -> _Workspace:

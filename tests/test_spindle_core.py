@@ -405,3 +405,23 @@ def test_advance_output_is_valid_until_the_next_advance():
     kept = state.copy()
     core.advance(state, state.length_L0 + 1e-3, 50.0, 0.0, 1e-3, 0.5, c)
     assert_state_unchanged(state, kept)
+
+
+@pytest.mark.parametrize("extra", [{}, {"velocity": "v"}, {"velocity": "v", "acceleration": "a"}])
+@pytest.mark.parametrize("dt", [1e-3, 2.5e-3])
+def test_simulate_one_spindle_float_loop_equals_the_array_loop(extra, dt):
+    """simulate runs one spindle on floats; the same trace as two columns takes the array
+    loop. Both interpolate and step alike, with or without sub-steps and derivatives."""
+    t = np.arange(0, 0.5, dt)
+    L = 1.0 + 0.08 * np.sin(2 * np.pi * 1.7 * t) ** 3
+    v = np.gradient(L, dt)
+    kwargs = {name: {"v": v, "a": np.gradient(v, dt)}[x] for name, x in extra.items()}
+    one = spindle.simulate(L, dt, gamma_dyn=40.0 + 20 * np.cos(9 * t), gamma_stat=30.0,
+                           **kwargs)
+    two = spindle.simulate(np.stack([L, L], axis=1), dt,
+                           gamma_dyn=(40.0 + 20 * np.cos(9 * t))[:, None], gamma_stat=30.0,
+                           **{name: np.stack([x, x], axis=1) for name, x in kwargs.items()})
+    assert one.step_s == two.step_s
+    np.testing.assert_allclose(two.ia[:, 0], one.ia, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(two.ii[:, 1], one.ii, rtol=0, atol=1e-9)
+    assert one.ia.max() > 50
