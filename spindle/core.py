@@ -199,12 +199,22 @@ class _Columns:
         self.three_over_a = 3.0 / self.a
         self.step_constants: _StepConstants | None = None
         self.S_float = float(params.S)
-        # Afferent constants of each fibre as Python floats, for the few-spindle path.
-        self.afferent_floats = tuple(
-            (float(f.KSR_FU_L0), float(f.LNSR_L0 - f.LSR0_L0), float(f.G_primary_pps_L0),
-             float(f.G_secondary_pps_L0), float(f.X * (f.Lsec_L0 / f.LSR0_L0)),
-             float((1.0 - f.X) * (f.Lsec_L0 / f.LPR0_L0)), float(f.LSR0_L0 + f.LNPR_L0))
+        # The afferent potentials multiplied out, as Python floats: primary of fibre i
+        # G*(T/KSR - (LNSR - LSR0)) = T*g - n with (g, n) = primary_lin[i]; secondary of
+        # bag2 and chain G2*(X*Lsec/LSR0*(T/KSR - (LNSR - LSR0)) + (1 - X)*Lsec/LPR0*
+        # (L - T/KSR - LSR0 - LNPR)) = T*a + L*b + c with (a, b, c) = secondary_lin[i - 1].
+        self.primary_lin = tuple(
+            (f.G_primary_pps_L0 / f.KSR_FU_L0, f.G_primary_pps_L0 * (f.LNSR_L0 - f.LSR0_L0))
             for f in params.fibres
+        )
+        self.secondary_lin = tuple(
+            (f.G_secondary_pps_L0 * (f.X * f.Lsec_L0 / f.LSR0_L0
+                                     - (1.0 - f.X) * f.Lsec_L0 / f.LPR0_L0) / f.KSR_FU_L0,
+             f.G_secondary_pps_L0 * (1.0 - f.X) * f.Lsec_L0 / f.LPR0_L0,
+             -f.G_secondary_pps_L0 * (f.X * f.Lsec_L0 / f.LSR0_L0 * (f.LNSR_L0 - f.LSR0_L0)
+                                      + (1.0 - f.X) * f.Lsec_L0 / f.LPR0_L0
+                                      * (f.LSR0_L0 + f.LNPR_L0)))
+            for f in params.fibres[1:]
         )
 
 
@@ -287,22 +297,59 @@ def afferents(state: SpindleState, params: SpindleParams = CAT) -> tuple[np.ndar
     return _afferents(state.tension_FU.T, state.length_L0, columns(params))
 
 
+AFFERENT_CHUNK = 8192
+"""Spindles per block of :func:`_afferents` (its temporaries stay in cache)."""
+
+
 def _afferents(T: np.ndarray, L: np.ndarray, c: _Columns) -> tuple[np.ndarray, np.ndarray]:
-    if T.shape[1] <= SMALL_N:
+    """Ia and II (pps), each (n,), of fibre tensions T (3, n) at fascicle lengths L (n,).
+
+    Every fibre's potential is clipped at 0 before they are combined (a slack fibre neither
+    excites nor inhibits the shared ending); the totals are then >= 0 by construction. Each
+    potential is linear in the fibre's T (and the secondary's in L too); it is evaluated in
+    that multiplied-out form (:attr:`_Columns.primary_lin`, :attr:`_Columns.secondary_lin`),
+    fibre row by fibre row.
+    """
+    n = T.shape[1]
+    if n <= SMALL_N:
         return _afferents_small(T, L, c)
-    # Every fibre's potential is clipped at 0 before they are combined (a slack fibre neither
-    # excites nor inhibits the shared ending); the totals are then >= 0 by construction.
-    stretch = T / c.KSR - (c.LNSR - c.LSR0)
-    primary = np.maximum(c.G_pri * stretch, 0.0)
-    a_dyn = primary[0]
-    b_stat = primary[1] + primary[2]
-    ia = np.maximum(a_dyn, b_stat) + c.S * np.minimum(a_dyn, b_stat)
-    sec = c.G_sec[1:] * (
-        c.X[1:] * (c.Lsec[1:] / c.LSR0[1:]) * stretch[1:]
-        + (1.0 - c.X[1:]) * (c.Lsec[1:] / c.LPR0[1:])
-        * (L - T[1:] / c.KSR[1:] - c.LSR0[1:] - c.LNPR[1:])
-    )
-    ii = np.maximum(sec, 0.0).sum(axis=0)
+    mul, add, sub, top = np.multiply, np.add, np.subtract, np.maximum
+    L = np.broadcast_to(L, (n,))
+    ia, ii = np.empty(n), np.empty(n)
+    m = min(n, AFFERENT_CHUNK)
+    buffers = np.empty((3, m))
+    (g0, n0), (g1, n1), (g2, n2) = c.primary_lin
+    (a1, b1, c1), (a2, b2, c2) = c.secondary_lin
+    for j0 in range(0, n, m):
+        cols = slice(j0, min(n, j0 + m))
+        x, y, t = buffers[:, : cols.stop - j0]
+        T0, T1, T2, Lc = T[0, cols], T[1, cols], T[2, cols], L[cols]
+        mul(T0, g0, out=x)
+        sub(x, n0, out=x)
+        top(x, 0.0, out=x)
+        mul(T1, g1, out=y)
+        sub(y, n1, out=y)
+        top(y, 0.0, out=y)
+        mul(T2, g2, out=t)
+        sub(t, n2, out=t)
+        top(t, 0.0, out=t)
+        add(y, t, out=y)
+        out = ia[cols]
+        top(x, y, out=out)
+        np.minimum(x, y, out=t)
+        mul(t, c.S_float, out=t)
+        add(out, t, out=out)
+        mul(T1, a1, out=x)
+        mul(Lc, b1, out=t)
+        add(x, t, out=x)
+        add(x, c1, out=x)
+        top(x, 0.0, out=x)
+        mul(T2, a2, out=y)
+        mul(Lc, b2, out=t)
+        add(y, t, out=y)
+        add(y, c2, out=y)
+        top(y, 0.0, out=y)
+        add(x, y, out=ii[cols])
     return ia, ii
 
 
@@ -393,17 +440,20 @@ def _check_finite(T1, v1, h):
 
 
 class _StepConstants:
-    """Per-fibre constants of one implicit step (step h, weight theta), shape (3, 1).
+    """Per-fibre constants of one implicit step (step h, weight theta), shape (3, 1), and the
+    same as Python floats per fibre (``fibre``).
 
-    The theta-method's equation for the new z is written with everything known at the start
-    of the step collected in
+    The theta-method's equation for the new z (see :func:`_newton_loop`) needs, from the
+    start of the step, with q0 = L0 - LSR0 - R - T0/KSR (the polar length minus R):
 
-        A   = T0 + KSR*(L1 - L0) - (1 - theta)*h*KSR*v0
-        p0  = L1 - LSR0 - R - A/KSR
+        A   = T0 + KSR*(L1 - L0) - (1 - theta)*h*KSR*v0          (T1 = A - theta*h*KSR*v1)
+        p0  = q0 + (1 - theta)*h*v0                               (= L1 - LSR0 - R - A/KSR)
         rhs = (M/h)*v0 + theta*(k1*A - Gamma1 - KPR*(L1 - LSR0 - LPR0)) + (1 - theta)*F0
+            = T0 + rhs_v0*v0 + rhs_dL*(L1 - L0) + rhs_f1*f1 + rhs_f0*f0 + rhs_const
+              - (KPR + D0)*q0
 
-    (see :func:`_implicit_residual`); ``rhs`` is expanded here into one coefficient per
-    input (T0, v0, L1 - L0, the lengths, f0, f1) so a step makes one pass per term.
+    with F0 the force at the start and D0 = (1 - theta)*C(z0)*beta(f0)*z0^3 its damping
+    factor; the second form is the first multiplied out, one pass per input.
     """
 
     def __init__(self, c: _Columns, h: float, theta: float):
@@ -420,14 +470,14 @@ class _StepConstants:
         self.KSR = c.KSR
         self.inv_KSR = 1.0 / c.KSR
         self.A_v0 = (1.0 - theta) * h * c.KSR
+        self.p0_v0 = (1.0 - theta) * h + 0.0 * c.KSR
         self.LR = c.LSR0 + c.R
-        self.rhs_T0 = c.k1
+        self.KPR = c.KPR
         self.rhs_v0 = c.M / h - theta * (1.0 - theta) * h * c.k1 * c.KSR
-        self.rhs_dL = theta * c.k1 * c.KSR
-        self.rhs_L = c.KPR
+        self.rhs_dL = theta * (c.k1 * c.KSR - c.KPR)
         self.rhs_f0 = -(1.0 - theta) * c.Gamma_drive
         self.rhs_f1 = -theta * c.Gamma_drive
-        self.rhs_const = c.KPR * (c.LSR0 + c.LPR0)
+        self.rhs_const = c.KPR * (c.LPR0 - c.R)
         # Damping C(z)*beta*z^3 = (Cmid*z + Chalf*|z|)*beta*z^2, C = CL for z > 0, CS else.
         c_mid = 0.5 * (c.CL + c.CS)
         c_half = 0.5 * (c.CL - c.CS)
@@ -445,16 +495,19 @@ class _StepConstants:
         self.a_is_03 = c.a_is_03
         self.three_over_a = c.three_over_a
         self.blend_exp = (c.three_over_a - 3.0) / 3.0
-        # Python floats per fibre for the one-spindle path.
-        names = ("keep", "from_a0", "from_a1", "KSR", "inv_KSR", "A_v0", "LR",
-                 "rhs_T0", "rhs_v0", "rhs_dL", "rhs_L", "rhs_f0", "rhs_f1", "rhs_const",
-                 "c_mid", "c_half", "beta0_old", "beta_drive_old", "cM0", "cMd", "cD0", "cDd",
-                 "a2", "th_h_KSR", "blend_exp")
+        self.lagged = tuple(bool(x) for x in c.lagged)
+        names = ("keep", "from_a0", "from_a1", "KSR", "inv_KSR", "A_v0", "p0_v0", "LR", "KPR",
+                 "rhs_v0", "rhs_dL", "rhs_f0", "rhs_f1", "rhs_const", "c_mid", "c_half",
+                 "beta0_old", "beta_drive_old", "cM0", "cMd", "cD0", "cDd", "a2", "th_h_KSR",
+                 "blend_exp", "freq_p")
         self.fibre = tuple(
             tuple(float(np.broadcast_to(getattr(self, name), (3, 1))[i, 0]) for name in names)
             for i in range(3)
         )
+        self.th_h_KSR_floats = tuple(f[names.index("th_h_KSR")] for f in self.fibre)
         self.p = tuple(float(x) for x in c.p[:, 0])
+        # the chain shares bag2's g^p when their p agree (it has the same static drive)
+        self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
         self.freq_p_floats = tuple(float(x) for x in self.freq_p[:, 0])
 
 
@@ -478,7 +531,7 @@ of them remain (a few sign changes of v need more iterations than the rest)."""
 class _Block:
     """Scratch arrays for a block of ``w`` spindles: flat (3*w,) buffers and (3, w) views."""
 
-    NAMES = ("f1", "a0", "a1", "cM", "cD", "A", "p0", "rhs", "z", "az", "sq", "t9", "w", "cb",
+    NAMES = ("a1", "cM", "cD", "A", "p0", "rhs", "z", "az", "sq", "t9", "w", "cb",
              "phi", "q", "g", "dg", "dz", "tmp")
 
     def __init__(self, w: int):
@@ -488,6 +541,9 @@ class _Block:
         self.dL = np.empty(w)
         self.Lmix = np.empty(w)
         self.moving = np.empty(3 * w, dtype=bool)
+        self.same_sign = self.moving.reshape(3, w)
+        self.gp1 = np.empty((3, w))
+        self.gp0 = np.empty((3, w))
         self.k: _StepConstants | None = None
 
     def prepare(self, k: _StepConstants) -> None:
@@ -541,7 +597,7 @@ class _Workspace:
             j1 = min(n, j0 + CHUNK_SPINDLES)
             b = self.blocks[j1 - j0]
             cols = slice(j0, j1)
-            self._setup(b, T0[:, cols], v0[:, cols], z0[:, cols], f0[:, cols], L0[cols],
+            self._setup(b, cols, T0[:, cols], v0[:, cols], z0[:, cols], f0[:, cols], L0[cols],
                         L1[cols], gd0[cols], gs0[cols], gd1[cols], gs1[cols], same_drive)
             left = _newton_block(b, k)
             if left is not None:
@@ -555,120 +611,138 @@ class _Workspace:
         _check_finite(self.T1, self.v1, k.h)
         return self.T1, self.v1, self.z1, self.f1
 
-    def _setup(self, b, T0, v0, z0, f0, L0, L1, gd0, gs0, gd1, gs1, same_drive):
+    def _setup(self, b, cols, T0, v0, z0, f0, L0, L1, gd0, gs0, gd1, gs1, same_drive):
+        """Everything known at the start of the step, fibre row by fibre row (the constants
+        are then Python floats, cheaper to apply than broadcast columns), and the guess."""
         k = self.k
+        old = k.theta < 1.0
         r = b.rows
         mul, add, sub = np.multiply, np.add, np.subtract
-        a1, f1, tmp = r["a1"], r["f1"], r["tmp"]
-        _activation_rows(gd1, gs1, k, a1, tmp)
-        mul(f0, k.keep, out=f1)
-        if k.theta < 1.0:
-            a0 = a1 if same_drive else _activation_rows(gd0, gs0, k, r["a0"], tmp)
-            mul(a0, k.from_a0, out=tmp)
-            add(f1, tmp, out=f1)
-        mul(a1, k.from_a1, out=tmp)
-        add(f1, tmp, out=f1)
-        cM, cD = r["cM"], r["cD"]
-        mul(f1, k.cMd, out=cM)
-        add(cM, k.cM0, out=cM)
-        mul(f1, k.cDd, out=cD)
-        add(cD, k.cD0, out=cD)
-        # A and p0
         dL = sub(L1, L0, out=b.dL)
-        A, p0, rhs = r["A"], r["p0"], r["rhs"]
-        mul(k.KSR, dL, out=A)
-        add(A, T0, out=A)
-        if k.theta < 1.0:
-            mul(v0, k.A_v0, out=tmp)
-            sub(A, tmp, out=A)
-        mul(A, k.inv_KSR, out=p0)
-        sub(L1, k.LR, out=tmp)
-        sub(tmp, p0, out=p0)
-        # rhs, one term per input
-        mul(T0, k.rhs_T0, out=rhs)
-        mul(v0, k.rhs_v0, out=tmp)
-        add(rhs, tmp, out=rhs)
-        mul(k.rhs_dL, dL, out=tmp)
-        add(rhs, tmp, out=rhs)
-        Lmix = b.Lmix
-        if k.theta < 1.0:
-            mul(L1, k.theta, out=Lmix)
-            mul(L0, 1.0 - k.theta, out=b.dL)
-            add(Lmix, b.dL, out=Lmix)
-        else:
-            Lmix[...] = L1
-        mul(k.rhs_L, Lmix, out=tmp)
-        sub(rhs, tmp, out=rhs)
-        mul(f1, k.rhs_f1, out=tmp)
-        add(rhs, tmp, out=rhs)
-        add(rhs, k.rhs_const, out=rhs)
-        z, az, sq = r["z"], r["az"], r["sq"]
-        np.abs(z0, out=az)
-        if k.theta < 1.0:
-            mul(f0, k.rhs_f0, out=tmp)
+        gp1 = _drive_powers(gd1, gs1, k, b.gp1)
+        gp0 = None if same_drive or not old else _drive_powers(gd0, gs0, k, b.gp0)
+        for i in range(3):
+            (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, p0_v0, LR, KPR, rhs_v0, rhs_dL,
+             rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd,
+             cD0, cDd, a2, _, blend_exp, freq_p) = k.fibre[i]
+            T, v, z0i, f = T0[i], v0[i], z0[i], f0[i]
+            tmp, a1 = r["tmp"][i], r["a1"][i]
+            f1 = self.f1[i, cols]
+            g = gp1[k.drive_row[i]]
+            if k.lagged[i]:
+                add(g, freq_p, out=a1)
+                np.divide(g, a1, out=a1)
+                mul(f, keep, out=f1)
+                if old and same_drive:
+                    mul(a1, from_a0 + from_a1, out=tmp)
+                    add(f1, tmp, out=f1)
+                else:
+                    if old:
+                        g = gp0[k.drive_row[i]]
+                        add(g, freq_p, out=tmp)
+                        np.divide(g, tmp, out=tmp)
+                        mul(tmp, from_a0, out=tmp)
+                        add(f1, tmp, out=f1)
+                    mul(a1, from_a1, out=tmp)
+                    add(f1, tmp, out=f1)
+            else:
+                add(g, freq_p, out=tmp)
+                np.divide(g, tmp, out=f1)
+            cM, cD = r["cM"][i], r["cD"][i]
+            mul(f1, cMd, out=cM)
+            add(cM, cM0, out=cM)
+            mul(f1, cDd, out=cD)
+            add(cD, cD0, out=cD)
+            q0, A, p0, rhs = r["q"][i], r["A"][i], r["p0"][i], r["rhs"][i]
+            sub(L0, LR, out=q0)
+            mul(T, inv_KSR, out=tmp)
+            sub(q0, tmp, out=q0)
+            mul(dL, KSR, out=A)
+            add(A, T, out=A)
+            mul(v, rhs_v0, out=rhs)
+            add(rhs, T, out=rhs)
+            mul(dL, rhs_dL, out=tmp)
             add(rhs, tmp, out=rhs)
-            # (1 - theta) times the damping term of the force at the start of the step
-            cb, q = r["cb"], r["q"]
-            mul(z0, k.c_mid, out=cb)
-            mul(az, k.c_half, out=tmp)
-            add(cb, tmp, out=cb)
-            mul(f0, k.beta_drive_old, out=tmp)
-            add(tmp, k.beta0_old, out=tmp)
-            mul(cb, tmp, out=cb)
-            mul(z0, z0, out=sq)
-            mul(cb, sq, out=cb)
-            mul(T0, k.inv_KSR, out=tmp)
-            sub(L0, k.LR, out=q)
-            sub(q, tmp, out=q)
-            mul(cb, q, out=cb)
+            mul(f1, rhs_f1, out=tmp)
+            add(rhs, tmp, out=rhs)
+            az, sq, cb = r["az"][i], r["sq"][i], r["cb"][i]
+            np.abs(z0i, out=az)
+            mul(z0i, z0i, out=sq)
+            if old:
+                mul(v, A_v0, out=tmp)
+                sub(A, tmp, out=A)
+                mul(v, p0_v0, out=p0)
+                add(p0, q0, out=p0)
+                mul(f, rhs_f0, out=tmp)
+                add(rhs, tmp, out=rhs)
+                # (KPR + D0)*q0, D0 the damping factor of the force at the start
+                mul(z0i, c_mid, out=cb)
+                mul(az, c_half, out=tmp)
+                add(cb, tmp, out=cb)
+                mul(f, beta_drive_old, out=tmp)
+                add(tmp, beta0_old, out=tmp)
+                mul(cb, tmp, out=cb)
+                mul(cb, sq, out=cb)
+                add(cb, KPR, out=cb)
+                mul(cb, q0, out=cb)
+            else:
+                p0[...] = q0
+                mul(q0, KPR, out=cb)
+            add(rhs, rhs_const, out=rhs)
             sub(rhs, cb, out=rhs)
-        else:
-            mul(z0, z0, out=sq)
-        # Starting guess: g with |v|/|z^3| frozen at its previous value |z0|^7 (a = 0.3) is
-        # linear in z^3; its root already has the right sign and, in holds where the
-        # trapezoidal rule rings, the right size, which the previous z has not.
-        slope, t = r["g"], r["t9"]
-        if k.a_is_03:
-            mul(sq, sq, out=t)
-            mul(t, sq, out=t)
-            mul(t, az, out=t)
-        else:
-            np.power(az, k.three_over_a - 3.0, out=t)
-        mul(t, k.a2, out=slope)
-        np.copysign(cD, rhs, out=tmp)
-        add(tmp, cM, out=tmp)
-        np.maximum(p0, 0.0, out=r["q"])
-        mul(tmp, r["q"], out=tmp)
-        add(slope, tmp, out=slope)
-        np.divide(rhs, slope, out=z)
-        np.cbrt(z, out=z)
-        # The frozen factor's error: log z_guess - log z ~ e*s*(log z - log z0) with e the
-        # exponent of |z| in it (7/3 for a = 0.3) and s the share of the |v| term in the
-        # slope; solving that to first order blends the guess toward z0 by e*s/(1 + e*s).
-        # Only where z0 and the guess share a sign (no blend across a reversal of v).
-        blend = r["dg"]
-        mul(t, k.a2, out=blend)
-        np.divide(blend, slope, out=blend)
-        mul(blend, k.blend_exp, out=blend)
-        add(blend, 1.0, out=tmp)
-        np.divide(blend, tmp, out=blend)
-        mul(z0, z, out=tmp)
-        same_sign = b.moving.reshape(tmp.shape)
-        np.greater(tmp, 0.0, out=same_sign)
-        mul(blend, same_sign, out=blend)
-        sub(z0, z, out=tmp)
-        mul(tmp, blend, out=tmp)
-        add(z, tmp, out=z)
+            # Starting guess: g with |v|/|z^3| frozen at its previous value |z0|^7 (a = 0.3)
+            # is linear in z^3; its root already has the right sign and, in holds where the
+            # trapezoidal rule rings, the right size, which the previous z has not.
+            a2t, slope, blend, z = r["t9"][i], r["g"][i], r["dg"][i], r["z"][i]
+            if k.a_is_03:
+                mul(sq, sq, out=a2t)
+                mul(a2t, sq, out=a2t)
+                mul(a2t, az, out=a2t)
+            else:
+                np.power(az, 3.0 * blend_exp, out=a2t)
+            mul(a2t, a2, out=a2t)
+            np.copysign(cD, rhs, out=slope)
+            add(slope, cM, out=slope)
+            np.maximum(p0, 0.0, out=blend)
+            mul(slope, blend, out=slope)
+            add(slope, a2t, out=slope)
+            np.divide(rhs, slope, out=z)
+            np.cbrt(z, out=z)
+            # The frozen factor's error: log z_guess - log z ~ e*s*(log z - log z0), e the
+            # exponent of |z| in it (7/3 for a = 0.3) and s the share of the |v| term in the
+            # slope; solving that to first order blends the guess toward z0 by
+            # e*s/(1 + e*s). Only where z0 and the guess share a sign (v does not reverse).
+            mul(a2t, blend_exp, out=blend)
+            add(slope, blend, out=tmp)
+            np.divide(blend, tmp, out=blend)
+            same_sign = b.same_sign[i]
+            mul(z0i, z, out=tmp)
+            np.greater(tmp, 0.0, out=same_sign)
+            mul(blend, same_sign, out=blend)
+            sub(z0i, z, out=tmp)
+            mul(tmp, blend, out=tmp)
+            add(z, tmp, out=z)
 
     def _finish(self, b, cols):
         r = b.rows
-        v = _velocity_into(b.flat["z"], b.flat, self.k)
-        T1 = self.T1[:, cols]
-        np.multiply(r["w"], self.k.th_h_KSR, out=T1)
-        np.subtract(r["A"], T1, out=T1)
-        self.v1[:, cols] = v.reshape(3, b.w)
+        f = b.flat
+        k = self.k
+        if k.a_is_03:
+            sq, t, az = f["sq"], f["t9"], f["az"]
+            np.multiply(f["z"], f["z"], out=sq)
+            np.multiply(sq, sq, out=t)
+            np.multiply(t, t, out=t)
+            np.abs(f["z"], out=az)
+            np.multiply(t, az, out=t)
+        else:
+            _velocity_into(f["z"], f, k)
+        v1 = self.v1[:, cols]
+        np.multiply(r["t9"], r["z"], out=v1)
+        for i in range(3):
+            T1 = self.T1[i, cols]
+            np.multiply(v1[i], k.th_h_KSR_floats[i], out=T1)
+            np.subtract(r["A"][i], T1, out=T1)
         self.z1[:, cols] = r["z"]
-        self.f1[:, cols] = r["f1"]
 
     def _finish_tail(self, tail):
         idx, z, a2, p0, rhs, cM, cD, A, th_h_KSR = (
@@ -682,20 +756,14 @@ class _Workspace:
         self.T1.reshape(-1)[idx] = A - th_h_KSR * v
 
 
-def _activation_rows(gd, gs, k, out, tmp):
-    """Activation targets of (bag1, bag2, chain) into ``out`` (3, w)."""
-    if k.p_is_2:
-        np.multiply(gd, gd, out=out[0])
-        np.multiply(gs, gs, out=out[1])
-    else:
-        np.power(gd, k.p[0], out=out[0])
-        np.power(gs, k.p[1], out=out[1])
-    if k.p[2] == k.p[1]:
-        out[2] = out[1]
-    else:
-        np.power(gs, k.p[2], out=out[2])
-    np.add(out, k.freq_p, out=tmp)
-    np.divide(out, tmp, out=out)
+def _drive_powers(gd, gs, k, out):
+    """g^p of each fibre's drive into the rows of ``out`` that ``k.drive_row`` names."""
+    for row, (g, p) in enumerate(zip((gd, gs, gs), k.p, strict=True)):
+        if row in k.drive_row:
+            if p == 2.0:
+                np.multiply(g, g, out=out[row])
+            else:
+                np.power(g, p, out=out[row])
     return out
 
 
@@ -810,57 +878,59 @@ def _advance_small(state, L1, gd1, gs1, h, theta, c):
     return arr[0], arr[1], arr[2], arr[3]
 
 
-def _activation_floats(gd: float, gs: float, k: _StepConstants) -> tuple[float, float, float]:
-    p = k.p
-    fp = k.freq_p_floats
-    if k.p_is_2:
-        gd_p, gs_p = gd * gd, gs * gs
-        return gd_p / (gd_p + fp[0]), gs_p / (gs_p + fp[1]), gs_p / (gs_p + fp[2])
-    out = []
-    for g, pi, fpi in zip((gd, gs, gs), p, fp, strict=True):
-        gp = g**pi
-        out.append(gp / (gp + fpi))
-    return tuple(out)
+def _drive_powers_floats(gd: float, gs: float, k: _StepConstants) -> list[float]:
+    return [g * g if p == 2.0 else g**p for g, p in zip((gd, gs, gs), k.p, strict=True)]
 
 
 def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
-    """One implicit step of one spindle on floats; returns ((T1,), (v1,), (z1,), (f1,)) per
-    fibre. The arithmetic is that of the vectorised step, term by term."""
-    theta = k.theta
-    a1 = _activation_floats(gd1, gs1, k)
-    a0 = _activation_floats(gd0, gs0, k) if theta < 1.0 else a1
+    """One implicit step of one spindle on floats; returns the new (T, v, z, f), each a list
+    over the three fibres. The arithmetic is that of the vectorised step, term by term."""
+    old = k.theta < 1.0
+    same_drive = gd0 == gd1 and gs0 == gs1
+    gp1 = _drive_powers_floats(gd1, gs1, k)
+    gp0 = None if same_drive or not old else _drive_powers_floats(gd0, gs0, k)
     dL = L1 - L0
-    Lmix = L1 * theta + L0 * (1.0 - theta)
     T1, v1, z1, f1 = [], [], [], []
     for i in range(3):
-        (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, LR, rhs_T0, rhs_v0, rhs_dL, rhs_L,
-         rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd, cD0,
-         cDd, a2, th_h_KSR, blend_exp) = k.fibre[i]
+        (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, p0_v0, LR, KPR, rhs_v0, rhs_dL,
+         rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd,
+         cD0, cDd, a2, th_h_KSR, blend_exp, freq_p) = k.fibre[i]
         T, v, z, f = T0[i], v0[i], z0[i], f0[i]
-        fn = f * keep
-        if theta < 1.0:
-            fn = fn + a0[i] * from_a0
-        fn = fn + a1[i] * from_a1
+        g = gp1[i]
+        if k.lagged[i]:
+            a1 = g / (g + freq_p)
+            fn = f * keep
+            if old and same_drive:
+                fn = fn + a1 * (from_a0 + from_a1)
+            else:
+                if old:
+                    g = gp0[i]
+                    fn = fn + g / (g + freq_p) * from_a0
+                fn = fn + a1 * from_a1
+        else:
+            fn = g / (g + freq_p)
         cM = fn * cMd + cM0
         cD = fn * cDd + cD0
-        A = KSR * dL + T
-        if theta < 1.0:
-            A = A - v * A_v0
-        p0 = (L1 - LR) - A * inv_KSR
-        rhs = T * rhs_T0 + v * rhs_v0 + rhs_dL * dL - rhs_L * Lmix + fn * rhs_f1 + rhs_const
+        q0 = (L0 - LR) - T * inv_KSR
+        A = dL * KSR + T
+        rhs = v * rhs_v0 + T + dL * rhs_dL + fn * rhs_f1
         az = abs(z)
         sq = z * z
-        if theta < 1.0:
+        if old:
+            A = A - v * A_v0
+            p0 = v * p0_v0 + q0
             rhs = rhs + f * rhs_f0
-            damping = (z * c_mid + az * c_half) * (f * beta_drive_old + beta0_old) * sq
-            rhs = rhs - damping * ((L0 - LR) - T * inv_KSR)
-        t = sq * sq * sq * az if k.a_is_03 else az ** (k.three_over_a - 3.0)
-        a2t = t * a2
-        slope = a2t + (math.copysign(cD, rhs) + cM) * max(p0, 0.0)
+            cb = ((z * c_mid + az * c_half) * (f * beta_drive_old + beta0_old) * sq + KPR) * q0
+        else:
+            p0 = q0
+            cb = q0 * KPR
+        rhs = rhs + rhs_const - cb
+        a2t = (sq * sq * sq * az if k.a_is_03 else az ** (3.0 * blend_exp)) * a2
+        slope = (math.copysign(cD, rhs) + cM) * max(p0, 0.0) + a2t
         if slope:
             zg = math.cbrt(rhs / slope)
-            blend = a2t / slope * blend_exp
-            blend = blend / (blend + 1.0)
+            blend = a2t * blend_exp
+            blend = blend / (slope + blend)
             z = zg + (z - zg) * blend if z * zg > 0.0 else zg
         else:
             z = math.nan
@@ -934,16 +1004,15 @@ def _afferents_small(T: np.ndarray, L: np.ndarray, c: _Columns):
 
 
 def _afferents_one(T: list[float], L: float, c: _Columns) -> tuple[float, float]:
-    """Ia and II (pps) of one spindle from its three fibre tensions, on floats."""
-    (K0, n0, G0, _, _, _, _), *sec_fibres = c.afferent_floats
-    a_dyn = max(G0 * (T[0] / K0 - n0), 0.0)
-    b_stat = 0.0
-    ii = 0.0
-    for t, (K, nsr, G, Gs, x_sr, x_pr, lpr) in zip(T[1:], sec_fibres, strict=True):
-        stretch = t / K - nsr
-        b_stat += max(G * stretch, 0.0)
-        ii += max(Gs * (x_sr * stretch + x_pr * (L - t / K - lpr)), 0.0)
-    return max(a_dyn, b_stat) + c.S_float * min(a_dyn, b_stat), ii
+    """Ia and II (pps) of one spindle from its three fibre tensions, on floats (the
+    arithmetic of :func:`_afferents`)."""
+    (g0, n0), (g1, n1), (g2, n2) = c.primary_lin
+    (a1, b1, c1), (a2, b2, c2) = c.secondary_lin
+    x = max(T[0] * g0 - n0, 0.0)
+    y = max(T[1] * g1 - n1, 0.0) + max(T[2] * g2 - n2, 0.0)
+    ia = max(x, y) + min(x, y) * c.S_float
+    ii = max(T[1] * a1 + L * b1 + c1, 0.0) + max(T[2] * a2 + L * b2 + c2, 0.0)
+    return ia, ii
 
 
 def _workspace(state: SpindleState, k: _StepConstants) -> _Workspace:

@@ -425,3 +425,35 @@ def test_simulate_one_spindle_float_loop_equals_the_array_loop(extra, dt):
     np.testing.assert_allclose(two.ia[:, 0], one.ia, rtol=0, atol=1e-9)
     np.testing.assert_allclose(two.ii[:, 1], one.ii, rtol=0, atol=1e-9)
     assert one.ia.max() > 50
+
+
+def reference_afferents(T, L, params):
+    """Ia and II straight from the model's definitions (Mileusnic 2006, eqs. for the
+    primary and secondary potentials), term by term."""
+    f = params.fibres
+    stretch = [T[i] / f[i].KSR_FU_L0 - (f[i].LNSR_L0 - f[i].LSR0_L0) for i in range(3)]
+    primary = [np.maximum(f[i].G_primary_pps_L0 * stretch[i], 0.0) for i in range(3)]
+    a_dyn, b_stat = primary[0], primary[1] + primary[2]
+    ia = np.maximum(a_dyn, b_stat) + params.S * np.minimum(a_dyn, b_stat)
+    ii = sum(
+        np.maximum(f[i].G_secondary_pps_L0 * (
+            f[i].X * f[i].Lsec_L0 / f[i].LSR0_L0 * stretch[i]
+            + (1 - f[i].X) * f[i].Lsec_L0 / f[i].LPR0_L0
+            * (L - T[i] / f[i].KSR_FU_L0 - f[i].LSR0_L0 - f[i].LNPR_L0)), 0.0)
+        for i in (1, 2))
+    return ia, ii
+
+
+@pytest.mark.parametrize("n", [1, 4, 5, core.AFFERENT_CHUNK + 11])
+@pytest.mark.parametrize("params", [spindle.CAT, spindle.HUMAN])
+def test_afferents_match_the_model_definitions(n, params):
+    rng = np.random.default_rng(n)
+    # tensions from slack (negative potentials, clipped) to well stretched
+    T = rng.uniform(-0.05, 0.5, (3, n))
+    L = rng.uniform(0.5, 1.5, n)
+    ia, ii = core._afferents(T, L, core.columns(params))
+    ia_ref, ii_ref = reference_afferents(T, L, params)
+    assert ia.shape == ii.shape == (n,)
+    np.testing.assert_allclose(ia, ia_ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ii, ii_ref, rtol=0, atol=1e-9)
+    assert (ia == 0).any() or n < 10  # the clipping is exercised
