@@ -848,13 +848,18 @@ def _newton_loop(z, a2, a2_10, p0, rhs, cM, cD, k, s, first, moving=None):
     )
 
 
-SMALL_N = 4
+SMALL_N = 8
 """Up to this many spindles the step runs on Python floats, fibre by fibre: for a few
 spindles numpy's per-call overhead costs more than the arithmetic."""
 
 
 def _as_floats(x, n: int) -> list[float]:
+    """A scalar or an array broadcastable to (n,) as a list of n floats."""
     if isinstance(x, np.ndarray):
+        if x.shape == (n,):
+            return x.tolist()
+        if x.size == 1:
+            return [float(x.reshape(-1)[0])] * n
         return np.broadcast_to(x, (n,)).tolist()
     return [float(x)] * n
 
@@ -998,7 +1003,7 @@ def _afferents_small(T: np.ndarray, L: np.ndarray, c: _Columns):
     """:func:`_afferents` on Python floats for a few spindles (same formula)."""
     n = T.shape[1]
     columns_of_T = T.T.tolist()
-    lengths = np.broadcast_to(L, (n,)).tolist()
+    lengths = _as_floats(L, n)
     rates = [_afferents_one(columns_of_T[j], lengths[j], c) for j in range(n)]
     return np.array([r[0] for r in rates]), np.array([r[1] for r in rates])
 
