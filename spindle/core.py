@@ -232,19 +232,6 @@ def columns(params: SpindleParams) -> _Columns:
     return hit[1]
 
 
-def _velocity_from_z(z: np.ndarray, c: _Columns) -> tuple[np.ndarray, np.ndarray]:
-    """v = sgn(z)|z|^(3/a) and dv/dz."""
-    if c.a_is_03:
-        az = np.abs(z)
-        z4 = z * z
-        z4 *= z4
-        z8az = z4 * z4
-        z8az *= az
-        return z8az * z, 10.0 * z8az
-    az_pow = np.abs(z) ** (c.three_over_a - 1.0)
-    return z * az_pow, c.three_over_a * az_pow
-
-
 def _z_from_velocity(v: np.ndarray, c: _Columns) -> np.ndarray:
     return np.sign(v) * np.abs(v) ** (c.a / 3.0)
 
@@ -472,24 +459,28 @@ class _StepConstants:
         self.A_v0 = (1.0 - theta) * h * c.KSR
         self.p0_v0 = (1.0 - theta) * h + 0.0 * c.KSR
         self.LR = c.LSR0 + c.R
-        self.KPR = c.KPR
-        self.rhs_v0 = c.M / h - theta * (1.0 - theta) * h * c.k1 * c.KSR
-        self.rhs_dL = theta * (c.k1 * c.KSR - c.KPR)
-        self.rhs_f0 = -(1.0 - theta) * c.Gamma_drive
-        self.rhs_f1 = -theta * c.Gamma_drive
-        self.rhs_const = c.KPR * (c.LPR0 - c.R)
+        # The equation for z is solved divided by its |v| coefficient a2 (see
+        # _newton_loop): rhs, the damping coefficients and KPR carry the 1/a2.
+        self.a2 = c.M / h + (theta * theta * h) * c.k1 * c.KSR
+        inv_a2 = 1.0 / self.a2
+        self.inv_a2 = inv_a2
+        self.KPR = c.KPR * inv_a2
+        self.rhs_v0 = (c.M / h - theta * (1.0 - theta) * h * c.k1 * c.KSR) * inv_a2
+        self.rhs_dL = theta * (c.k1 * c.KSR - c.KPR) * inv_a2
+        self.rhs_f0 = -(1.0 - theta) * c.Gamma_drive * inv_a2
+        self.rhs_f1 = -theta * c.Gamma_drive * inv_a2
+        self.rhs_const = c.KPR * (c.LPR0 - c.R) * inv_a2
         # Damping C(z)*beta*z^3 = (Cmid*z + Chalf*|z|)*beta*z^2, C = CL for z > 0, CS else.
-        c_mid = 0.5 * (c.CL + c.CS)
-        c_half = 0.5 * (c.CL - c.CS)
+        c_mid = 0.5 * (c.CL + c.CS) * inv_a2
+        c_half = 0.5 * (c.CL - c.CS) * inv_a2
         self.c_mid, self.c_half = c_mid, c_half
         self.beta0_old = (1.0 - theta) * c.beta0
         self.beta_drive_old = (1.0 - theta) * c.beta_drive
-        # The new step's damping coefficients theta*C*beta1, as cM +- cD.
+        # The new step's damping coefficients theta*C*beta1/a2, as cM +- cD.
         self.cM0 = theta * c_mid * c.beta0
         self.cMd = theta * c_mid * c.beta_drive
         self.cD0 = theta * c_half * c.beta0
         self.cDd = theta * c_half * c.beta_drive
-        self.a2 = c.M / h + (theta * theta * h) * c.k1 * c.KSR
         self.th_h = theta * h
         self.th_h_KSR = theta * h * c.KSR
         self.a_is_03 = c.a_is_03
@@ -498,8 +489,8 @@ class _StepConstants:
         self.lagged = tuple(bool(x) for x in c.lagged)
         names = ("keep", "from_a0", "from_a1", "KSR", "inv_KSR", "A_v0", "p0_v0", "LR", "KPR",
                  "rhs_v0", "rhs_dL", "rhs_f0", "rhs_f1", "rhs_const", "c_mid", "c_half",
-                 "beta0_old", "beta_drive_old", "cM0", "cMd", "cD0", "cDd", "a2", "th_h_KSR",
-                 "blend_exp", "freq_p")
+                 "beta0_old", "beta_drive_old", "cM0", "cMd", "cD0", "cDd", "inv_a2", "th_h_KSR",
+                 "blend_exp", "freq_p", "three_over_a")
         self.fibre = tuple(
             tuple(float(np.broadcast_to(getattr(self, name), (3, 1))[i, 0]) for name in names)
             for i in range(3)
@@ -549,9 +540,11 @@ class _Block:
     def prepare(self, k: _StepConstants) -> None:
         """Expand the step's per-fibre constants that the Newton loop uses to (3*w,)."""
         if self.k is not k:
-            self.a2 = np.repeat(k.a2[:, 0], self.w)
-            self.a2_10 = 10.0 * self.a2
             self.th_h_KSR = np.repeat(np.broadcast_to(k.th_h_KSR, (3, 1))[:, 0], self.w)
+            if not k.a_is_03:
+                # per-fibre exponents, expanded like the data (rows of w)
+                self.flat["power"] = np.repeat(k.three_over_a[:, 0] - 1.0, self.w)
+                self.flat["dv_scale"] = np.repeat(k.three_over_a[:, 0] / 10.0, self.w)
             self.k = k
 
 
@@ -604,7 +597,8 @@ class _Workspace:
                 rows, idx = np.divmod(left, b.w)
                 f = b.flat
                 tail.append((rows * n + (idx + j0), *(x[left] for x in (
-                    f["z"], b.a2, f["p0"], f["rhs"], f["cM"], f["cD"], f["A"], b.th_h_KSR))))
+                    f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], f["A"], b.th_h_KSR,
+                    *((f["power"], f["dv_scale"]) if not k.a_is_03 else ())))))
             self._finish(b, cols)
         if tail:
             self._finish_tail(tail)
@@ -624,7 +618,7 @@ class _Workspace:
         for i in range(3):
             (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, p0_v0, LR, KPR, rhs_v0, rhs_dL,
              rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd,
-             cD0, cDd, a2, _, blend_exp, freq_p) = k.fibre[i]
+             cD0, cDd, inv_a2, _, blend_exp, freq_p, _) = k.fibre[i]
             T, v, z0i, f = T0[i], v0[i], z0[i], f0[i]
             tmp, a1 = r["tmp"][i], r["a1"][i]
             f1 = self.f1[i, cols]
@@ -659,8 +653,9 @@ class _Workspace:
             sub(q0, tmp, out=q0)
             mul(dL, KSR, out=A)
             add(A, T, out=A)
-            mul(v, rhs_v0, out=rhs)
-            add(rhs, T, out=rhs)
+            mul(T, inv_a2, out=rhs)
+            mul(v, rhs_v0, out=tmp)
+            add(rhs, tmp, out=rhs)
             mul(dL, rhs_dL, out=tmp)
             add(rhs, tmp, out=rhs)
             mul(f1, rhs_f1, out=tmp)
@@ -700,7 +695,6 @@ class _Workspace:
                 mul(a2t, az, out=a2t)
             else:
                 np.power(az, 3.0 * blend_exp, out=a2t)
-            mul(a2t, a2, out=a2t)
             np.copysign(cD, rhs, out=slope)
             add(slope, cM, out=slope)
             np.maximum(p0, 0.0, out=blend)
@@ -745,11 +739,13 @@ class _Workspace:
         self.z1[:, cols] = r["z"]
 
     def _finish_tail(self, tail):
-        idx, z, a2, p0, rhs, cM, cD, A, th_h_KSR = (
+        idx, z, p0, rhs, cM, cD, A, th_h_KSR, *exponents = (
             np.concatenate(x) for x in zip(*tail, strict=True))
         s = {name: np.empty(z.size) for name in _Block.NAMES}
         s["z"] = z
-        _newton_loop(z, a2, 10.0 * a2, p0, rhs, cM, cD, self.k, s, first=0)
+        if exponents:
+            s["power"], s["dv_scale"] = exponents
+        _newton_loop(z, p0, rhs, cM, cD, self.k, s, first=0)
         v = _velocity_into(z, s, self.k)
         self.z1.reshape(-1)[idx] = z
         self.v1.reshape(-1)[idx] = v
@@ -779,7 +775,7 @@ def _velocity_into(z, s, k):
         np.multiply(t, s["az"], out=t)
     else:
         np.abs(z, out=s["az"])
-        np.power(s["az"], k.three_over_a - 1.0, out=t)
+        np.power(s["az"], s["power"], out=t)
     np.multiply(t, z, out=w)
     return w
 
@@ -787,11 +783,11 @@ def _velocity_into(z, s, k):
 def _newton_block(b, k):
     """Newton on one block; returns the flat indices handed to the tail, or None."""
     f = b.flat
-    return _newton_loop(f["z"], b.a2, b.a2_10, f["p0"], f["rhs"], f["cM"], f["cD"], k, f,
+    return _newton_loop(f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], k, f,
                         first=NEWTON_FULL_ITER - 1, moving=b.moving)
 
 
-def _newton_loop(z, a2, a2_10, p0, rhs, cM, cD, k, s, first, moving=None):
+def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
     """Iterate z in place until every |dz| <= NEWTON_TOL_Z (see :func:`_implicit_residual`).
 
     From iteration ``first`` on, if at most 1/TAIL_FRACTION of the fibres still move, return
@@ -812,15 +808,14 @@ def _newton_loop(z, a2, a2_10, p0, rhs, cM, cD, k, s, first, moving=None):
         mul(cb, z, out=phi)
         mul(w, th_h, out=q)
         add(q, p0, out=q)
-        mul(a2, w, out=g)
-        mul(phi, q, out=tmp)
-        add(g, tmp, out=g)
+        mul(phi, q, out=g)
+        add(g, w, out=g)
         np.subtract(g, rhs, out=g)
         mul(phi, th_h_10, out=dg)
-        add(dg, a2_10, out=dg)
+        add(dg, 10.0, out=dg)
         if not k.a_is_03:
             # dv/dz = (3/a)|z|^(3/a - 1): the 10 above stands for 3/a
-            mul(dg, k.three_over_a / 10.0, out=dg)
+            mul(dg, s["dv_scale"], out=dg)
         mul(dg, t, out=dg)
         mul(cb, q, out=tmp)
         mul(tmp, 3.0, out=tmp)
@@ -899,7 +894,7 @@ def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
     for i in range(3):
         (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, p0_v0, LR, KPR, rhs_v0, rhs_dL,
          rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd,
-         cD0, cDd, a2, th_h_KSR, blend_exp, freq_p) = k.fibre[i]
+         cD0, cDd, inv_a2, th_h_KSR, blend_exp, freq_p, three_over_a) = k.fibre[i]
         T, v, z, f = T0[i], v0[i], z0[i], f0[i]
         g = gp1[i]
         if k.lagged[i]:
@@ -918,7 +913,7 @@ def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
         cD = fn * cDd + cD0
         q0 = (L0 - LR) - T * inv_KSR
         A = dL * KSR + T
-        rhs = v * rhs_v0 + T + dL * rhs_dL + fn * rhs_f1
+        rhs = T * inv_a2 + v * rhs_v0 + dL * rhs_dL + fn * rhs_f1
         az = abs(z)
         sq = z * z
         if old:
@@ -930,7 +925,7 @@ def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
             p0 = q0
             cb = q0 * KPR
         rhs = rhs + rhs_const - cb
-        a2t = (sq * sq * sq * az if k.a_is_03 else az ** (3.0 * blend_exp)) * a2
+        a2t = sq * sq * sq * az if k.a_is_03 else az ** (3.0 * blend_exp)
         slope = (math.copysign(cD, rhs) + cM) * max(p0, 0.0) + a2t
         if slope:
             zg = math.cbrt(rhs / slope)
@@ -939,14 +934,14 @@ def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
             z = zg + (z - zg) * blend if z * zg > 0.0 else zg
         else:
             z = math.nan
-        z = _newton_float(z, a2, p0, rhs, cM, cD, k)
+        z = _newton_float(z, p0, rhs, cM, cD, k, three_over_a)
         az = abs(z)
         if k.a_is_03:
             sq = z * z
             t = sq * sq
             t = t * t * az
         else:
-            t = az ** (k.three_over_a - 1.0)
+            t = az ** (three_over_a - 1.0)
         w = t * z
         T1.append(A - w * th_h_KSR)
         v1.append(w)
@@ -960,13 +955,12 @@ def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
     return T1, v1, z1, f1
 
 
-def _newton_float(z, a2, p0, rhs, cM, cD, k):
+def _newton_float(z, p0, rhs, cM, cD, k, three_over_a):
     th_h = k.th_h
     th_h_10 = 10.0 * th_h
-    a2_10 = 10.0 * a2
     a_is_03 = k.a_is_03
-    power = k.three_over_a - 1.0
-    dv_scale = k.three_over_a / 10.0
+    power = three_over_a - 1.0
+    dv_scale = three_over_a / 10.0
     dz = math.inf
     for _ in range(NEWTON_MAX_ITER):
         az = abs(z)
@@ -980,8 +974,8 @@ def _newton_float(z, a2, p0, rhs, cM, cD, k):
         cb = (cM * z + cD * az) * z
         phi = cb * z
         q = w * th_h + p0
-        g = a2 * w + phi * q - rhs
-        dg = phi * th_h_10 + a2_10
+        g = phi * q + w - rhs
+        dg = phi * th_h_10 + 10.0
         if not a_is_03:
             dg = dg * dv_scale
         dg = dg * t + cb * q * 3.0

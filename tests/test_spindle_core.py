@@ -457,3 +457,21 @@ def test_afferents_match_the_model_definitions(n, params):
     np.testing.assert_allclose(ia, ia_ref, rtol=0, atol=1e-9)
     np.testing.assert_allclose(ii, ii_ref, rtol=0, atol=1e-9)
     assert (ia == 0).any() or n < 10  # the clipping is exercised
+
+
+@pytest.mark.parametrize("n", [2, 300])
+def test_optimised_step_with_another_damping_exponent_matches_the_reference(n):
+    """a != 0.3 takes the general power path of the solver (v = sgn(z)|z|^(3/a))."""
+    params = dataclasses.replace(
+        spindle.CAT, bag1=dataclasses.replace(spindle.CAT.bag1, a=0.25),
+        bag2=dataclasses.replace(spindle.CAT.bag2, a=0.35))
+    state, L1, gd1, gs1 = random_states(n, seed=2)
+    c = core.columns(params)
+    a = c.a[:, 0][None, :]
+    state.velocity_root[...] = (np.sign(state.polar_velocity_L0_s)
+                                * np.abs(state.polar_velocity_L0_s) ** (a / 3))
+    T1, v1, z1, _ = core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)
+    T_ref, v_ref, _, _ = reference_advance(state, L1, gd1, gs1, 1e-3, 0.5, params)
+    np.testing.assert_allclose(v1, v_ref, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.sign(z1) * np.abs(z1) ** (3 / a.T), v1, rtol=1e-12)
