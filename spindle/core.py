@@ -23,6 +23,18 @@ evaluates no fractional power. The state keeps z beside v.
 Shapes: public state arrays have a leading spindle axis, ``(n, 3)`` with columns
 (bag1, bag2, chain). They are transposed views of fibre-major ``(3, n)`` buffers, the layout
 the arithmetic runs on.
+
+Speed (the arithmetic is the same on every path, term by term):
+
+- up to SMALL_N spindles the implicit step runs on Python floats, fibre by fibre (numpy's
+  per-call overhead would dominate);
+- beyond, it runs in blocks of CHUNK_SPINDLES spindles whose working arrays stay in cache,
+  in place in buffers that each state keeps (its ``_workspace``, created on first use) and
+  reuses from step to step. Each block iterates Newton until its own fibres have converged
+  and hands the last few slow ones to a tail that finishes them together;
+- the starting guess solves the step equation with |v|/|z|^3 frozen and blends it toward the
+  previous z by the first-order correction for that freeze (see ``_Workspace._setup``),
+  which leaves most fibres two or three Newton iterations from convergence.
 """
 
 from __future__ import annotations
@@ -440,7 +452,9 @@ class _StepConstants:
               - (KPR + D0)*q0
 
     with F0 the force at the start and D0 = (1 - theta)*C(z0)*beta(f0)*z0^3 its damping
-    factor; the second form is the first multiplied out, one pass per input.
+    factor; the second form is the first multiplied out, one pass per input. The Newton loop
+    solves the equation divided by a2 = M/h + theta^2*h*k1*KSR, so the constants that enter
+    rhs and the damping coefficients here (and KPR) carry that 1/a2.
     """
 
     def __init__(self, c: _Columns, h: float, theta: float):
@@ -788,10 +802,24 @@ def _newton_block(b, k):
 
 
 def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
-    """Iterate z in place until every |dz| <= NEWTON_TOL_Z (see :func:`_implicit_residual`).
+    """Newton's method on the step equation for z, in place, until every |dz| <= 1e-9.
 
-    From iteration ``first`` on, if at most 1/TAIL_FRACTION of the fibres still move, return
-    their indices (the caller finishes them together with other blocks'); else None.
+    The unknown is z = sgn(v)|v|^(a/3): the damping sgn(v)|v|^a is z^3 and v = sgn(z)|z|^(3/a)
+    (z^10 for a = 0.3), both polynomials, so no iteration evaluates a fractional power. With
+    w = v1 and T1 = A - theta*h*KSR*w (A holds everything known, see :class:`_StepConstants`),
+    the step equation M*(v1 - v0)/h = (1 - theta)*F0 + theta*F1 divided by a2 reads
+
+        g(z) = w + Cb(z)*z^3*(p0 + theta*h*w) - rhs = 0
+
+    with Cb = theta*C*beta1/a2 = cM + cD*sgn(z) (C = CL for z > 0, CS else) and p0 the new
+    polar length minus R at w = 0. g rises monotonically (convex for z > 0, concave below)
+    wherever the polar region is longer than R, so Newton converges after at most one
+    overshoot; steps are capped at NEWTON_MAX_DZ, which also covers g' = 0 at z = 0.
+
+    ``s`` holds scratch arrays shaped like z. From iteration ``first`` on, if at most
+    1/TAIL_FRACTION of the fibres still move (|dz| > tolerance), their flat indices are
+    returned and the caller finishes them together with other blocks' (a few fibres whose v
+    reverses need more iterations than the rest); else None once all have converged.
     """
     mul, add = np.multiply, np.add
     t, w, az, cb, phi, q, g, dg, dz, tmp = (
