@@ -91,6 +91,10 @@ class SpindleState:
             *(_fibre_major(a.T.copy()) if a.ndim == 2 else a.copy() for a in self._arrays())
         )
 
+    def __getstate__(self) -> dict:
+        # the step's scratch buffers (see advance) are not part of the state
+        return {k: v for k, v in self.__dict__.items() if k != "_workspace"}
+
     def _arrays(self) -> tuple[np.ndarray, ...]:
         return (
             self.tension_FU, self.polar_velocity_L0_s, self.velocity_root, self.activation,

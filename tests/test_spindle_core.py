@@ -475,3 +475,24 @@ def test_optimised_step_with_another_damping_exponent_matches_the_reference(n):
     np.testing.assert_allclose(v1, v_ref, rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
     np.testing.assert_allclose(np.sign(z1) * np.abs(z1) ** (3 / a.T), v1, rtol=1e-12)
+
+
+def test_any_memory_layout_of_the_state_and_copies_without_the_scratch_buffers():
+    """A state built by hand from (n, 3) C-ordered arrays (not views of fibre-major
+    buffers) steps like the same state from equilibrium_state; pickling and deep copies
+    leave the step's reused buffers behind."""
+    import copy
+    import pickle
+
+    state, L1, gd1, gs1 = random_states(50, seed=4)
+    by_hand = core.SpindleState(*(np.ascontiguousarray(a) for a in state._arrays()))
+    assert not by_hand.tension_FU.T.flags.c_contiguous
+    c = core.columns(spindle.CAT)
+    want = [a.copy() for a in core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)]
+    got = core.advance(by_hand, L1, gd1, gs1, 1e-3, 0.5, c)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert "_workspace" in state.__dict__
+    for clone in (pickle.loads(pickle.dumps(state)), copy.deepcopy(state)):
+        assert "_workspace" not in clone.__dict__
+        assert_state_unchanged(clone, state)
