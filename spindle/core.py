@@ -514,6 +514,8 @@ class _StepConstants:
             for i in range(3)
         )
         self.th_h_KSR_floats = tuple(f[names.index("th_h_KSR")] for f in self.fibre)
+        self.fibre_columns = tuple(np.array([[f[j]] for f in self.fibre])
+                                   for j in range(len(names)))
         self.p = tuple(float(x) for x in c.p[:, 0])
         # the chain shares bag2's g^p when their p agree (it has the same static drive)
         self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
@@ -531,6 +533,9 @@ CHUNK_SPINDLES = 4096
 """Spindles per block of the vectorised step: every working array of a block stays in the
 core's cache (the step makes ~150 passes over them), and each block leaves the Newton loop
 as soon as all of its own fibres have converged."""
+
+ROW_BY_ROW_SPINDLES = 2048
+"""From this block width on, the start-of-step terms go fibre row by fibre row."""
 
 TAIL_FRACTION = 8
 """A block hands its still-unconverged fibres to a common tail once at most 1/TAIL_FRACTION
@@ -624,24 +629,32 @@ class _Workspace:
         return self.T1, self.v1, self.z1, self.f1
 
     def _setup(self, b, cols, T0, v0, z0, f0, L0, L1, gd0, gs0, gd1, gs1, same_drive):
-        """Everything known at the start of the step, fibre row by fibre row (the constants
-        are then Python floats, cheaper to apply than broadcast columns), and the guess."""
+        """Everything known at the start of the step, and the guess. Wide blocks go fibre row
+        by fibre row (the constants are then Python floats, cheaper to apply than broadcast
+        columns); narrow ones all rows at once with (3, 1) columns (fewer calls)."""
         k = self.k
         old = k.theta < 1.0
         r = b.rows
         mul, add, sub = np.multiply, np.add, np.subtract
         dL = sub(L1, L0, out=b.dL)
-        gp1 = _drive_powers(gd1, gs1, k, b.gp1)
-        gp0 = None if same_drive or not old else _drive_powers(gd0, gs0, k, b.gp0)
-        for i in range(3):
+        by_row = b.w >= ROW_BY_ROW_SPINDLES
+        gp1 = _drive_powers(gd1, gs1, k, b.gp1, all_rows=not by_row)
+        gp0 = (None if same_drive or not old
+               else _drive_powers(gd0, gs0, k, b.gp0, all_rows=not by_row))
+        if by_row:
+            groups = [(i, k.fibre[i], k.lagged[i], gp1[k.drive_row[i]],
+                       None if gp0 is None else gp0[k.drive_row[i]]) for i in range(3)]
+        else:
+            # instantaneous fibres: keep = from_a0 = 0, from_a1 = 1 give f1 = a1 exactly
+            groups = [(slice(None), k.fibre_columns, True, gp1, gp0)]
+        for i, constants, lagged, g, g0 in groups:
             (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, p0_v0, LR, KPR, rhs_v0, rhs_dL,
              rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd,
-             cD0, cDd, inv_a2, _, blend_exp, freq_p, _) = k.fibre[i]
+             cD0, cDd, inv_a2, _, blend_exp, freq_p, _) = constants
             T, v, z0i, f = T0[i], v0[i], z0[i], f0[i]
             tmp, a1 = r["tmp"][i], r["a1"][i]
             f1 = self.f1[i, cols]
-            g = gp1[k.drive_row[i]]
-            if k.lagged[i]:
+            if lagged:
                 add(g, freq_p, out=a1)
                 np.divide(g, a1, out=a1)
                 mul(f, keep, out=f1)
@@ -650,9 +663,8 @@ class _Workspace:
                     add(f1, tmp, out=f1)
                 else:
                     if old:
-                        g = gp0[k.drive_row[i]]
-                        add(g, freq_p, out=tmp)
-                        np.divide(g, tmp, out=tmp)
+                        add(g0, freq_p, out=tmp)
+                        np.divide(g0, tmp, out=tmp)
                         mul(tmp, from_a0, out=tmp)
                         add(f1, tmp, out=f1)
                     mul(a1, from_a1, out=tmp)
@@ -712,7 +724,7 @@ class _Workspace:
                 mul(a2t, sq, out=a2t)
                 mul(a2t, az, out=a2t)
             else:
-                np.power(az, 3.0 * blend_exp, out=a2t)
+                np.power(az, blend_exp * 3.0, out=a2t)
             np.copysign(cD, rhs, out=slope)
             add(slope, cM, out=slope)
             np.maximum(p0, 0.0, out=blend)
@@ -770,14 +782,17 @@ class _Workspace:
         self.T1.reshape(-1)[idx] = A - th_h_KSR * v
 
 
-def _drive_powers(gd, gs, k, out):
-    """g^p of each fibre's drive into the rows of ``out`` that ``k.drive_row`` names."""
+def _drive_powers(gd, gs, k, out, all_rows=False):
+    """g^p of each fibre's drive into the rows of ``out`` that ``k.drive_row`` names (into
+    every row with ``all_rows``)."""
     for row, (g, p) in enumerate(zip((gd, gs, gs), k.p, strict=True)):
         if row in k.drive_row:
             if p == 2.0:
                 np.multiply(g, g, out=out[row])
             else:
                 np.power(g, p, out=out[row])
+        elif all_rows:
+            out[row] = out[k.drive_row[row]]
     return out
 
 
