@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from spindle.methods import Method, get_method
-from spindle.params import CAT, SpindleParams
+from spindle.params import CAT, FibreParams, SpindleParams
 
 LENGTH_RANGE_L0 = (0.5, 1.5)
 """Accepted normalised fascicle lengths. Below ~0.5 L0 the polar region becomes shorter than
@@ -214,6 +214,7 @@ class _Columns:
         self.a_is_03 = bool(np.all(self.a == 0.3))
         self.three_over_a = 3.0 / self.a
         self.step_constants: _StepConstants | None = None
+        self.fibre_params = params.fibres
         self.S_float = float(params.S)
         # The afferent potentials multiplied out, as Python floats: primary of fibre i
         # G*(T/KSR - (LNSR - LSR0)) = T*g - n with (g, n) = primary_lin[i]; secondary of
@@ -443,8 +444,9 @@ def _check_finite(T1, v1, h):
 
 
 class _StepConstants:
-    """Per-fibre constants of one implicit step (step h, weight theta), shape (3, 1), and the
-    same as Python floats per fibre (``fibre``).
+    """Per-fibre constants of one implicit step (step h, weight theta): a tuple of Python
+    floats per fibre (``fibre``, in the order of ``NAMES``) and, on demand, the same as
+    (3, 1) columns (``fibre_columns``).
 
     The theta-method's equation for the new z (see :func:`_newton_loop`) needs, from the
     start of the step, with q0 = L0 - LSR0 - R - T0/KSR (the polar length minus R):
@@ -461,65 +463,84 @@ class _StepConstants:
     rhs and the damping coefficients here (and KPR) carry that 1/a2.
     """
 
+    NAMES = ("keep", "from_a0", "from_a1", "KSR", "inv_KSR", "A_v0", "p0_v0", "LR", "KPR",
+             "rhs_v0", "rhs_dL", "rhs_f0", "rhs_f1", "rhs_const", "c_mid", "c_half",
+             "beta0_old", "beta_drive_old", "cM0", "cMd", "cD0", "cDd", "inv_a2", "th_h_KSR",
+             "blend_exp", "freq_p", "three_over_a")
+    """The per-fibre constants, in the order of each tuple in ``fibre``."""
+
     def __init__(self, c: _Columns, h: float, theta: float):
+        # Python floats throughout: a step with a new h (a streaming chain's jittery sample
+        # interval) rebuilds these, and numpy's per-call overhead would cost ~0.5 ms.
         self.h, self.theta = h, theta
-        rate = h / c.tau_safe
-        den = 1.0 + theta * rate
-        lag = c.lagged[:, None]
-        # f1 = keep*f0 + from_a0*a0 + from_a1*a1; instantaneous fibres take f1 = a1.
-        self.keep = np.where(lag, (1.0 - (1.0 - theta) * rate) / den, 0.0)
-        self.from_a0 = np.where(lag, (1.0 - theta) * rate / den, 0.0)
-        self.from_a1 = np.where(lag, theta * rate / den, 1.0)
-        self.freq_p = c.freq**c.p
-        self.p_is_2 = bool(np.all(c.p == 2.0))
-        self.KSR = c.KSR
-        self.inv_KSR = 1.0 / c.KSR
-        self.A_v0 = (1.0 - theta) * h * c.KSR
-        self.p0_v0 = (1.0 - theta) * h + 0.0 * c.KSR
-        self.LR = c.LSR0 + c.R
-        # The equation for z is solved divided by its |v| coefficient a2 (see
-        # _newton_loop): rhs, the damping coefficients and KPR carry the 1/a2.
-        self.a2 = c.M / h + (theta * theta * h) * c.k1 * c.KSR
-        inv_a2 = 1.0 / self.a2
-        self.inv_a2 = inv_a2
-        self.KPR = c.KPR * inv_a2
-        self.rhs_v0 = (c.M / h - theta * (1.0 - theta) * h * c.k1 * c.KSR) * inv_a2
-        self.rhs_dL = theta * (c.k1 * c.KSR - c.KPR) * inv_a2
-        self.rhs_f0 = -(1.0 - theta) * c.Gamma_drive * inv_a2
-        self.rhs_f1 = -theta * c.Gamma_drive * inv_a2
-        self.rhs_const = c.KPR * (c.LPR0 - c.R) * inv_a2
-        # Damping C(z)*beta*z^3 = (Cmid*z + Chalf*|z|)*beta*z^2, C = CL for z > 0, CS else.
-        c_mid = 0.5 * (c.CL + c.CS) * inv_a2
-        c_half = 0.5 * (c.CL - c.CS) * inv_a2
-        self.c_mid, self.c_half = c_mid, c_half
-        self.beta0_old = (1.0 - theta) * c.beta0
-        self.beta_drive_old = (1.0 - theta) * c.beta_drive
-        # The new step's damping coefficients theta*C*beta1/a2, as cM +- cD.
-        self.cM0 = theta * c_mid * c.beta0
-        self.cMd = theta * c_mid * c.beta_drive
-        self.cD0 = theta * c_half * c.beta0
-        self.cDd = theta * c_half * c.beta_drive
         self.th_h = theta * h
-        self.th_h_KSR = theta * h * c.KSR
         self.a_is_03 = c.a_is_03
-        self.three_over_a = c.three_over_a
-        self.blend_exp = (c.three_over_a - 3.0) / 3.0
-        self.lagged = tuple(bool(x) for x in c.lagged)
-        names = ("keep", "from_a0", "from_a1", "KSR", "inv_KSR", "A_v0", "p0_v0", "LR", "KPR",
-                 "rhs_v0", "rhs_dL", "rhs_f0", "rhs_f1", "rhs_const", "c_mid", "c_half",
-                 "beta0_old", "beta_drive_old", "cM0", "cMd", "cD0", "cDd", "inv_a2", "th_h_KSR",
-                 "blend_exp", "freq_p", "three_over_a")
-        self.fibre = tuple(
-            tuple(float(np.broadcast_to(getattr(self, name), (3, 1))[i, 0]) for name in names)
-            for i in range(3)
-        )
-        self.th_h_KSR_floats = tuple(f[names.index("th_h_KSR")] for f in self.fibre)
-        self.fibre_columns = tuple(np.array([[f[j]] for f in self.fibre])
-                                   for j in range(len(names)))
-        self.p = tuple(float(x) for x in c.p[:, 0])
+        fibres = c.fibre_params
+        self.fibre = tuple(self._fibre_constants(f, h, theta) for f in fibres)
+        self.lagged = tuple(f.tau_s > 0 for f in fibres)
+        self.p = tuple(float(f.p) for f in fibres)
         # the chain shares bag2's g^p when their p agree (it has the same static drive)
         self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
-        self.freq_p_floats = tuple(float(x) for x in self.freq_p[:, 0])
+        self.th_h_KSR_floats = tuple(x[self.NAMES.index("th_h_KSR")] for x in self.fibre)
+        self.three_over_a_floats = tuple(x[self.NAMES.index("three_over_a")]
+                                         for x in self.fibre)
+        self._columns: tuple[np.ndarray, ...] | None = None
+
+    @staticmethod
+    def _fibre_constants(f: FibreParams, h: float, theta: float) -> tuple[float, ...]:
+        lagged = f.tau_s > 0
+        rate = h / (f.tau_s if lagged else 1.0)
+        den = 1.0 + theta * rate
+        KSR, KPR, M = f.KSR_FU_L0, f.KPR_FU_L0, f.M_FU_s2_L0
+        k1 = 1.0 + KPR / KSR
+        # The equation for z is solved divided by its |v| coefficient a2 (see
+        # _newton_loop): rhs, the damping coefficients and KPR carry the 1/a2.
+        a2 = M / h + (theta * theta * h) * k1 * KSR
+        inv_a2 = 1.0 / a2
+        # Damping C(z)*beta*z^3 = (Cmid*z + Chalf*|z|)*beta*z^2, C = CL for z > 0, CS else.
+        c_mid = 0.5 * (f.CL + f.CS) * inv_a2
+        c_half = 0.5 * (f.CL - f.CS) * inv_a2
+        three_over_a = 3.0 / f.a
+        constants = {
+            # f1 = keep*f0 + from_a0*a0 + from_a1*a1; instantaneous fibres take f1 = a1.
+            "keep": (1.0 - (1.0 - theta) * rate) / den if lagged else 0.0,
+            "from_a0": (1.0 - theta) * rate / den if lagged else 0.0,
+            "from_a1": theta * rate / den if lagged else 1.0,
+            "KSR": KSR,
+            "inv_KSR": 1.0 / KSR,
+            "A_v0": (1.0 - theta) * h * KSR,
+            "p0_v0": (1.0 - theta) * h,
+            "LR": f.LSR0_L0 + f.R_L0,
+            "KPR": KPR * inv_a2,
+            "rhs_v0": (M / h - theta * (1.0 - theta) * h * k1 * KSR) * inv_a2,
+            "rhs_dL": theta * (k1 * KSR - KPR) * inv_a2,
+            "rhs_f0": -(1.0 - theta) * f.Gamma_drive_FU * inv_a2,
+            "rhs_f1": -theta * f.Gamma_drive_FU * inv_a2,
+            "rhs_const": KPR * (f.LPR0_L0 - f.R_L0) * inv_a2,
+            "c_mid": c_mid,
+            "c_half": c_half,
+            "beta0_old": (1.0 - theta) * f.beta0_FU_s_L0,
+            "beta_drive_old": (1.0 - theta) * f.beta_drive_FU_s_L0,
+            # The new step's damping coefficients theta*C*beta1/a2, as cM +- cD.
+            "cM0": theta * c_mid * f.beta0_FU_s_L0,
+            "cMd": theta * c_mid * f.beta_drive_FU_s_L0,
+            "cD0": theta * c_half * f.beta0_FU_s_L0,
+            "cDd": theta * c_half * f.beta_drive_FU_s_L0,
+            "inv_a2": inv_a2,
+            "th_h_KSR": theta * h * KSR,
+            "blend_exp": (three_over_a - 3.0) / 3.0,
+            "freq_p": f.freq_pps**f.p,
+            "three_over_a": three_over_a,
+        }
+        return tuple(float(constants[name]) for name in _StepConstants.NAMES)
+
+    @property
+    def fibre_columns(self) -> tuple[np.ndarray, ...]:
+        """The constants as (3, 1) columns, in the order of ``NAMES``."""
+        if self._columns is None:
+            self._columns = tuple(np.array([[x[j]] for x in self.fibre])
+                                  for j in range(len(self.NAMES)))
+        return self._columns
 
 
 def _step_constants(c: _Columns, h: float, theta: float) -> _StepConstants:
@@ -553,7 +574,6 @@ class _Block:
         self.flat = {name: np.empty(3 * w) for name in self.NAMES}
         self.rows = {name: a.reshape(3, w) for name, a in self.flat.items()}
         self.dL = np.empty(w)
-        self.Lmix = np.empty(w)
         self.moving = np.empty(3 * w, dtype=bool)
         self.same_sign = self.moving.reshape(3, w)
         self.gp1 = np.empty((3, w))
@@ -563,11 +583,12 @@ class _Block:
     def prepare(self, k: _StepConstants) -> None:
         """Expand the step's per-fibre constants that the Newton loop uses to (3*w,)."""
         if self.k is not k:
-            self.th_h_KSR = np.repeat(np.broadcast_to(k.th_h_KSR, (3, 1))[:, 0], self.w)
+            self.th_h_KSR = np.repeat(k.th_h_KSR_floats, self.w)
             if not k.a_is_03:
                 # per-fibre exponents, expanded like the data (rows of w)
-                self.flat["power"] = np.repeat(k.three_over_a[:, 0] - 1.0, self.w)
-                self.flat["dv_scale"] = np.repeat(k.three_over_a[:, 0] / 10.0, self.w)
+                e = np.array(k.three_over_a_floats)
+                self.flat["power"] = np.repeat(e - 1.0, self.w)
+                self.flat["dv_scale"] = np.repeat(e / 10.0, self.w)
             self.k = k
 
 

@@ -496,3 +496,22 @@ def test_any_memory_layout_of_the_state_and_copies_without_the_scratch_buffers()
     for clone in (pickle.loads(pickle.dumps(state)), copy.deepcopy(state)):
         assert "_workspace" not in clone.__dict__
         assert_state_unchanged(clone, state)
+
+
+@pytest.mark.parametrize("n", [2, 30])
+def test_a_step_that_changes_from_call_to_call_matches_the_reference(n):
+    """A streaming chain's sample interval jitters, so h differs at every step: the
+    per-step constants follow it."""
+    rng = np.random.default_rng(8)
+    c = core.columns(spindle.CAT)
+    state, _, _, _ = random_states(n, seed=3)
+    plain = state.copy()
+    for h in 1e-3 * (1 + rng.uniform(-0.2, 0.2, 30)):
+        L1 = state.length_L0 + rng.uniform(-5e-4, 5e-4, n)
+        gd1 = state.gamma_dyn_pps + 1.0
+        core.commit(state, core.advance(state, L1, gd1, state.gamma_stat_pps, h, 0.5, c),
+                    L1, gd1, state.gamma_stat_pps)
+        core.commit(plain, reference_advance(plain, L1, gd1, plain.gamma_stat_pps, h, 0.5),
+                    L1, gd1, plain.gamma_stat_pps)
+    np.testing.assert_allclose(np.concatenate(spindle.afferents(state)),
+                               np.concatenate(spindle.afferents(plain)), rtol=0, atol=1e-9)
