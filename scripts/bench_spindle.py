@@ -1,33 +1,45 @@
 """Throughput of the numpy spindle (default method, 1 ms step); a script, not a timed test.
 
-    python scripts/bench_spindle.py            # ~1 min
-    python scripts/bench_spindle.py --quick    # smoke variant, a few seconds
+    PYTHONPATH=. python scripts/bench_spindle.py                  # ~2 min, with the baseline
+    PYTHONPATH=. python scripts/bench_spindle.py --quick          # smoke variant, seconds
+    PYTHONPATH=. python scripts/bench_spindle.py --baseline none  # this tree only
 
 1. spindle-steps per second for n = 1, 64, 4096, 65536 spindles, stepping
    ``spindle.core.advance`` + ``commit`` + ``_afferents`` in a loop: each spindle follows its
    own smooth length trajectory within 0.8-1.2 L0 and its own smooth fusimotor drive, starting
    at rest (``equilibrium_state``) at its first length and drive. Inputs are precomputed; only
-   the spindle calls are timed. Median over repeats.
+   the spindle calls are timed. Median over repeats, of wall time and of this process's CPU
+   time (the machine may be shared; CPU time is what one core spends).
 2. wall time per simulated second of one spindle through ``spindle.simulate`` at default
    settings (1 s of a smooth trajectory sampled at 1 ms).
+
+With ``--baseline REV`` (default e4a47d8, the core before the throughput work) the same
+measurements run on ``spindle/core.py`` and ``spindle/simulate.py`` of that git revision,
+loaded into temporary modules, interleaved repeat by repeat with this tree's, and the ratios
+are printed together with the largest difference in Ia/II between the two (same inputs).
 
 Compared with myogen (a faithful Cython Mileusnic implementation: ~19 simulated
 spindle-seconds per wall second, i.e. 52 ms per simulated second for one spindle at 25 us
 steps) and with the target of 5e6 spindle-steps/s at n = 65536. The last line is
-``spindle_steps_per_s_n65536=<float> ms_per_simulated_s_single=<float>``.
+``spindle_steps_per_s_n65536=<float> ms_per_simulated_s_single=<float>`` (wall-time medians
+of this tree).
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+import subprocess
 import sys
 import time
+import types
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
 import spindle
+import spindle.simulate  # the module (the package attribute is the function)
 from spindle import core
 
 STEP_S = 1e-3
@@ -35,6 +47,8 @@ MYOGEN_MS_PER_SIMULATED_S = 52.0
 MYOGEN_SPINDLE_S_PER_WALL_S = 19.0
 TARGET_STEPS_PER_S_N65536 = 5e6
 MAX_ELEMENTS = 2**22  # inputs precomputed per run: steps * n <= this
+DEFAULT_BASELINE = "e4a47d8"
+REPO = Path(__file__).resolve().parents[1]
 
 
 def trajectories(n: int, n_steps: int, seed: int = 0) -> tuple[np.ndarray, ...]:
@@ -56,78 +70,121 @@ def trajectories(n: int, n_steps: int, seed: int = 0) -> tuple[np.ndarray, ...]:
     return length, gd, gs
 
 
-def steps_per_second(n: int, n_steps: int, repeats: int) -> tuple[float, float, float]:
-    """(median spindle-steps/s, largest |Ia change| over the first step, and over any step,
-    pps)."""
-    length, gd, gs = trajectories(n, n_steps)
+def load_baseline(rev: str) -> tuple[types.ModuleType, types.ModuleType]:
+    """``spindle/core.py`` and ``spindle/simulate.py`` of git revision ``rev`` as temporary
+    modules (the simulate module calls the baseline core)."""
+    modules = []
+    for name in ("core", "simulate"):
+        source = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:spindle/{name}.py"],
+                                check=True, capture_output=True, text=True).stdout
+        module = types.ModuleType(f"baseline_{name}")
+        module.__file__ = f"<{rev}:spindle/{name}.py>"
+        sys.modules[module.__name__] = module  # dataclasses look their module up
+        exec(compile(source, module.__file__, "exec"), module.__dict__)
+        modules.append(module)
+    modules[1].core = modules[0]
+    return modules[0], modules[1]
+
+
+def run_steps(mod, length, gd, gs) -> tuple[float, float, np.ndarray, float]:
+    """One timed run: (wall s, CPU s, the last step's (Ia, II), largest |Ia change| over the
+    first step)."""
     theta = spindle.DEFAULT_METHOD.theta
-    c = core.columns(spindle.CAT)
-    rates = []
-    first_jump = max_jump = 0.0
-    for _ in range(repeats):
-        state = core.equilibrium_state(length[0], gd[0], gs[0])
-        ia_prev, _ = core.afferents(state)
-        changes = np.empty(n_steps)
-        t0 = time.perf_counter()
-        for i in range(1, n_steps + 1):
-            L, d, s = length[i], gd[i], gs[i]
-            new = core.advance(state, L, d, s, STEP_S, theta, c)
-            core.commit(state, new, L, d, s)
-            ia, ii = core._afferents(new[0], L, c)
-            changes[i - 1] = np.abs(ia - ia_prev).max()
-            ia_prev = ia
-        rates.append(n * n_steps / (time.perf_counter() - t0))
-        first_jump, max_jump = float(changes[0]), float(changes.max())
+    c = mod.columns(spindle.CAT)
+    state = mod.equilibrium_state(length[0], gd[0], gs[0])
+    ia0, _ = mod.afferents(state)
+    first = None
+    w0, c0 = time.perf_counter(), time.process_time()
+    for i in range(1, length.shape[0]):
+        L, d, s = length[i], gd[i], gs[i]
+        new = mod.advance(state, L, d, s, STEP_S, theta, c)
+        mod.commit(state, new, L, d, s)
+        ia, ii = mod._afferents(new[0], L, c)
+        if first is None:
+            first = ia
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     if not (np.isfinite(ia).all() and np.isfinite(ii).all()):
         raise FloatingPointError("non-finite rates in the benchmark")
-    return statistics.median(rates), first_jump, max_jump
+    return wall, cpu, np.stack((ia, ii)), float(np.abs(first - ia0).max())
 
 
-def ms_per_simulated_second(repeats: int) -> float:
-    """Median wall time (ms) of spindle.simulate on 1 s of one spindle sampled at 1 ms."""
+def ms_per_simulated_second(sim) -> tuple[float, float]:
+    """(wall ms, CPU ms) of simulate on 1 s of one spindle sampled at 1 ms."""
     length, gd, gs = trajectories(1, round(1.0 / STEP_S), seed=1)
-    spindle.simulate(length[:10, 0], STEP_S)  # warm-up (imports, column cache)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        spindle.simulate(length[:, 0], STEP_S, gamma_dyn=gd[:, 0], gamma_stat=gs[:, 0])
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
+    w0, c0 = time.perf_counter(), time.process_time()
+    sim.simulate(length[:, 0], STEP_S, gamma_dyn=gd[:, 0], gamma_stat=gs[:, 0])
+    return 1e3 * (time.perf_counter() - w0), 1e3 * (time.process_time() - c0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="few steps and repeats (smoke test)")
+    ap.add_argument("--baseline", default=DEFAULT_BASELINE,
+                    help="git revision to compare with, or 'none' (default %(default)s)")
+    ap.add_argument("--repeats", type=int, default=None, help="repeats per size (default 5)")
     args = ap.parse_args(argv)
     sizes = (1, 64, 4096, 65536)
-    repeats = 1 if args.quick else 5
+    repeats = args.repeats or (1 if args.quick else 5)
     max_steps = 20 if args.quick else 2000
+    impls = {"this tree": (core, sys.modules["spindle.simulate"])}
+    if args.baseline != "none":
+        impls[f"baseline {args.baseline}"] = load_baseline(args.baseline)
     m = spindle.DEFAULT_METHOD
-    print(f"method {m.name} (theta {m.theta}), step {STEP_S * 1e3:g} ms, "
-          f"median of {repeats} repeat(s)")
-    print(f"{'n':>7} {'steps':>6} {'spindle-steps/s':>16} {'us/step':>9} "
-          f"{'sim spindle-s/wall s':>21} {'|dIa| step 1 / max':>19}")
-    results = {}
+    print(f"spindle package: {Path(spindle.__file__).parent}")
+    print(f"method {m.name} (theta {m.theta}), step {STEP_S * 1e3:g} ms, median of {repeats} "
+          "repeat(s), implementations interleaved repeat by repeat")
+    print(f"{'n':>7} {'steps':>6} {'implementation':>18} {'steps/s wall':>13} "
+          f"{'steps/s CPU':>12} {'us/step':>9} {'sim spindle-s/wall s':>21} {'|dIa| step 1':>13}")
+    results: dict[tuple[int, str], tuple[float, float]] = {}
     for n in sizes:
         n_steps = max(5 if args.quick else 20, min(max_steps, MAX_ELEMENTS // n))
-        rate, jump, max_jump = steps_per_second(n, n_steps, repeats)
-        results[n] = rate
-        print(f"{n:>7} {n_steps:>6} {rate:>16.4g} {1e6 * n / rate:>9.1f} "
-              f"{rate * STEP_S:>21.4g} {jump:>9.2g} / {max_jump:<7.2g}")
-    ms_single = ms_per_simulated_second(repeats)
-    rate = results[65536]
-    print(f"\nspindle.simulate, 1 spindle, 1 s at default settings: {ms_single:.1f} ms per "
-          "simulated second")
+        length, gd, gs = trajectories(n, n_steps)
+        walls: dict[str, list[float]] = {name: [] for name in impls}
+        cpus: dict[str, list[float]] = {name: [] for name in impls}
+        last, jump = {}, {}
+        for _ in range(repeats):
+            for name, (mod, _sim) in impls.items():
+                wall, cpu, last[name], jump[name] = run_steps(mod, length, gd, gs)
+                walls[name].append(n * n_steps / wall)
+                cpus[name].append(n * n_steps / cpu)
+        for name in impls:
+            rate, rate_cpu = statistics.median(walls[name]), statistics.median(cpus[name])
+            results[n, name] = rate, rate_cpu
+            print(f"{n:>7} {n_steps:>6} {name:>18} {rate:>13.4g} {rate_cpu:>12.4g} "
+                  f"{1e6 * n / rate:>9.1f} {rate * STEP_S:>21.4g} {jump[name]:>13.3g}")
+        if len(impls) > 1:
+            ours, base = (results[n, name] for name in impls)
+            diff = np.abs(last["this tree"] - last[f"baseline {args.baseline}"]).max()
+            print(f"{'':>7} {'':>6} {'ratio':>18} {ours[0] / base[0]:>13.2f} "
+                  f"{ours[1] / base[1]:>12.2f}   (last step: max |d Ia, II| = {diff:.2g} pps)")
+    singles: dict[str, list[tuple[float, float]]] = {name: [] for name in impls}
+    for _, sim in impls.values():
+        sim.simulate(np.ones(10), STEP_S)  # warm-up (imports, column cache)
+    for _ in range(repeats):
+        for name, (_, sim) in impls.items():
+            singles[name].append(ms_per_simulated_second(sim))
+    print("\nspindle.simulate, 1 spindle, 1 s at default settings (ms per simulated second):")
+    ms = {}
+    for name in impls:
+        ms[name] = (statistics.median(x[0] for x in singles[name]),
+                    statistics.median(x[1] for x in singles[name]))
+        print(f"  {name:>18}: {ms[name][0]:8.1f} wall  {ms[name][1]:8.1f} CPU")
+    ours = ms["this tree"]
+    if len(impls) > 1:
+        base = ms[f"baseline {args.baseline}"]
+        print(f"  {'speed-up':>18}: {base[0] / ours[0]:8.2f} wall  {base[1] / ours[1]:8.2f} CPU")
+    rate, rate_cpu = results[65536, "this tree"]
     print("comparison:")
-    print(f"  n=65536: {rate:.4g} spindle-steps/s = {rate / TARGET_STEPS_PER_S_N65536:.2f} x "
-          f"the {TARGET_STEPS_PER_S_N65536:.0e} target; {rate * STEP_S:.4g} simulated "
+    print(f"  n=65536: {rate:.4g} spindle-steps/s wall ({rate_cpu:.4g} per CPU second) = "
+          f"{rate / TARGET_STEPS_PER_S_N65536:.2f} x ({rate_cpu / TARGET_STEPS_PER_S_N65536:.2f}"
+          f" x) the {TARGET_STEPS_PER_S_N65536:.0e} target; {rate * STEP_S:.4g} simulated "
           f"spindle-s per wall s = {rate * STEP_S / MYOGEN_SPINDLE_S_PER_WALL_S:.1f} x myogen's "
           f"{MYOGEN_SPINDLE_S_PER_WALL_S:g}")
-    print(f"  single spindle: {ms_single:.1f} ms per simulated s vs myogen's "
+    print(f"  single spindle: {ours[0]:.1f} ms per simulated s vs myogen's "
           f"{MYOGEN_MS_PER_SIMULATED_S:g} ms (ratio myogen/ours = "
-          f"{MYOGEN_MS_PER_SIMULATED_S / ms_single:.2f}; note myogen steps at 25 us, "
+          f"{MYOGEN_MS_PER_SIMULATED_S / ours[0]:.2f}; note myogen steps at 25 us, "
           f"we at {STEP_S * 1e6:g} us)")
-    print(f"spindle_steps_per_s_n65536={rate:.6g} ms_per_simulated_s_single={ms_single:.6g}")
+    print(f"spindle_steps_per_s_n65536={rate:.6g} ms_per_simulated_s_single={ours[0]:.6g}")
     return 0
 
 

@@ -23,16 +23,29 @@ evaluates no fractional power. The state keeps z beside v.
 Shapes: public state arrays have a leading spindle axis, ``(n, 3)`` with columns
 (bag1, bag2, chain). They are transposed views of fibre-major ``(3, n)`` buffers, the layout
 the arithmetic runs on.
+
+Speed (the arithmetic is the same on every path, term by term):
+
+- up to SMALL_N spindles the implicit step runs on Python floats, fibre by fibre (numpy's
+  per-call overhead would dominate);
+- beyond, it runs in blocks of CHUNK_SPINDLES spindles whose working arrays stay in cache,
+  in place in buffers that each state keeps (its ``_workspace``, created on first use) and
+  reuses from step to step. Each block iterates Newton until its own fibres have converged
+  and hands the last few slow ones to a tail that finishes them together;
+- the starting guess solves the step equation with |v|/|z|^3 frozen and blends it toward the
+  previous z by the first-order correction for that freeze (see ``_Workspace._setup``),
+  which leaves most fibres two or three Newton iterations from convergence.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from spindle.methods import Method, get_method
-from spindle.params import CAT, SpindleParams
+from spindle.params import CAT, FibreParams, SpindleParams
 
 LENGTH_RANGE_L0 = (0.5, 1.5)
 """Accepted normalised fascicle lengths. Below ~0.5 L0 the polar region becomes shorter than
@@ -77,6 +90,10 @@ class SpindleState:
         return SpindleState(
             *(_fibre_major(a.T.copy()) if a.ndim == 2 else a.copy() for a in self._arrays())
         )
+
+    def __getstate__(self) -> dict:
+        # the step's scratch buffers (see advance) are not part of the state
+        return {k: v for k, v in self.__dict__.items() if k != "_workspace"}
 
     def _arrays(self) -> tuple[np.ndarray, ...]:
         return (
@@ -196,6 +213,26 @@ class _Columns:
         # With a = 0.3, v = z^10 * sgn(z): a polynomial, many times cheaper than a power.
         self.a_is_03 = bool(np.all(self.a == 0.3))
         self.three_over_a = 3.0 / self.a
+        self.step_constants: _StepConstants | None = None
+        self.fibre_params = params.fibres
+        self.S_float = float(params.S)
+        # The afferent potentials multiplied out, as Python floats: primary of fibre i
+        # G*(T/KSR - (LNSR - LSR0)) = T*g - n with (g, n) = primary_lin[i]; secondary of
+        # bag2 and chain G2*(X*Lsec/LSR0*(T/KSR - (LNSR - LSR0)) + (1 - X)*Lsec/LPR0*
+        # (L - T/KSR - LSR0 - LNPR)) = T*a + L*b + c with (a, b, c) = secondary_lin[i - 1].
+        self.primary_lin = tuple(
+            (f.G_primary_pps_L0 / f.KSR_FU_L0, f.G_primary_pps_L0 * (f.LNSR_L0 - f.LSR0_L0))
+            for f in params.fibres
+        )
+        self.secondary_lin = tuple(
+            (f.G_secondary_pps_L0 * (f.X * f.Lsec_L0 / f.LSR0_L0
+                                     - (1.0 - f.X) * f.Lsec_L0 / f.LPR0_L0) / f.KSR_FU_L0,
+             f.G_secondary_pps_L0 * (1.0 - f.X) * f.Lsec_L0 / f.LPR0_L0,
+             -f.G_secondary_pps_L0 * (f.X * f.Lsec_L0 / f.LSR0_L0 * (f.LNSR_L0 - f.LSR0_L0)
+                                      + (1.0 - f.X) * f.Lsec_L0 / f.LPR0_L0
+                                      * (f.LSR0_L0 + f.LNPR_L0)))
+            for f in params.fibres[1:]
+        )
 
 
 _COLUMNS_CACHE: dict[int, tuple[SpindleParams, _Columns]] = {}
@@ -210,19 +247,6 @@ def columns(params: SpindleParams) -> _Columns:
             _COLUMNS_CACHE.clear()
         _COLUMNS_CACHE[key] = hit
     return hit[1]
-
-
-def _velocity_from_z(z: np.ndarray, c: _Columns) -> tuple[np.ndarray, np.ndarray]:
-    """v = sgn(z)|z|^(3/a) and dv/dz."""
-    if c.a_is_03:
-        az = np.abs(z)
-        z4 = z * z
-        z4 *= z4
-        z8az = z4 * z4
-        z8az *= az
-        return z8az * z, 10.0 * z8az
-    az_pow = np.abs(z) ** (c.three_over_a - 1.0)
-    return z * az_pow, c.three_over_a * az_pow
 
 
 def _z_from_velocity(v: np.ndarray, c: _Columns) -> np.ndarray:
@@ -277,20 +301,59 @@ def afferents(state: SpindleState, params: SpindleParams = CAT) -> tuple[np.ndar
     return _afferents(state.tension_FU.T, state.length_L0, columns(params))
 
 
+AFFERENT_CHUNK = 8192
+"""Spindles per block of :func:`_afferents` (its temporaries stay in cache)."""
+
+
 def _afferents(T: np.ndarray, L: np.ndarray, c: _Columns) -> tuple[np.ndarray, np.ndarray]:
-    # Every fibre's potential is clipped at 0 before they are combined (a slack fibre neither
-    # excites nor inhibits the shared ending); the totals are then >= 0 by construction.
-    stretch = T / c.KSR - (c.LNSR - c.LSR0)
-    primary = np.maximum(c.G_pri * stretch, 0.0)
-    a_dyn = primary[0]
-    b_stat = primary[1] + primary[2]
-    ia = np.maximum(a_dyn, b_stat) + c.S * np.minimum(a_dyn, b_stat)
-    sec = c.G_sec[1:] * (
-        c.X[1:] * (c.Lsec[1:] / c.LSR0[1:]) * stretch[1:]
-        + (1.0 - c.X[1:]) * (c.Lsec[1:] / c.LPR0[1:])
-        * (L - T[1:] / c.KSR[1:] - c.LSR0[1:] - c.LNPR[1:])
-    )
-    ii = np.maximum(sec, 0.0).sum(axis=0)
+    """Ia and II (pps), each (n,), of fibre tensions T (3, n) at fascicle lengths L (n,).
+
+    Every fibre's potential is clipped at 0 before they are combined (a slack fibre neither
+    excites nor inhibits the shared ending); the totals are then >= 0 by construction. Each
+    potential is linear in the fibre's T (and the secondary's in L too); it is evaluated in
+    that multiplied-out form (:attr:`_Columns.primary_lin`, :attr:`_Columns.secondary_lin`),
+    fibre row by fibre row.
+    """
+    n = T.shape[1]
+    if n <= SMALL_N:
+        return _afferents_small(T, L, c)
+    mul, add, sub, top = np.multiply, np.add, np.subtract, np.maximum
+    L = np.broadcast_to(L, (n,))
+    ia, ii = np.empty(n), np.empty(n)
+    m = min(n, AFFERENT_CHUNK)
+    buffers = np.empty((3, m))
+    (g0, n0), (g1, n1), (g2, n2) = c.primary_lin
+    (a1, b1, c1), (a2, b2, c2) = c.secondary_lin
+    for j0 in range(0, n, m):
+        cols = slice(j0, min(n, j0 + m))
+        x, y, t = buffers[:, : cols.stop - j0]
+        T0, T1, T2, Lc = T[0, cols], T[1, cols], T[2, cols], L[cols]
+        mul(T0, g0, out=x)
+        sub(x, n0, out=x)
+        top(x, 0.0, out=x)
+        mul(T1, g1, out=y)
+        sub(y, n1, out=y)
+        top(y, 0.0, out=y)
+        mul(T2, g2, out=t)
+        sub(t, n2, out=t)
+        top(t, 0.0, out=t)
+        add(y, t, out=y)
+        out = ia[cols]
+        top(x, y, out=out)
+        np.minimum(x, y, out=t)
+        mul(t, c.S_float, out=t)
+        add(out, t, out=out)
+        mul(T1, a1, out=x)
+        mul(Lc, b1, out=t)
+        add(x, t, out=x)
+        add(x, c1, out=x)
+        top(x, 0.0, out=x)
+        mul(T2, a2, out=y)
+        mul(Lc, b2, out=t)
+        add(y, t, out=y)
+        add(y, c2, out=y)
+        top(y, 0.0, out=y)
+        add(x, y, out=ii[cols])
     return ia, ii
 
 
@@ -337,125 +400,692 @@ def commit(state: SpindleState, new, L, gd, gs) -> None:
 
 
 def advance(state, L1, gd1, gs1, h, theta, c):
-    """One theta-method step from the state to (L1, gd1, gs1), unchecked; returns new arrays.
+    """One theta-method step from the state to (L1, gd1, gs1), unchecked.
 
-    Nothing in ``state`` is modified: the caller commits the result once it is known to be
-    finite, so a failed step leaves the state as it was.
+    Returns (T1, v1, u1, f1), each (3, n). Nothing in ``state`` is modified: the caller
+    commits the result once it is known to be finite, so a failed step leaves the state as it
+    was. For the implicit settings the returned arrays are buffers that the state's workspace
+    reuses: they are valid until the next ``advance`` of the same state (``commit`` copies
+    them into the state, ``_afferents`` reads them).
     """
+    if theta == 0.0:
+        return _advance_explicit(state, L1, gd1, gs1, h, c)
+    if state.n <= SMALL_N:
+        return _advance_small(state, L1, gd1, gs1, h, theta, c)
+    return _workspace(state, _step_constants(c, h, theta)).advance(state, L1, gd1, gs1)
+
+
+def _advance_explicit(state, L1, gd1, gs1, h, c):
+    """Forward Euler (theta = 0): every term from the state at the start of the step."""
     T0 = state.tension_FU.T
     v0 = state.polar_velocity_L0_s.T
     u0 = state.velocity_root.T
     f0 = state.activation.T
     L0 = state.length_L0
-
-    # Activation: the same theta-method on df/dt = (a* - f)/tau; instantaneous fibres take a*.
     a1 = activation_target(_drive_rows(gd1, gs1), c.freq, c.p)
-    rate = h / c.tau_safe
-    if theta < 1.0:
-        a0 = activation_target(_drive_rows(state.gamma_dyn_pps, state.gamma_stat_pps),
-                               c.freq, c.p)
-        f1 = (f0 + rate * ((1.0 - theta) * (a0 - f0) + theta * a1)) / (1.0 + theta * rate)
-    else:
-        f1 = (f0 + rate * a1) / (1.0 + rate)
+    a0 = activation_target(_drive_rows(state.gamma_dyn_pps, state.gamma_stat_pps), c.freq, c.p)
+    f1 = f0 + (h / c.tau_safe) * (a0 - f0)
     f1[~c.lagged] = a1[~c.lagged]
+    F0 = _force(T0, u0, L0, c.beta0 + c.beta_drive * f0, c.Gamma_drive * f0, c)
+    T1 = T0 + c.KSR * (L1 - L0) - (h * c.KSR) * v0
+    v1 = v0 + (h / c.M) * F0
+    u1 = _z_from_velocity(v1, c)
+    _check_finite(T1, v1, h)
+    return T1, v1, u1, f1
 
-    beta1 = c.beta0 + c.beta_drive * f1
-    Gamma1 = c.Gamma_drive * f1
-    # The exact integral of dL over the step (see module docstring).
-    A = T0 + c.KSR * (L1 - L0)
-    if theta == 0.0:
-        F0 = _force(T0, u0, L0, c.beta0 + c.beta_drive * f0, c.Gamma_drive * f0, c)
-        T1 = A - (h * c.KSR) * v0
-        v1 = v0 + (h / c.M) * F0
-        u1 = _z_from_velocity(v1, c)
-    else:
-        if theta < 1.0:
-            F0 = _force(T0, u0, L0, c.beta0 + c.beta_drive * f0, c.Gamma_drive * f0, c)
-            A = A - ((1.0 - theta) * h) * c.KSR * v0
-        else:
-            F0 = None
-        T1, v1, u1 = _implicit_solve(A, v0, u0, F0, L1, beta1, Gamma1, h, theta, c)
-    if not (np.isfinite(T1).all() and np.isfinite(v1).all()):
+
+def _check_finite(T1, v1, h):
+    # A sum is finite only if every term is (the values are far below overflow).
+    if not math.isfinite(float(T1.sum()) + float(v1.sum())):
         raise FloatingPointError(
             "the spindle step produced a non-finite tension or velocity; state left unchanged "
             f"(step {h!r} s)"
         )
-    return T1, v1, u1, f1
 
 
-def _implicit_solve(A, v0, z0, F0, L1, beta1, Gamma1, h, theta, c):
-    """Solve the theta-method's equation for the new z by Newton iteration.
+class _StepConstants:
+    """Per-fibre constants of one implicit step (step h, weight theta): a tuple of Python
+    floats per fibre (``fibre``, in the order of ``NAMES``) and, on demand, the same as
+    (3, 1) columns (``fibre_columns``).
+
+    The theta-method's equation for the new z (see :func:`_newton_loop`) needs, from the
+    start of the step, with q0 = L0 - LSR0 - R - T0/KSR (the polar length minus R):
+
+        A   = T0 + KSR*(L1 - L0) - (1 - theta)*h*KSR*v0          (T1 = A - theta*h*KSR*v1)
+        p0  = q0 + (1 - theta)*h*v0                               (= L1 - LSR0 - R - A/KSR)
+        rhs = (M/h)*v0 + theta*(k1*A - Gamma1 - KPR*(L1 - LSR0 - LPR0)) + (1 - theta)*F0
+            = T0 + rhs_v0*v0 + rhs_dL*(L1 - L0) + rhs_f1*f1 + rhs_f0*f0 + rhs_const
+              - (KPR + D0)*q0
+
+    with F0 the force at the start and D0 = (1 - theta)*C(z0)*beta(f0)*z0^3 its damping
+    factor; the second form is the first multiplied out, one pass per input. The Newton loop
+    solves the equation divided by a2 = M/h + theta^2*h*k1*KSR, so the constants that enter
+    rhs and the damping coefficients here (and KPR) carry that 1/a2.
+    """
+
+    NAMES = ("keep", "from_a0", "from_a1", "KSR", "inv_KSR", "A_v0", "p0_v0", "LR", "KPR",
+             "rhs_v0", "rhs_dL", "rhs_f0", "rhs_f1", "rhs_const", "c_mid", "c_half",
+             "beta0_old", "beta_drive_old", "cM0", "cMd", "cD0", "cDd", "inv_a2", "th_h_KSR",
+             "blend_exp", "freq_p", "three_over_a")
+    """The per-fibre constants, in the order of each tuple in ``fibre``."""
+
+    def __init__(self, c: _Columns, h: float, theta: float):
+        # Python floats throughout: a step with a new h (a streaming chain's jittery sample
+        # interval) rebuilds these, and numpy's per-call overhead would cost ~0.5 ms.
+        self.h, self.theta = h, theta
+        self.th_h = theta * h
+        self.a_is_03 = c.a_is_03
+        fibres = c.fibre_params
+        self.fibre = tuple(self._fibre_constants(f, h, theta) for f in fibres)
+        self.lagged = tuple(f.tau_s > 0 for f in fibres)
+        self.p = tuple(float(f.p) for f in fibres)
+        # the chain shares bag2's g^p when their p agree (it has the same static drive)
+        self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
+        self.th_h_KSR_floats = tuple(x[self.NAMES.index("th_h_KSR")] for x in self.fibre)
+        self.three_over_a_floats = tuple(x[self.NAMES.index("three_over_a")]
+                                         for x in self.fibre)
+        self._columns: tuple[np.ndarray, ...] | None = None
+
+    @staticmethod
+    def _fibre_constants(f: FibreParams, h: float, theta: float) -> tuple[float, ...]:
+        lagged = f.tau_s > 0
+        rate = h / (f.tau_s if lagged else 1.0)
+        den = 1.0 + theta * rate
+        KSR, KPR, M = f.KSR_FU_L0, f.KPR_FU_L0, f.M_FU_s2_L0
+        k1 = 1.0 + KPR / KSR
+        # The equation for z is solved divided by its |v| coefficient a2 (see
+        # _newton_loop): rhs, the damping coefficients and KPR carry the 1/a2.
+        a2 = M / h + (theta * theta * h) * k1 * KSR
+        inv_a2 = 1.0 / a2
+        # Damping C(z)*beta*z^3 = (Cmid*z + Chalf*|z|)*beta*z^2, C = CL for z > 0, CS else.
+        c_mid = 0.5 * (f.CL + f.CS) * inv_a2
+        c_half = 0.5 * (f.CL - f.CS) * inv_a2
+        three_over_a = 3.0 / f.a
+        constants = {
+            # f1 = keep*f0 + from_a0*a0 + from_a1*a1; instantaneous fibres take f1 = a1.
+            "keep": (1.0 - (1.0 - theta) * rate) / den if lagged else 0.0,
+            "from_a0": (1.0 - theta) * rate / den if lagged else 0.0,
+            "from_a1": theta * rate / den if lagged else 1.0,
+            "KSR": KSR,
+            "inv_KSR": 1.0 / KSR,
+            "A_v0": (1.0 - theta) * h * KSR,
+            "p0_v0": (1.0 - theta) * h,
+            "LR": f.LSR0_L0 + f.R_L0,
+            "KPR": KPR * inv_a2,
+            "rhs_v0": (M / h - theta * (1.0 - theta) * h * k1 * KSR) * inv_a2,
+            "rhs_dL": theta * (k1 * KSR - KPR) * inv_a2,
+            "rhs_f0": -(1.0 - theta) * f.Gamma_drive_FU * inv_a2,
+            "rhs_f1": -theta * f.Gamma_drive_FU * inv_a2,
+            "rhs_const": KPR * (f.LPR0_L0 - f.R_L0) * inv_a2,
+            "c_mid": c_mid,
+            "c_half": c_half,
+            "beta0_old": (1.0 - theta) * f.beta0_FU_s_L0,
+            "beta_drive_old": (1.0 - theta) * f.beta_drive_FU_s_L0,
+            # The new step's damping coefficients theta*C*beta1/a2, as cM +- cD.
+            "cM0": theta * c_mid * f.beta0_FU_s_L0,
+            "cMd": theta * c_mid * f.beta_drive_FU_s_L0,
+            "cD0": theta * c_half * f.beta0_FU_s_L0,
+            "cDd": theta * c_half * f.beta_drive_FU_s_L0,
+            "inv_a2": inv_a2,
+            "th_h_KSR": theta * h * KSR,
+            "blend_exp": (three_over_a - 3.0) / 3.0,
+            "freq_p": f.freq_pps**f.p,
+            "three_over_a": three_over_a,
+        }
+        return tuple(float(constants[name]) for name in _StepConstants.NAMES)
+
+    @property
+    def fibre_columns(self) -> tuple[np.ndarray, ...]:
+        """The constants as (3, 1) columns, in the order of ``NAMES``."""
+        if self._columns is None:
+            self._columns = tuple(np.array([[x[j]] for x in self.fibre])
+                                  for j in range(len(self.NAMES)))
+        return self._columns
+
+
+def _step_constants(c: _Columns, h: float, theta: float) -> _StepConstants:
+    hit = c.step_constants
+    if hit is None or hit.h != h or hit.theta != theta:
+        hit = c.step_constants = _StepConstants(c, h, theta)
+    return hit
+
+
+CHUNK_SPINDLES = 4096
+"""Spindles per block of the vectorised step: every working array of a block stays in the
+core's cache (the step makes ~150 passes over them), and each block leaves the Newton loop
+as soon as all of its own fibres have converged."""
+
+ROW_BY_ROW_SPINDLES = 2048
+"""From this block width on, the start-of-step terms go fibre row by fibre row."""
+
+TAIL_FRACTION = 8
+"""A block hands its still-unconverged fibres to a common tail once at most 1/TAIL_FRACTION
+of them remain (a few sign changes of v need more iterations than the rest)."""
+
+
+class _Block:
+    """Scratch arrays for a block of ``w`` spindles: flat (3*w,) buffers and (3, w) views."""
+
+    NAMES = ("a1", "cM", "cD", "A", "p0", "rhs", "z", "az", "sq", "t9", "w", "cb",
+             "phi", "q", "g", "dg", "dz", "tmp")
+
+    def __init__(self, w: int):
+        self.w = w
+        self.flat = {name: np.empty(3 * w) for name in self.NAMES}
+        self.rows = {name: a.reshape(3, w) for name, a in self.flat.items()}
+        self.dL = np.empty(w)
+        self.moving = np.empty(3 * w, dtype=bool)
+        self.same_sign = self.moving.reshape(3, w)
+        self.gp1 = np.empty((3, w))
+        self.gp0 = np.empty((3, w))
+        self.k: _StepConstants | None = None
+
+    def prepare(self, k: _StepConstants) -> None:
+        """Expand the step's per-fibre constants that the Newton loop uses to (3*w,)."""
+        if self.k is not k:
+            self.th_h_KSR = np.repeat(k.th_h_KSR_floats, self.w)
+            if not k.a_is_03:
+                # per-fibre exponents, expanded like the data (rows of w)
+                e = np.array(k.three_over_a_floats)
+                self.flat["power"] = np.repeat(e - 1.0, self.w)
+                self.flat["dv_scale"] = np.repeat(e / 10.0, self.w)
+            self.k = k
+
+
+class _Workspace:
+    """Reused buffers of the vectorised implicit step of one state (n spindles).
+
+    :func:`advance` returns the output arrays ``T1, v1, z1, f1`` themselves; they hold the
+    result until the next ``advance`` of the same state.
+    """
+
+    def __init__(self, n: int):
+        self.n = n
+        self.T1 = np.empty((3, n))
+        self.v1 = np.empty((3, n))
+        self.z1 = np.empty((3, n))
+        self.f1 = np.empty((3, n))
+        m = min(n, CHUNK_SPINDLES)
+        self.blocks = {m: _Block(m)}
+        if n % m:
+            self.blocks[n % m] = _Block(n % m)
+        self.k: _StepConstants | None = None
+
+    def prepare(self, k: _StepConstants) -> None:
+        self.k = k
+        for b in self.blocks.values():
+            b.prepare(k)
+
+    def advance(self, state, L1, gd1, gs1):
+        k, n = self.k, self.n
+        T0 = state.tension_FU.T
+        v0 = state.polar_velocity_L0_s.T
+        z0 = state.velocity_root.T
+        f0 = state.activation.T
+        L0 = state.length_L0
+        gd0, gs0 = state.gamma_dyn_pps, state.gamma_stat_pps
+        L1 = np.broadcast_to(L1, (n,))
+        gd1 = np.broadcast_to(gd1, (n,))
+        gs1 = np.broadcast_to(gs1, (n,))
+        # An unchanged drive (the common case) has an unchanged activation target.
+        same_drive = k.theta < 1.0 and np.array_equal(gd0, gd1) and np.array_equal(gs0, gs1)
+        tail = []
+        for j0 in range(0, n, CHUNK_SPINDLES):
+            j1 = min(n, j0 + CHUNK_SPINDLES)
+            b = self.blocks[j1 - j0]
+            cols = slice(j0, j1)
+            self._setup(b, cols, T0[:, cols], v0[:, cols], z0[:, cols], f0[:, cols], L0[cols],
+                        L1[cols], gd0[cols], gs0[cols], gd1[cols], gs1[cols], same_drive)
+            left = _newton_block(b, k)
+            if left is not None:
+                rows, idx = np.divmod(left, b.w)
+                f = b.flat
+                tail.append((rows * n + (idx + j0), *(x[left] for x in (
+                    f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], f["A"], b.th_h_KSR,
+                    *((f["power"], f["dv_scale"]) if not k.a_is_03 else ())))))
+            self._finish(b, cols)
+        if tail:
+            self._finish_tail(tail)
+        _check_finite(self.T1, self.v1, k.h)
+        return self.T1, self.v1, self.z1, self.f1
+
+    def _setup(self, b, cols, T0, v0, z0, f0, L0, L1, gd0, gs0, gd1, gs1, same_drive):
+        """Everything known at the start of the step, and the guess. Wide blocks go fibre row
+        by fibre row (the constants are then Python floats, cheaper to apply than broadcast
+        columns); narrow ones all rows at once with (3, 1) columns (fewer calls)."""
+        k = self.k
+        old = k.theta < 1.0
+        r = b.rows
+        mul, add, sub = np.multiply, np.add, np.subtract
+        dL = sub(L1, L0, out=b.dL)
+        by_row = b.w >= ROW_BY_ROW_SPINDLES
+        gp1 = _drive_powers(gd1, gs1, k, b.gp1, all_rows=not by_row)
+        gp0 = (None if same_drive or not old
+               else _drive_powers(gd0, gs0, k, b.gp0, all_rows=not by_row))
+        if by_row:
+            groups = [(i, k.fibre[i], k.lagged[i], gp1[k.drive_row[i]],
+                       None if gp0 is None else gp0[k.drive_row[i]]) for i in range(3)]
+        else:
+            # instantaneous fibres: keep = from_a0 = 0, from_a1 = 1 give f1 = a1 exactly
+            groups = [(slice(None), k.fibre_columns, True, gp1, gp0)]
+        for i, constants, lagged, g, g0 in groups:
+            (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, p0_v0, LR, KPR, rhs_v0, rhs_dL,
+             rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd,
+             cD0, cDd, inv_a2, _, blend_exp, freq_p, _) = constants
+            T, v, z0i, f = T0[i], v0[i], z0[i], f0[i]
+            tmp, a1 = r["tmp"][i], r["a1"][i]
+            f1 = self.f1[i, cols]
+            if lagged:
+                add(g, freq_p, out=a1)
+                np.divide(g, a1, out=a1)
+                mul(f, keep, out=f1)
+                if old and same_drive:
+                    mul(a1, from_a0 + from_a1, out=tmp)
+                    add(f1, tmp, out=f1)
+                else:
+                    if old:
+                        add(g0, freq_p, out=tmp)
+                        np.divide(g0, tmp, out=tmp)
+                        mul(tmp, from_a0, out=tmp)
+                        add(f1, tmp, out=f1)
+                    mul(a1, from_a1, out=tmp)
+                    add(f1, tmp, out=f1)
+            else:
+                add(g, freq_p, out=tmp)
+                np.divide(g, tmp, out=f1)
+            cM, cD = r["cM"][i], r["cD"][i]
+            mul(f1, cMd, out=cM)
+            add(cM, cM0, out=cM)
+            mul(f1, cDd, out=cD)
+            add(cD, cD0, out=cD)
+            q0, A, p0, rhs = r["q"][i], r["A"][i], r["p0"][i], r["rhs"][i]
+            sub(L0, LR, out=q0)
+            mul(T, inv_KSR, out=tmp)
+            sub(q0, tmp, out=q0)
+            mul(dL, KSR, out=A)
+            add(A, T, out=A)
+            mul(T, inv_a2, out=rhs)
+            mul(v, rhs_v0, out=tmp)
+            add(rhs, tmp, out=rhs)
+            mul(dL, rhs_dL, out=tmp)
+            add(rhs, tmp, out=rhs)
+            mul(f1, rhs_f1, out=tmp)
+            add(rhs, tmp, out=rhs)
+            az, sq, cb = r["az"][i], r["sq"][i], r["cb"][i]
+            np.abs(z0i, out=az)
+            mul(z0i, z0i, out=sq)
+            if old:
+                mul(v, A_v0, out=tmp)
+                sub(A, tmp, out=A)
+                mul(v, p0_v0, out=p0)
+                add(p0, q0, out=p0)
+                mul(f, rhs_f0, out=tmp)
+                add(rhs, tmp, out=rhs)
+                # (KPR + D0)*q0, D0 the damping factor of the force at the start
+                mul(z0i, c_mid, out=cb)
+                mul(az, c_half, out=tmp)
+                add(cb, tmp, out=cb)
+                mul(f, beta_drive_old, out=tmp)
+                add(tmp, beta0_old, out=tmp)
+                mul(cb, tmp, out=cb)
+                mul(cb, sq, out=cb)
+                add(cb, KPR, out=cb)
+                mul(cb, q0, out=cb)
+            else:
+                p0[...] = q0
+                mul(q0, KPR, out=cb)
+            add(rhs, rhs_const, out=rhs)
+            sub(rhs, cb, out=rhs)
+            # Starting guess: g with |v|/|z^3| frozen at its previous value |z0|^7 (a = 0.3)
+            # is linear in z^3; its root already has the right sign and, in holds where the
+            # trapezoidal rule rings, the right size, which the previous z has not.
+            a2t, slope, blend, z = r["t9"][i], r["g"][i], r["dg"][i], r["z"][i]
+            if k.a_is_03:
+                mul(sq, sq, out=a2t)
+                mul(a2t, sq, out=a2t)
+                mul(a2t, az, out=a2t)
+            else:
+                np.power(az, blend_exp * 3.0, out=a2t)
+            np.copysign(cD, rhs, out=slope)
+            add(slope, cM, out=slope)
+            np.maximum(p0, 0.0, out=blend)
+            mul(slope, blend, out=slope)
+            add(slope, a2t, out=slope)
+            np.divide(rhs, slope, out=z)
+            np.cbrt(z, out=z)
+            # The frozen factor's error: log z_guess - log z ~ e*s*(log z - log z0), e the
+            # exponent of |z| in it (7/3 for a = 0.3) and s the share of the |v| term in the
+            # slope; solving that to first order blends the guess toward z0 by
+            # e*s/(1 + e*s). Only where z0 and the guess share a sign (v does not reverse).
+            mul(a2t, blend_exp, out=blend)
+            add(slope, blend, out=tmp)
+            np.divide(blend, tmp, out=blend)
+            same_sign = b.same_sign[i]
+            mul(z0i, z, out=tmp)
+            np.greater(tmp, 0.0, out=same_sign)
+            mul(blend, same_sign, out=blend)
+            sub(z0i, z, out=tmp)
+            mul(tmp, blend, out=tmp)
+            add(z, tmp, out=z)
+
+    def _finish(self, b, cols):
+        r = b.rows
+        f = b.flat
+        k = self.k
+        if k.a_is_03:
+            sq, t, az = f["sq"], f["t9"], f["az"]
+            np.multiply(f["z"], f["z"], out=sq)
+            np.multiply(sq, sq, out=t)
+            np.multiply(t, t, out=t)
+            np.abs(f["z"], out=az)
+            np.multiply(t, az, out=t)
+        else:
+            _velocity_into(f["z"], f, k)
+        v1 = self.v1[:, cols]
+        np.multiply(r["t9"], r["z"], out=v1)
+        for i in range(3):
+            T1 = self.T1[i, cols]
+            np.multiply(v1[i], k.th_h_KSR_floats[i], out=T1)
+            np.subtract(r["A"][i], T1, out=T1)
+        self.z1[:, cols] = r["z"]
+
+    def _finish_tail(self, tail):
+        idx, z, p0, rhs, cM, cD, A, th_h_KSR, *exponents = (
+            np.concatenate(x) for x in zip(*tail, strict=True))
+        s = {name: np.empty(z.size) for name in _Block.NAMES}
+        s["z"] = z
+        if exponents:
+            s["power"], s["dv_scale"] = exponents
+        _newton_loop(z, p0, rhs, cM, cD, self.k, s, first=0)
+        v = _velocity_into(z, s, self.k)
+        self.z1.reshape(-1)[idx] = z
+        self.v1.reshape(-1)[idx] = v
+        self.T1.reshape(-1)[idx] = A - th_h_KSR * v
+
+
+def _drive_powers(gd, gs, k, out, all_rows=False):
+    """g^p of each fibre's drive into the rows of ``out`` that ``k.drive_row`` names (into
+    every row with ``all_rows``)."""
+    for row, (g, p) in enumerate(zip((gd, gs, gs), k.p, strict=True)):
+        if row in k.drive_row:
+            if p == 2.0:
+                np.multiply(g, g, out=out[row])
+            else:
+                np.power(g, p, out=out[row])
+        elif all_rows:
+            out[row] = out[k.drive_row[row]]
+    return out
+
+
+def _velocity_into(z, s, k):
+    """v = sgn(z)|z|^(3/a) into s["w"], with |z|^(3/a - 1) left in s["t9"]."""
+    w, t = s["w"], s["t9"]
+    if k.a_is_03:
+        sq = s["sq"]
+        np.multiply(z, z, out=sq)
+        np.multiply(sq, sq, out=t)
+        np.multiply(t, t, out=t)
+        np.abs(z, out=s["az"])
+        np.multiply(t, s["az"], out=t)
+    else:
+        np.abs(z, out=s["az"])
+        np.power(s["az"], s["power"], out=t)
+    np.multiply(t, z, out=w)
+    return w
+
+
+def _newton_block(b, k):
+    """Newton on one block; returns the flat indices handed to the tail, or None."""
+    f = b.flat
+    return _newton_loop(f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], k, f,
+                        first=NEWTON_FULL_ITER - 1, moving=b.moving)
+
+
+def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
+    """Newton's method on the step equation for z, in place, until every |dz| <= 1e-9.
 
     The unknown is z = sgn(v)|v|^(a/3): the damping sgn(v)|v|^a is z^3 and v = sgn(z)|z|^(3/a)
     (z^10 for a = 0.3), both polynomials, so no iteration evaluates a fractional power. With
-    w = v1 and T1 = A - theta*h*KSR*w (A holds everything known), the step equation
-    M*(v1 - v0)/h = (1 - theta)*F0 + theta*F1 becomes
+    w = v1 and T1 = A - theta*h*KSR*w (A holds everything known, see :class:`_StepConstants`),
+    the step equation M*(v1 - v0)/h = (1 - theta)*F0 + theta*F1 divided by a2 reads
 
-        g(z) = a2*w + theta*Cb(z)*z^3*(p0 + theta*h*w) - rhs = 0
+        g(z) = w + Cb(z)*z^3*(p0 + theta*h*w) - rhs = 0
 
-    with a2 = M/h + theta^2*h*k1*KSR and p0 the new polar length minus R at w = 0. g rises
-    monotonically (convex for z > 0, concave below) wherever the polar region is longer than
-    R, so Newton from the previous z converges after at most one overshoot; steps are capped
-    at NEWTON_MAX_DZ, which also covers a start at z = 0 where g' vanishes.
+    with Cb = theta*C*beta1/a2 = cM + cD*sgn(z) (C = CL for z > 0, CS else) and p0 the new
+    polar length minus R at w = 0. g rises monotonically (convex for z > 0, concave below)
+    wherever the polar region is longer than R, so Newton converges after at most one
+    overshoot; steps are capped at NEWTON_MAX_DZ, which also covers g' = 0 at z = 0.
+
+    ``s`` holds scratch arrays shaped like z. From iteration ``first`` on, if at most
+    1/TAIL_FRACTION of the fibres still move (|dz| > tolerance), their flat indices are
+    returned and the caller finishes them together with other blocks' (a few fibres whose v
+    reverses need more iterations than the rest); else None once all have converged.
     """
-    KSR = c.KSR
-    a2 = c.M / h + (theta * theta * h) * c.k1 * KSR
-    p0 = L1 - c.LSR0 - c.R - A / KSR
-    th_h = theta * h
-    rhs = (c.M / h) * v0 + theta * (c.k1 * A - Gamma1 - c.KPR * (L1 - c.LSR0 - c.LPR0))
-    if F0 is not None:
-        rhs += (1.0 - theta) * F0
-    # Cb(z)*z^3 = cS*z^3 + dC*max(z, 0)*z^2 with cS = theta*CS*beta, dC = theta*(CL-CS)*beta.
-    cS = (theta * c.CS) * beta1
-    dC = (theta * (c.CL - c.CS)) * beta1
-
-    # Starting guess: g with |v|/|u| frozen at its previous value |z0|^7 (for a = 0.3) is
-    # linear in u = z^3; its root already has the right sign and, in holds where the
-    # trapezoidal rule rings, the right size, which the previous z has not.
-    z0_7 = z0 * z0
-    z0_7 *= z0_7 * z0_7 * np.abs(z0) if c.a_is_03 else np.abs(z0) ** (c.three_over_a - 3.0)
-    slope = a2 * z0_7 + np.where(rhs > 0, cS + dC, cS) * np.maximum(p0, 0.0)
-    z = np.cbrt(rhs / slope)
-    active = None
-    dz = np.zeros_like(z)
+    mul, add = np.multiply, np.add
+    t, w, az, cb, phi, q, g, dg, dz, tmp = (
+        s[name] for name in ("t9", "w", "az", "cb", "phi", "q", "g", "dg", "dz", "tmp"))
+    th_h = k.th_h
+    th_h_10 = 10.0 * th_h
     for iteration in range(NEWTON_MAX_ITER):
-        if active is None and iteration >= NEWTON_FULL_ITER and c.a_is_03:
-            # Once few fibres are still moving (e.g. a polar velocity changing sign), they go
-            # on alone; gathering them costs more than it saves while many are.
-            moving = np.abs(dz) > NEWTON_TOL_Z
-            if np.count_nonzero(moving) > moving.size // 8:
-                moving = None
+        _velocity_into(z, s, k)
+        # Cb*z^2 with Cb = theta*C*beta1 (C = CL for z > 0, CS else)
+        mul(cM, z, out=cb)
+        mul(cD, az, out=tmp)
+        add(cb, tmp, out=cb)
+        mul(cb, z, out=cb)
+        mul(cb, z, out=phi)
+        mul(w, th_h, out=q)
+        add(q, p0, out=q)
+        mul(phi, q, out=g)
+        add(g, w, out=g)
+        np.subtract(g, rhs, out=g)
+        mul(phi, th_h_10, out=dg)
+        add(dg, 10.0, out=dg)
+        if not k.a_is_03:
+            # dv/dz = (3/a)|z|^(3/a - 1): the 10 above stands for 3/a
+            mul(dg, s["dv_scale"], out=dg)
+        mul(dg, t, out=dg)
+        mul(cb, q, out=tmp)
+        mul(tmp, 3.0, out=tmp)
+        add(dg, tmp, out=dg)
+        np.maximum(dg, 1e-300, out=dg)
+        np.divide(g, dg, out=dz)
+        hi = dz.max()
+        lo = dz.min()
+        if hi > NEWTON_MAX_DZ or lo < -NEWTON_MAX_DZ:
+            np.clip(dz, -NEWTON_MAX_DZ, NEWTON_MAX_DZ, out=dz)
+        np.subtract(z, dz, out=z)
+        if hi <= NEWTON_TOL_Z and lo >= -NEWTON_TOL_Z:
+            return None
+        if moving is not None and iteration >= first:
+            np.abs(dz, out=tmp)
+            np.greater(tmp, NEWTON_TOL_Z, out=moving)
+            left = np.flatnonzero(moving)
+            if left.size <= moving.size // TAIL_FRACTION:
+                # none left: the only fibres not converged are NaN, which the finite check
+                # after the step reports
+                return left if left.size else None
+    raise FloatingPointError(
+        f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
+        f"(last change in z {max(hi, -lo):.3g}); state left unchanged"
+    )
+
+
+SMALL_N = 8
+"""Up to this many spindles the step runs on Python floats, fibre by fibre: for a few
+spindles numpy's per-call overhead costs more than the arithmetic."""
+
+
+def _as_floats(x, n: int) -> list[float]:
+    """A scalar or an array broadcastable to (n,) as a list of n floats."""
+    if isinstance(x, np.ndarray):
+        if x.shape == (n,):
+            return x.tolist()
+        if x.size == 1:
+            return [float(x.reshape(-1)[0])] * n
+        return np.broadcast_to(x, (n,)).tolist()
+    return [float(x)] * n
+
+
+def _advance_small(state, L1, gd1, gs1, h, theta, c):
+    """:func:`advance` for a few spindles, on Python floats (same arithmetic, per fibre)."""
+    k = _step_constants(c, h, theta)
+    n = state.n
+    T0 = state.tension_FU.tolist()
+    v0 = state.polar_velocity_L0_s.tolist()
+    z0 = state.velocity_root.tolist()
+    f0 = state.activation.tolist()
+    L0 = state.length_L0.tolist()
+    gd0 = state.gamma_dyn_pps.tolist()
+    gs0 = state.gamma_stat_pps.tolist()
+    L1, gd1, gs1 = (_as_floats(x, n) for x in (L1, gd1, gs1))
+    out = [_step_floats(k, T0[i], v0[i], z0[i], f0[i], L0[i], gd0[i], gs0[i], L1[i], gd1[i],
+                        gs1[i]) for i in range(n)]
+    # (n spindles) x (T, v, z, f) x 3 fibres -> four (3, n) arrays
+    arr = np.array(out).transpose(1, 2, 0)
+    return arr[0], arr[1], arr[2], arr[3]
+
+
+def _drive_powers_floats(gd: float, gs: float, k: _StepConstants) -> list[float]:
+    return [g * g if p == 2.0 else g**p for g, p in zip((gd, gs, gs), k.p, strict=True)]
+
+
+def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
+    """One implicit step of one spindle on floats; returns the new (T, v, z, f), each a list
+    over the three fibres. The arithmetic is that of the vectorised step, term by term."""
+    old = k.theta < 1.0
+    same_drive = gd0 == gd1 and gs0 == gs1
+    gp1 = _drive_powers_floats(gd1, gs1, k)
+    gp0 = None if same_drive or not old else _drive_powers_floats(gd0, gs0, k)
+    dL = L1 - L0
+    T1, v1, z1, f1 = [], [], [], []
+    for i in range(3):
+        (keep, from_a0, from_a1, KSR, inv_KSR, A_v0, p0_v0, LR, KPR, rhs_v0, rhs_dL,
+         rhs_f0, rhs_f1, rhs_const, c_mid, c_half, beta0_old, beta_drive_old, cM0, cMd,
+         cD0, cDd, inv_a2, th_h_KSR, blend_exp, freq_p, three_over_a) = k.fibre[i]
+        T, v, z, f = T0[i], v0[i], z0[i], f0[i]
+        g = gp1[i]
+        if k.lagged[i]:
+            a1 = g / (g + freq_p)
+            fn = f * keep
+            if old and same_drive:
+                fn = fn + a1 * (from_a0 + from_a1)
+            else:
+                if old:
+                    g = gp0[i]
+                    fn = fn + g / (g + freq_p) * from_a0
+                fn = fn + a1 * from_a1
         else:
-            moving = None
-        if moving is not None:
-            active = np.nonzero(moving)
-            z_all = z
-            z = z_all[active]
-            a2, p0, rhs, cS, dC = (np.broadcast_to(x, z_all.shape)[active]
-                                   for x in (a2, p0, rhs, cS, dC))
-        w, dw = _velocity_from_z(z, c)
-        z2 = z * z
-        zp = np.maximum(z, 0.0)
-        phi = cS * (z2 * z) + dC * (zp * z2)
-        dphi = 3.0 * (cS * z2 + dC * (zp * z))
-        q = p0 + th_h * w
-        g = a2 * w + phi * q - rhs
-        dg = a2 * dw + dphi * q + th_h * phi * dw
-        dz = g / np.maximum(dg, 1e-300)
-        np.minimum(dz, NEWTON_MAX_DZ, out=dz)
-        np.maximum(dz, -NEWTON_MAX_DZ, out=dz)
-        z = z - dz
-        if z.size == 0 or np.abs(dz).max() <= NEWTON_TOL_Z:
-            break
-    else:
+            fn = g / (g + freq_p)
+        cM = fn * cMd + cM0
+        cD = fn * cDd + cD0
+        q0 = (L0 - LR) - T * inv_KSR
+        A = dL * KSR + T
+        rhs = T * inv_a2 + v * rhs_v0 + dL * rhs_dL + fn * rhs_f1
+        az = abs(z)
+        sq = z * z
+        if old:
+            A = A - v * A_v0
+            p0 = v * p0_v0 + q0
+            rhs = rhs + f * rhs_f0
+            cb = ((z * c_mid + az * c_half) * (f * beta_drive_old + beta0_old) * sq + KPR) * q0
+        else:
+            p0 = q0
+            cb = q0 * KPR
+        rhs = rhs + rhs_const - cb
+        a2t = sq * sq * sq * az if k.a_is_03 else az ** (3.0 * blend_exp)
+        slope = (math.copysign(cD, rhs) + cM) * max(p0, 0.0) + a2t
+        if slope:
+            zg = math.cbrt(rhs / slope)
+            blend = a2t * blend_exp
+            blend = blend / (slope + blend)
+            z = zg + (z - zg) * blend if z * zg > 0.0 else zg
+        else:
+            z = math.nan
+        z = _newton_float(z, p0, rhs, cM, cD, k, three_over_a)
+        az = abs(z)
+        if k.a_is_03:
+            sq = z * z
+            t = sq * sq
+            t = t * t * az
+        else:
+            t = az ** (three_over_a - 1.0)
+        w = t * z
+        T1.append(A - w * th_h_KSR)
+        v1.append(w)
+        z1.append(z)
+        f1.append(fn)
+    if not all(math.isfinite(x) for x in T1 + v1):
         raise FloatingPointError(
-            f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
-            f"(last change in z {np.abs(dz).max():.3g}); state left unchanged"
+            "the spindle step produced a non-finite tension or velocity; state left unchanged "
+            f"(step {k.h!r} s)"
         )
-    if active is not None:
-        z_all = z_all.copy()
-        z_all[active] = z
-        z = z_all
-    v1, _ = _velocity_from_z(z, c)
-    T1 = A - th_h * KSR * v1
-    return T1, v1, z
+    return T1, v1, z1, f1
+
+
+def _newton_float(z, p0, rhs, cM, cD, k, three_over_a):
+    th_h = k.th_h
+    th_h_10 = 10.0 * th_h
+    a_is_03 = k.a_is_03
+    power = three_over_a - 1.0
+    dv_scale = three_over_a / 10.0
+    dz = math.inf
+    for _ in range(NEWTON_MAX_ITER):
+        az = abs(z)
+        if a_is_03:
+            sq = z * z
+            t = sq * sq
+            t = t * t * az
+        else:
+            t = az**power
+        w = t * z
+        cb = (cM * z + cD * az) * z
+        phi = cb * z
+        q = w * th_h + p0
+        g = phi * q + w - rhs
+        dg = phi * th_h_10 + 10.0
+        if not a_is_03:
+            dg = dg * dv_scale
+        dg = dg * t + cb * q * 3.0
+        dz = g / max(dg, 1e-300)  # a NaN dg stays NaN (max keeps its first argument)
+        if dz > NEWTON_MAX_DZ:
+            dz = NEWTON_MAX_DZ
+        elif dz < -NEWTON_MAX_DZ:
+            dz = -NEWTON_MAX_DZ
+        z = z - dz
+        if abs(dz) <= NEWTON_TOL_Z:
+            return z
+    raise FloatingPointError(
+        f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
+        f"(last change in z {abs(dz):.3g}); state left unchanged"
+    )
+
+
+def _afferents_small(T: np.ndarray, L: np.ndarray, c: _Columns):
+    """:func:`_afferents` on Python floats for a few spindles (same formula)."""
+    n = T.shape[1]
+    columns_of_T = T.T.tolist()
+    lengths = _as_floats(L, n)
+    rates = [_afferents_one(columns_of_T[j], lengths[j], c) for j in range(n)]
+    return np.array([r[0] for r in rates]), np.array([r[1] for r in rates])
+
+
+def _afferents_one(T: list[float], L: float, c: _Columns) -> tuple[float, float]:
+    """Ia and II (pps) of one spindle from its three fibre tensions, on floats (the
+    arithmetic of :func:`_afferents`)."""
+    (g0, n0), (g1, n1), (g2, n2) = c.primary_lin
+    (a1, b1, c1), (a2, b2, c2) = c.secondary_lin
+    x = max(T[0] * g0 - n0, 0.0)
+    y = max(T[1] * g1 - n1, 0.0) + max(T[2] * g2 - n2, 0.0)
+    ia = max(x, y) + min(x, y) * c.S_float
+    ii = max(T[1] * a1 + L * b1 + c1, 0.0) + max(T[2] * a2 + L * b2 + c2, 0.0)
+    return ia, ii
+
+
+def _workspace(state: SpindleState, k: _StepConstants) -> _Workspace:
+    """The reusable buffers of ``state`` (kept on the state object, not a module global)."""
+    ws = state.__dict__.get("_workspace")
+    if ws is None or ws.n != state.n:
+        ws = state.__dict__["_workspace"] = _Workspace(state.n)
+    ws.prepare(k)
+    return ws

@@ -140,16 +140,50 @@ def simulate(
     ii = np.empty_like(L)
     ia[0], ii[0] = core._afferents(state.tension_FU.T, state.length_L0, c)
     weights = [hermite_weights(j / k, len(derivatives) if k > 1 else 0) for j in range(1, k)]
-    for i in range(1, L.shape[0]):
-        for wts in weights:
-            Ls = _interpolate(L, derivatives, i, wts, dt)
-            core.commit(state, core.advance(state, Ls, gd[i], gs[i], h, m.theta, c),
-                        Ls, gd[i], gs[i])
-        new = core.advance(state, L[i], gd[i], gs[i], h, m.theta, c)
-        core.commit(state, new, L[i], gd[i], gs[i])
-        ia[i], ii[i] = core._afferents(new[0], L[i], c)
+    if L.shape[1] == 1 and m.implicit:
+        _run_one_spindle(state, L, gd, gs, derivatives, weights, dt, h, m.theta, c, ia, ii)
+    else:
+        for i in range(1, L.shape[0]):
+            for wts in weights:
+                Ls = _interpolate(L, derivatives, i, wts, dt)
+                core.commit(state, core.advance(state, Ls, gd[i], gs[i], h, m.theta, c),
+                            Ls, gd[i], gs[i])
+            new = core.advance(state, L[i], gd[i], gs[i], h, m.theta, c)
+            core.commit(state, new, L[i], gd[i], gs[i])
+            ia[i], ii[i] = core._afferents(new[0], L[i], c)
     t = np.arange(shape[0]) * dt
     return SpindleResult(t, ia.reshape(shape), ii.reshape(shape), m.name, h)
+
+
+def _run_one_spindle(state, L, gd, gs, derivatives, weights, dt, h, theta, c, ia, ii):
+    """The per-sample loop for one spindle on Python floats (numpy's per-call overhead would
+    dominate): the same interpolation and the same step as the vectorised loop."""
+    k = core._step_constants(c, h, theta)
+    lengths, dyn, stat = (x[:, 0].tolist() for x in (L, gd, gs))
+    derivs = [np.reshape(d, L.shape)[:, 0].tolist() for d in derivatives] if weights else []
+    weights = [w.tolist() for w in weights]
+    T, v, z, f = (a[0].tolist() for a in (state.tension_FU, state.polar_velocity_L0_s,
+                                          state.velocity_root, state.activation))
+    L0, gd0, gs0 = lengths[0], dyn[0], stat[0]
+    rates_ia, rates_ii = [], []
+    for i in range(1, len(lengths)):
+        gd1, gs1 = dyn[i], stat[i]
+        for wts in weights:
+            Ls = wts[0] * lengths[i - 1] + wts[1] * lengths[i]
+            scale = dt
+            for j, d in enumerate(derivs):
+                Ls = Ls + scale * (wts[2 + 2 * j] * d[i - 1] + wts[3 + 2 * j] * d[i])
+                scale *= dt
+            T, v, z, f = core._step_floats(k, T, v, z, f, L0, gd0, gs0, Ls, gd1, gs1)
+            L0, gd0, gs0 = Ls, gd1, gs1
+        L1 = lengths[i]
+        T, v, z, f = core._step_floats(k, T, v, z, f, L0, gd0, gs0, L1, gd1, gs1)
+        L0, gd0, gs0 = L1, gd1, gs1
+        a, b = core._afferents_one(T, L1, c)
+        rates_ia.append(a)
+        rates_ii.append(b)
+    ia[1:, 0] = rates_ia
+    ii[1:, 0] = rates_ii
 
 
 def hermite_weights(s: float, order: int) -> np.ndarray:

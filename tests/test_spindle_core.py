@@ -216,3 +216,302 @@ def test_params_refuse_invalid_constants():
         dataclasses.replace(spindle.CAT.bag1, tau_s=-0.1)
     with pytest.raises(ValueError, match="factor=0"):
         spindle.CAT.scale_gains(0)
+
+
+# -- the optimised step against a plain reference step ------------------------------------
+
+
+def reference_advance(state, L1, gd1, gs1, h, theta, params=spindle.CAT):
+    """One theta-method step written plainly from the model equations (no rearrangement).
+
+    The unknown is z = sgn(v)|v|^(a/3) as in the core; Newton on the step residual
+    M*(v1 - v0)/h - (1 - theta)*F0 - theta*F1 with its analytic derivative, from the previous
+    z, capped steps, to |dz| <= 1e-13 (tighter than the core's 1e-9).
+    """
+    c = core.columns(params)
+    T0, v0, z0, f0 = (a.T for a in (state.tension_FU, state.polar_velocity_L0_s,
+                                     state.velocity_root, state.activation))
+    L0 = state.length_L0
+
+    def target(gd, gs):
+        g = np.stack((gd, gs, gs)) ** c.p
+        return g / (g + c.freq**c.p)
+
+    a0, a1 = target(state.gamma_dyn_pps, state.gamma_stat_pps), target(gd1, gs1)
+    rate = h / c.tau_safe
+    f1 = (f0 + rate * ((1 - theta) * (a0 - f0) + theta * a1)) / (1 + theta * rate)
+    f1 = np.where(c.lagged[:, None], f1, a1)
+
+    def force(T, z, L, f):
+        polar = L - c.LSR0 - T / c.KSR
+        damping = np.where(z > 0, c.CL, c.CS) * (c.beta0 + c.beta_drive * f) * z**3
+        return T - c.Gamma_drive * f - c.KPR * (polar - c.LPR0) - damping * (polar - c.R)
+
+    F0 = force(T0, z0, L0, f0)
+    A = T0 + c.KSR * (L1 - L0) - (1 - theta) * h * c.KSR * v0
+    if theta == 0:
+        v1 = v0 + h / c.M * F0
+        T1 = A
+        return T1, v1, np.sign(v1) * np.abs(v1) ** (c.a / 3), f1
+    z = z0.copy()
+    for _ in range(500):
+        v = np.sign(z) * np.abs(z) ** (3 / c.a)
+        dv = (3 / c.a) * np.abs(z) ** (3 / c.a - 1)
+        T1 = A - theta * h * c.KSR * v
+        C_beta = np.where(z > 0, c.CL, c.CS) * (c.beta0 + c.beta_drive * f1)
+        polar = L1 - c.LSR0 - T1 / c.KSR
+        residual = c.M * (v - v0) / h - (1 - theta) * F0 - theta * force(T1, z, L1, f1)
+        dT = -theta * h * c.KSR * dv
+        dF = dT * (1 + c.KPR / c.KSR + C_beta * z**3 / c.KSR) - 3 * C_beta * z**2 * (polar - c.R)
+        slope = c.M / h * dv - theta * dF
+        dz = np.clip(residual / np.maximum(slope, 1e-300), -0.25, 0.25)
+        z = z - dz
+        if np.abs(dz).max() <= 1e-13:
+            break
+    else:
+        raise AssertionError("reference Newton did not converge")
+    v1 = np.sign(z) * np.abs(z) ** (3 / c.a)
+    return A - theta * h * c.KSR * v1, v1, z, f1
+
+
+def random_states(n, seed):
+    """Spindles in random but valid states: lengths, drives, tensions off equilibrium, and
+    polar velocities from exactly 0 through tiny to ~1 L0/s of either sign."""
+    rng = np.random.default_rng(seed)
+    L = rng.uniform(0.75, 1.25, n)
+    state = spindle.equilibrium_state(L, rng.uniform(0, 150, n), rng.uniform(0, 150, n))
+    v = rng.choice([0.0, 1e-9, 1e-4, 0.02, 0.5, 1.2], size=(n, 3)) * rng.choice([-1, 1], (n, 3))
+    state.polar_velocity_L0_s[...] = v
+    state.velocity_root[...] = np.sign(v) * np.abs(v) ** 0.1
+    state.tension_FU[...] += rng.normal(0, 0.01, (n, 3))
+    state.activation[...] = np.clip(state.activation + rng.normal(0, 0.05, (n, 3)), 0, 1)
+    # half keep their drive over the step, half change it
+    gd1 = np.where(rng.random(n) < 0.5, state.gamma_dyn_pps, rng.uniform(0, 150, n))
+    gs1 = np.where(rng.random(n) < 0.5, state.gamma_stat_pps, rng.uniform(0, 150, n))
+    L1 = L + rng.uniform(-1.5e-3, 1.5e-3, n)
+    return state, L1, gd1, gs1
+
+
+@pytest.mark.parametrize("theta", [0.5, 1.0, 0.0])
+@pytest.mark.parametrize("n", [1, 3, 6, core.CHUNK_SPINDLES + 37])
+@pytest.mark.parametrize("h", [1e-3, 1e-4])
+def test_optimised_step_matches_the_plain_reference_step(theta, n, h):
+    state, L1, gd1, gs1 = random_states(n, seed=n)
+    before = state.copy()
+    c = core.columns(spindle.CAT)
+    T1, v1, z1, f1 = core.advance(state, L1, gd1, gs1, h, theta, c)
+    assert_state_unchanged(state, before)
+    T_ref, v_ref, z_ref, f_ref = reference_advance(state, L1, gd1, gs1, h, theta)
+    np.testing.assert_allclose(f1, f_ref, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(v1, v_ref, rtol=1e-11, atol=1e-13)
+    np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.sign(z1) * np.abs(z1) ** 10, v1, rtol=1e-13, atol=0)
+    np.testing.assert_allclose(z1, z_ref, rtol=0, atol=1e-9 if theta else 1e-12)
+    ia, ii = core._afferents(T1, L1, c)
+    ia_ref, ii_ref = core._afferents(T_ref, L1, c)
+    np.testing.assert_allclose(ia, ia_ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ii, ii_ref, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["trapezoidal", "backward_euler"])
+def test_optimised_trajectory_stays_on_the_reference_trajectory(method):
+    """300 steps of 1 ms along random smooth inputs, both started at rest: the afferent rates
+    of the optimised core stay within 1e-9 pps of the plain reference step."""
+    rng = np.random.default_rng(11)
+    n = 40
+    t = np.arange(301)[:, None] * 1e-3
+    L = 1.0 + 0.1 * np.sin(2 * np.pi * rng.uniform(0.5, 4, n) * t) * rng.uniform(0, 1, n)
+    gd = 60 * (1 + np.sin(2 * np.pi * rng.uniform(0.2, 2, n) * t))
+    gs = np.full_like(L, 40.0)
+    theta = spindle.METHODS[method].theta
+    c = core.columns(spindle.CAT)
+    fast = spindle.equilibrium_state(L[0], gd[0], gs[0])
+    plain = fast.copy()
+    worst = 0.0
+    for i in range(1, L.shape[0]):
+        core.commit(fast, core.advance(fast, L[i], gd[i], gs[i], 1e-3, theta, c),
+                    L[i], gd[i], gs[i])
+        core.commit(plain, reference_advance(plain, L[i], gd[i], gs[i], 1e-3, theta),
+                    L[i], gd[i], gs[i])
+        rates = np.concatenate(spindle.afferents(fast))
+        rates_ref = np.concatenate(spindle.afferents(plain))
+        worst = max(worst, np.abs(rates - rates_ref).max())
+    assert worst < 1e-9
+    assert np.abs(plain.polar_velocity_L0_s).max() > 0.05  # the test did move the spindles
+
+
+@pytest.mark.parametrize("theta", [0.5, 1.0])
+def test_few_spindle_float_path_equals_the_vectorised_path(theta):
+    """The Python-float path (n <= SMALL_N) and the numpy path give the same step."""
+    n = 2 * core.SMALL_N + 1
+    state, L1, gd1, gs1 = random_states(n, seed=5)
+    c = core.columns(spindle.CAT)
+    vectorised = [a.copy() for a in core.advance(state, L1, gd1, gs1, 1e-3, theta, c)]
+    for j in range(0, n, core.SMALL_N):
+        cols = slice(j, j + core.SMALL_N)
+        sub = core.SpindleState(*(a[cols].copy() for a in state._arrays()))
+        assert sub.n <= core.SMALL_N
+        small = core.advance(sub, L1[cols], gd1[cols], gs1[cols], 1e-3, theta, c)
+        for got, want in zip(small, vectorised, strict=True):
+            np.testing.assert_allclose(got, want[:, cols], rtol=1e-12, atol=1e-14)
+        for got, want in zip(core._afferents(small[0], L1[cols], c),
+                             core._afferents(vectorised[0][:, cols], L1[cols], c), strict=True):
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
+
+
+def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch):
+    """Fibres whose v reverses need more Newton iterations than the rest of their block; the
+    block hands them on and they are finished together. Still the reference result."""
+    n = 3000
+    state, L1, gd1, gs1 = random_states(n, seed=9)
+    # mostly at rest and held: quick convergence; a few reverse a fast polar velocity
+    state.polar_velocity_L0_s[...] = 0.0
+    state.velocity_root[...] = 0.0
+    L1 = state.length_L0.copy()
+    gd1, gs1 = state.gamma_dyn_pps.copy(), state.gamma_stat_pps.copy()
+    fast = np.arange(0, n, 97)
+    state.polar_velocity_L0_s[fast] = 1.5
+    state.velocity_root[fast] = 1.5**0.1
+    calls = []
+    finish_tail = core._Workspace._finish_tail
+    monkeypatch.setattr(core._Workspace, "_finish_tail",
+                        lambda self, tail: calls.append(len(tail)) or finish_tail(self, tail))
+    c = core.columns(spindle.CAT)
+    T1, v1, _, _ = core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)
+    assert calls, "the tail was not used"
+    T_ref, v_ref, _, _ = reference_advance(state, L1, gd1, gs1, 1e-3, 0.5)
+    np.testing.assert_allclose(v1, v_ref, rtol=1e-11, atol=1e-13)
+    np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("n", [1, 50])
+def test_a_non_finite_step_raises_and_leaves_the_state_as_it_was(n):
+    state = spindle.equilibrium_state(np.full(n, 1.0), 20.0, 20.0)
+    state.velocity_root[0, 1] = np.nan
+    before = state.copy()
+    with pytest.raises(FloatingPointError):
+        spindle.step(state, 1.0, 20.0, 20.0, 1e-3)
+    for a, b in zip(state._arrays(), before._arrays(), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_advance_output_is_valid_until_the_next_advance():
+    """advance returns reused buffers; commit copies them, so later steps do not alter the
+    committed state."""
+    state = spindle.equilibrium_state(np.linspace(0.9, 1.1, 20))
+    c = core.columns(spindle.CAT)
+    new = core.advance(state, state.length_L0 + 1e-3, 0.0, 0.0, 1e-3, 0.5, c)
+    core.commit(state, new, state.length_L0 + 1e-3, 0.0, 0.0)
+    kept = state.copy()
+    core.advance(state, state.length_L0 + 1e-3, 50.0, 0.0, 1e-3, 0.5, c)
+    assert_state_unchanged(state, kept)
+
+
+@pytest.mark.parametrize("extra", [{}, {"velocity": "v"}, {"velocity": "v", "acceleration": "a"}])
+@pytest.mark.parametrize("dt", [1e-3, 2.5e-3])
+def test_simulate_one_spindle_float_loop_equals_the_array_loop(extra, dt):
+    """simulate runs one spindle on floats; the same trace as two columns takes the array
+    loop. Both interpolate and step alike, with or without sub-steps and derivatives."""
+    t = np.arange(0, 0.5, dt)
+    L = 1.0 + 0.08 * np.sin(2 * np.pi * 1.7 * t) ** 3
+    v = np.gradient(L, dt)
+    kwargs = {name: {"v": v, "a": np.gradient(v, dt)}[x] for name, x in extra.items()}
+    one = spindle.simulate(L, dt, gamma_dyn=40.0 + 20 * np.cos(9 * t), gamma_stat=30.0,
+                           **kwargs)
+    two = spindle.simulate(np.stack([L, L], axis=1), dt,
+                           gamma_dyn=(40.0 + 20 * np.cos(9 * t))[:, None], gamma_stat=30.0,
+                           **{name: np.stack([x, x], axis=1) for name, x in kwargs.items()})
+    assert one.step_s == two.step_s
+    np.testing.assert_allclose(two.ia[:, 0], one.ia, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(two.ii[:, 1], one.ii, rtol=0, atol=1e-9)
+    assert one.ia.max() > 50
+
+
+def reference_afferents(T, L, params):
+    """Ia and II straight from the model's definitions (Mileusnic 2006, eqs. for the
+    primary and secondary potentials), term by term."""
+    f = params.fibres
+    stretch = [T[i] / f[i].KSR_FU_L0 - (f[i].LNSR_L0 - f[i].LSR0_L0) for i in range(3)]
+    primary = [np.maximum(f[i].G_primary_pps_L0 * stretch[i], 0.0) for i in range(3)]
+    a_dyn, b_stat = primary[0], primary[1] + primary[2]
+    ia = np.maximum(a_dyn, b_stat) + params.S * np.minimum(a_dyn, b_stat)
+    ii = sum(
+        np.maximum(f[i].G_secondary_pps_L0 * (
+            f[i].X * f[i].Lsec_L0 / f[i].LSR0_L0 * stretch[i]
+            + (1 - f[i].X) * f[i].Lsec_L0 / f[i].LPR0_L0
+            * (L - T[i] / f[i].KSR_FU_L0 - f[i].LSR0_L0 - f[i].LNPR_L0)), 0.0)
+        for i in (1, 2))
+    return ia, ii
+
+
+@pytest.mark.parametrize("n", [1, 4, 5, core.AFFERENT_CHUNK + 11])
+@pytest.mark.parametrize("params", [spindle.CAT, spindle.HUMAN])
+def test_afferents_match_the_model_definitions(n, params):
+    rng = np.random.default_rng(n)
+    # tensions from slack (negative potentials, clipped) to well stretched
+    T = rng.uniform(-0.05, 0.5, (3, n))
+    L = rng.uniform(0.5, 1.5, n)
+    ia, ii = core._afferents(T, L, core.columns(params))
+    ia_ref, ii_ref = reference_afferents(T, L, params)
+    assert ia.shape == ii.shape == (n,)
+    np.testing.assert_allclose(ia, ia_ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ii, ii_ref, rtol=0, atol=1e-9)
+    assert (ia == 0).any() or n < 10  # the clipping is exercised
+
+
+@pytest.mark.parametrize("n", [2, 300])
+def test_optimised_step_with_another_damping_exponent_matches_the_reference(n):
+    """a != 0.3 takes the general power path of the solver (v = sgn(z)|z|^(3/a))."""
+    params = dataclasses.replace(
+        spindle.CAT, bag1=dataclasses.replace(spindle.CAT.bag1, a=0.25),
+        bag2=dataclasses.replace(spindle.CAT.bag2, a=0.35))
+    state, L1, gd1, gs1 = random_states(n, seed=2)
+    c = core.columns(params)
+    a = c.a[:, 0][None, :]
+    state.velocity_root[...] = (np.sign(state.polar_velocity_L0_s)
+                                * np.abs(state.polar_velocity_L0_s) ** (a / 3))
+    T1, v1, z1, _ = core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)
+    T_ref, v_ref, _, _ = reference_advance(state, L1, gd1, gs1, 1e-3, 0.5, params)
+    np.testing.assert_allclose(v1, v_ref, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.sign(z1) * np.abs(z1) ** (3 / a.T), v1, rtol=1e-12)
+
+
+def test_any_memory_layout_of_the_state_and_copies_without_the_scratch_buffers():
+    """A state built by hand from (n, 3) C-ordered arrays (not views of fibre-major
+    buffers) steps like the same state from equilibrium_state; pickling and deep copies
+    leave the step's reused buffers behind."""
+    import copy
+    import pickle
+
+    state, L1, gd1, gs1 = random_states(50, seed=4)
+    by_hand = core.SpindleState(*(np.ascontiguousarray(a) for a in state._arrays()))
+    assert not by_hand.tension_FU.T.flags.c_contiguous
+    c = core.columns(spindle.CAT)
+    want = [a.copy() for a in core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)]
+    got = core.advance(by_hand, L1, gd1, gs1, 1e-3, 0.5, c)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert "_workspace" in state.__dict__
+    for clone in (pickle.loads(pickle.dumps(state)), copy.deepcopy(state)):
+        assert "_workspace" not in clone.__dict__
+        assert_state_unchanged(clone, state)
+
+
+@pytest.mark.parametrize("n", [2, 30])
+def test_a_step_that_changes_from_call_to_call_matches_the_reference(n):
+    """A streaming chain's sample interval jitters, so h differs at every step: the
+    per-step constants follow it."""
+    rng = np.random.default_rng(8)
+    c = core.columns(spindle.CAT)
+    state, _, _, _ = random_states(n, seed=3)
+    plain = state.copy()
+    for h in 1e-3 * (1 + rng.uniform(-0.2, 0.2, 30)):
+        L1 = state.length_L0 + rng.uniform(-5e-4, 5e-4, n)
+        gd1 = state.gamma_dyn_pps + 1.0
+        core.commit(state, core.advance(state, L1, gd1, state.gamma_stat_pps, h, 0.5, c),
+                    L1, gd1, state.gamma_stat_pps)
+        core.commit(plain, reference_advance(plain, L1, gd1, plain.gamma_stat_pps, h, 0.5),
+                    L1, gd1, plain.gamma_stat_pps)
+    np.testing.assert_allclose(np.concatenate(spindle.afferents(state)),
+                               np.concatenate(spindle.afferents(plain)), rtol=0, atol=1e-9)
