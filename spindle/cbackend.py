@@ -69,10 +69,10 @@ def library(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
 PLAN_SCALARS = ("h", "theta", "one_minus_theta", "th_h", "max_dL", "S")
 PLAN_FLAGS = ("p_is_2", "a_is_03")
 PLAN_FIBRE_FIELDS = (
-    "KSR", "inv_KSR", "c_f0", "c_a0", "c_a1", "freq_p", "p", "a", "beta0", "beta_drive",
-    "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R", "LSR0", "LSR0_R", "LSR0_LPR0", "h_KSR",
-    "h_M", "c_Av", "a2", "M_h", "th_h_KSR", "th_k1", "th_KPR", "th_CS", "th_dC", "stretch0",
-    "G_pri", "c_sec1", "c_sec2", "sec_off",
+    ("KSR", "inv_KSR", "c_f0", "c_a0", "c_a1", "c_a01"),
+    ("freq_p", "p", "a", "beta0", "beta_drive", "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R",
+     "LSR0", "LSR0_R", "LSR0_LPR0", "h_KSR", "h_M", "c_Av", "a2", "inv_a2", "M_h", "th_h_KSR",
+     "th_k1", "th_KPR", "th_CS", "th_dC", "stretch0", "G_pri", "c_sec1", "c_sec2", "sec_off"),
 )
 
 
@@ -90,7 +90,9 @@ def _plan_struct(variant: str) -> type:
     class PsPlan(ctypes.Structure):
         _fields_ = ([(name, real) for name in PLAN_SCALARS]
                     + [(name, ctypes.c_int) for name in PLAN_FLAGS]
-                    + [(name, real * 3) for name in PLAN_FIBRE_FIELDS])
+                    + [(name, real * 3) for name in PLAN_FIBRE_FIELDS[0]]
+                    + [("lagged", ctypes.c_int * 3)]
+                    + [(name, real * 3) for name in PLAN_FIBRE_FIELDS[1]])
 
     return PsPlan
 

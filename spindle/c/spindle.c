@@ -89,24 +89,25 @@ static ps_real fibre_drive(int i, ps_real gd, ps_real gs) { return i == 0 ? gd :
 #ifndef PS_CBRT_REFINE
 #define PS_CBRT_REFINE 2
 #endif
+/* A float's bits (C99 allows reading another member of a union; no memcpy call). */
+typedef union ps_bits { float f; unsigned int u; } ps_bits;
+typedef char ps_check_unsigned_is_32_bits[sizeof(unsigned int) == 4 ? 1 : -1];
+
 static ps_real cube_root(ps_real x)
 {
 #ifdef PS_FAST_CBRT
-    float xf, yf;
+    ps_bits b;
     unsigned long u;
-    unsigned int bits;
     ps_real ax = ps_fabs(x), y;
     int k;
     if (!(ax > R_(1e-30) && ax < R_(1e30))) return ps_cbrt(x); /* 0, huge, NaN: exact path */
-    xf = (float)ax;
-    memcpy(&bits, &xf, sizeof bits);
-    u = bits;
+    b.f = (float)ax;
+    u = b.u;
     /* u/3 as a sum of shifts (1/3 = 1/4 + 1/16 + ...): no divide on cores without one */
     u = (u >> 2) + (u >> 4) + (u >> 6) + (u >> 8) + (u >> 10) + (u >> 12) + (u >> 14)
         + (u >> 16) + 709921077UL;
-    bits = (unsigned int)u;
-    memcpy(&yf, &bits, sizeof yf);
-    y = (ps_real)yf;
+    b.u = (unsigned int)u;
+    y = (ps_real)b.f;
     for (k = 0; k < PS_CBRT_REFINE; ++k) y = (R_(2) * y + ax / (y * y)) * R_(1.0 / 3.0);
     return x < R_(0) ? -y : y;
 #else
@@ -416,7 +417,8 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
         ps_real den = R_(1) + theta * rate;
         out.KSR[i] = KSR;
         out.inv_KSR[i] = R_(1) / KSR;
-        if (p->tau[i] > R_(0)) {
+        out.lagged[i] = p->tau[i] > R_(0);
+        if (out.lagged[i]) {
             out.c_f0[i] = (R_(1) - (R_(1) - theta) * rate) / den;
             out.c_a0[i] = (R_(1) - theta) * rate / den;
             out.c_a1[i] = theta * rate / den;
@@ -425,6 +427,7 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
             out.c_a0[i] = R_(0);
             out.c_a1[i] = R_(1);
         }
+        out.c_a01[i] = out.c_a0[i] + out.c_a1[i];
         out.freq_p[i] = out.p_is_2 ? p->freq[i] * p->freq[i] : ps_pow(p->freq[i], p->p[i]);
         out.p[i] = p->p[i];
         out.a[i] = p->a[i];
@@ -443,6 +446,7 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
         out.h_M[i] = h / p->M[i];
         out.c_Av[i] = (R_(1) - theta) * h * KSR;
         out.a2[i] = p->M[i] / h + theta * theta * h * k1 * KSR;
+        out.inv_a2[i] = R_(1) / out.a2[i];
         out.M_h[i] = p->M[i] / h;
         out.th_h_KSR[i] = theta * h * KSR;
         out.th_k1[i] = theta * k1;
@@ -463,19 +467,16 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
  * for the starting guess below. */
 static ps_real tenth_root_estimate(ps_real x)
 {
-    float xf, yf;
+    ps_bits b;
     unsigned long u;
-    unsigned int bits;
     if (!(x > R_(1e-30) && x < R_(1e30))) return x > R_(1) ? ps_pow(x, R_(0.1)) : R_(0);
-    xf = (float)x;
-    memcpy(&bits, &xf, sizeof bits);
-    u = bits;
+    b.f = (float)x;
+    u = b.u;
     /* u/10 = u * 0.000110011001100...b */
     u = (u >> 4) + (u >> 5) + (u >> 8) + (u >> 9) + (u >> 12) + (u >> 13) + (u >> 16)
         + (u >> 17) + (u >> 20) + (u >> 21) + 958817894UL;
-    bits = (unsigned int)u;
-    memcpy(&yf, &bits, sizeof yf);
-    return (ps_real)yf;
+    b.u = (unsigned int)u;
+    return (ps_real)b.f;
 }
 
 /* The implicit equation for a = 0.3, solved for y = |z| (the root has the sign of rhs, since
@@ -484,13 +485,13 @@ static ps_real tenth_root_estimate(ps_real x)
  * at a larger y than the root, so (|rhs|/a2)^(1/10) bounds it from above; the start is the
  * smaller of that and the linearised guess z (spindle.core's), and Newton from above on this
  * convex function needs few iterations. Writes z and v = sgn(z)|z|^10. */
-static int solve_03(ps_real *z_io, ps_real *v, ps_real a2, ps_real p0, ps_real rhs, ps_real c,
-                    ps_real th_h)
+static int solve_03(ps_real *z_io, ps_real *v, ps_real a2, ps_real inv_a2, ps_real p0,
+                    ps_real rhs, ps_real c, ps_real th_h)
 {
     const ps_real r = ps_fabs(rhs);
     const ps_real s_th_h = rhs < R_(0) ? -th_h : th_h;
     const ps_real ten_a2 = R_(10) * a2, ten_c_th_h = R_(10) * c * s_th_h, three_c = R_(3) * c;
-    ps_real y = ps_fabs(*z_io), bound = tenth_root_estimate(r / a2);
+    ps_real y = ps_fabs(*z_io), bound = tenth_root_estimate(r * inv_a2);
     ps_real y2, y3, y4, y9, y10 = R_(0), dg, dy = R_(0);
     int it;
     if (!(y <= bound)) y = bound; /* also replaces a NaN guess */
@@ -551,13 +552,18 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
     for (i = 0; i < PS_NFIBRES; ++i) {
         const ps_real T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i];
         const ps_real drive1 = fibre_drive(i, gd1, gs1);
-        ps_real a1 = plan_target(q, i, drive1);
-        ps_real f = q->c_f0[i] * f0 + q->c_a1[i] * a1;
-        ps_real beta1, Gamma1, A, F0 = R_(0), z02, z03;
-        if (q->c_a0[i] != R_(0)) {
-            ps_real drive0 = fibre_drive(i, s->gd, s->gs);
-            /* the previous target again, unless the drive changed */
-            f += q->c_a0[i] * (drive0 == drive1 ? a1 : plan_target(q, i, drive0));
+        const int same_drive = drive1 == fibre_drive(i, s->gd, s->gs);
+        ps_real beta1, Gamma1, A, F0 = R_(0), z02, z03, f;
+        if (!q->lagged[i]) {
+            /* f is the target itself: unchanged with the drive */
+            f = same_drive ? f0 : plan_target(q, i, drive1);
+        } else if (same_drive) { /* the previous target is the new one */
+            f = q->c_f0[i] * f0 + q->c_a01[i] * plan_target(q, i, drive1);
+        } else {
+            f = q->c_f0[i] * f0 + q->c_a1[i] * plan_target(q, i, drive1);
+            if (q->c_a0[i] != R_(0)) {
+                f += q->c_a0[i] * plan_target(q, i, fibre_drive(i, s->gd, s->gs));
+            }
         }
         f1[i] = f;
         beta1 = q->beta0[i] + q->beta_drive[i] * f;
@@ -589,8 +595,8 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
             slope = q->a2[i] * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
             z = cube_root(rhs / slope);
             if (q->a_is_03) {
-                status = solve_03(&z, &v1[i], q->a2[i], p0, rhs, rhs > R_(0) ? cS + dC : cS,
-                                  q->th_h);
+                status = solve_03(&z, &v1[i], q->a2[i], q->inv_a2[i], p0, rhs,
+                                  rhs > R_(0) ? cS + dC : cS, q->th_h);
                 if (status != PS_OK) return status;
             } else {
                 status = newton(&z, q->a2[i], p0, rhs, cS, dC, q->th_h, q->a[i], 0);
