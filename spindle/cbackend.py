@@ -67,7 +67,7 @@ def library(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
 
 # ps_plan of proprio.h, field by field in the header's order.
 PLAN_SCALARS = ("h", "theta", "one_minus_theta", "th_h", "max_dL", "S")
-PLAN_FLAGS = ("p_is_2", "a_is_03")
+PLAN_FLAGS = ("p_is_2", "a_is_03", "explicit_step", "uses_F0")
 PLAN_FIBRE_FIELDS = (
     ("KSR", "inv_KSR", "c_f0", "c_a0", "c_a1", "c_a01"),
     ("freq_p", "p", "a", "beta0", "beta_drive", "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R",

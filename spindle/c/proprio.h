@@ -117,7 +117,7 @@ int ps_spindle_run(ps_spindle *s, const ps_params *p, const ps_real *L, const ps
  * path). */
 typedef struct ps_plan {
     ps_real h, theta, one_minus_theta, th_h, max_dL, S;
-    int p_is_2, a_is_03;
+    int p_is_2, a_is_03, explicit_step, uses_F0; /* theta == 0, theta < 1 */
     ps_real KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES];
     ps_real c_f0[PS_NFIBRES], c_a0[PS_NFIBRES], c_a1[PS_NFIBRES]; /* f1 = c_f0 f0 + ... */
     ps_real c_a01[PS_NFIBRES];                                     /* c_a0 + c_a1 */
