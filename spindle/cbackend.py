@@ -56,7 +56,45 @@ def library(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
                                    ctypes.c_long, real, real, ctypes.c_long, ptr_real,
                                    ptr_real, P(ctypes.c_long)]
     lib.ps_spindle_run.restype = ctypes.c_int
+    PsPlan = plan_struct(variant)
+    lib.ps_plan_init.argtypes = [P(PsPlan), P(PsParams), real, real]
+    lib.ps_plan_init.restype = ctypes.c_int
+    lib.ps_spindle_step_plan.argtypes = [P(PsSpindle), P(PsPlan), real, real, real, ptr_real,
+                                         ptr_real]
+    lib.ps_spindle_step_plan.restype = ctypes.c_int
     return lib
+
+
+# ps_plan of proprio.h, field by field in the header's order.
+PLAN_SCALARS = ("h", "theta", "one_minus_theta", "th_h", "max_dL", "S")
+PLAN_FLAGS = ("p_is_2", "a_is_03", "explicit_step", "uses_F0")
+PLAN_FIBRE_FIELDS = (
+    ("KSR", "inv_KSR", "c_f0", "c_a0", "c_a1", "c_a01"),
+    ("freq_p", "p", "a", "beta0", "beta_drive", "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R",
+     "LSR0", "LSR0_R", "LSR0_LPR0", "h_KSR", "h_M", "c_Av", "a2", "inv_a2", "M_h", "th_h_KSR",
+     "th_k1", "th_KPR", "th_CS", "th_dC", "stretch0", "G_pri", "c_sec1", "c_sec2", "sec_off"),
+)
+
+
+def plan_struct(variant: str = "double") -> type:
+    """ctypes mirror of ``ps_plan`` (the embedded fast path's precomputed constants)."""
+    if variant not in cbuild.VARIANTS:
+        raise ValueError(f"variant={variant!r} is not one of {cbuild.VARIANTS}")
+    return _plan_struct(variant)
+
+
+@cache
+def _plan_struct(variant: str) -> type:
+    real = cbuild.real_type(variant)
+
+    class PsPlan(ctypes.Structure):
+        _fields_ = ([(name, real) for name in PLAN_SCALARS]
+                    + [(name, ctypes.c_int) for name in PLAN_FLAGS]
+                    + [(name, real * 3) for name in PLAN_FIBRE_FIELDS[0]]
+                    + [("lagged", ctypes.c_int * 3)]
+                    + [(name, real * 3) for name in PLAN_FIBRE_FIELDS[1]])
+
+    return PsPlan
 
 
 def status_name(code: int) -> str:

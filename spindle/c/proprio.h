@@ -101,6 +101,49 @@ int ps_spindle_run(ps_spindle *s, const ps_params *p, const ps_real *L, const ps
                    ps_real *ia, ps_real *ii, long *done);
 
 
+/* ---- embedded fast path ---------------------------------------------------------------
+ * Everything of a step that depends only on (params, h, theta), precomputed once by
+ * ps_plan_init (reciprocals, products, the activation filter's coefficients), so that
+ * ps_spindle_step_plan does one divide per fibre for the activation target (none when the
+ * drive did not change since the last step... apart from the target of the new drive) and
+ * one per Newton iteration. Same equations and state as ps_spindle_step; the results differ
+ * from it by round-off only (x * (1/k) for x / k). A plan is read-only after init: it can
+ * live in flash (const) and be shared by any number of spindles with the same constants.
+ *
+ * Compile-time options (both paths): PS_NEWTON_ITER=n takes exactly n Newton iterations
+ * and never reports PS_ERR_NO_CONVERGENCE (default: iterate to |dz| <= PS_NEWTON_TOL_Z,
+ * at most 60); PS_FAST_CBRT replaces the C library's cbrt of the starting guess by a bit
+ * estimate refined by PS_CBRT_REFINE Newton steps (default 2; no libm call on the implicit
+ * path). */
+typedef struct ps_plan {
+    ps_real h, theta, one_minus_theta, th_h, max_dL, S;
+    int p_is_2, a_is_03, explicit_step, uses_F0; /* theta == 0, theta < 1 */
+    ps_real KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES];
+    ps_real c_f0[PS_NFIBRES], c_a0[PS_NFIBRES], c_a1[PS_NFIBRES]; /* f1 = c_f0 f0 + ... */
+    ps_real c_a01[PS_NFIBRES];                                     /* c_a0 + c_a1 */
+    int lagged[PS_NFIBRES];
+    ps_real freq_p[PS_NFIBRES], p[PS_NFIBRES], a[PS_NFIBRES];
+    ps_real beta0[PS_NFIBRES], beta_drive[PS_NFIBRES], Gamma_drive[PS_NFIBRES];
+    ps_real CL[PS_NFIBRES], CS[PS_NFIBRES], KPR[PS_NFIBRES], LPR0[PS_NFIBRES], R[PS_NFIBRES];
+    ps_real LSR0[PS_NFIBRES], LSR0_R[PS_NFIBRES], LSR0_LPR0[PS_NFIBRES];
+    ps_real h_KSR[PS_NFIBRES], h_M[PS_NFIBRES];          /* forward Euler */
+    ps_real c_Av[PS_NFIBRES], a2[PS_NFIBRES], inv_a2[PS_NFIBRES], M_h[PS_NFIBRES];
+    ps_real th_h_KSR[PS_NFIBRES];
+    ps_real th_k1[PS_NFIBRES], th_KPR[PS_NFIBRES], th_CS[PS_NFIBRES], th_dC[PS_NFIBRES];
+    ps_real stretch0[PS_NFIBRES], G_pri[PS_NFIBRES], c_sec1[PS_NFIBRES], c_sec2[PS_NFIBRES];
+    ps_real sec_off[PS_NFIBRES];
+} ps_plan;
+
+/* Fill q for constants p, step h (s) and theta. PS_ERR_NULL, PS_ERR_CONFIG (p refused by
+ * ps_params_check), PS_ERR_STEP (h not finite and > 0), PS_ERR_METHOD (theta outside
+ * [0, 1]); q is untouched on failure. */
+int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta);
+
+/* ps_spindle_step with a plan: one step of q->h to (L1, gd1, gs1). Same status codes and
+ * failure rule (state and outputs untouched). */
+int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd1,
+                         ps_real gs1, ps_real *ia, ps_real *ii);
+
 /* ---- end of spindle section ---- */
 
 

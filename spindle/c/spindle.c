@@ -15,6 +15,7 @@
 #include <float.h>
 #include <math.h>
 #include <stddef.h>
+#include <string.h>
 
 #define R_(x) ((ps_real)(x))
 
@@ -66,6 +67,15 @@ static ps_real activation_target(ps_real drive, ps_real freq, ps_real p, int p_i
     return p_is_2 ? gp / (gp + freq * freq) : gp / (gp + ps_pow(freq, p));
 }
 
+/* Straight-line on purpose: gcc -Os turns a copy loop into a memcpy call (~80 instructions
+ * each on a Cortex-M0+). */
+static void copy3(ps_real dst[PS_NFIBRES], const ps_real src[PS_NFIBRES])
+{
+    dst[0] = src[0];
+    dst[1] = src[1];
+    dst[2] = src[2];
+}
+
 static int all_equal(const ps_real x[PS_NFIBRES], ps_real value)
 {
     return x[0] == value && x[1] == value && x[2] == value;
@@ -81,6 +91,38 @@ static int check_inputs(ps_real L, ps_real gd, ps_real gs)
 }
 
 static ps_real fibre_drive(int i, ps_real gd, ps_real gs) { return i == 0 ? gd : gs; }
+
+/* Cube root of the Newton starting guess. PS_FAST_CBRT: a bit-level estimate (exponent / 3
+ * by shifts, ~3 % off) and PS_CBRT_REFINE Newton steps y <- (2y + x/y^2)/3; the result only
+ * starts the Newton iteration on z, which corrects what is left. */
+#ifndef PS_CBRT_REFINE
+#define PS_CBRT_REFINE 2
+#endif
+/* A float's bits (C99 allows reading another member of a union; no memcpy call). */
+typedef union ps_bits { float f; unsigned int u; } ps_bits;
+typedef char ps_check_unsigned_is_32_bits[sizeof(unsigned int) == 4 ? 1 : -1];
+
+static ps_real cube_root(ps_real x)
+{
+#ifdef PS_FAST_CBRT
+    ps_bits b;
+    unsigned long u;
+    ps_real ax = ps_fabs(x), y;
+    int k;
+    if (!(ax > R_(1e-30) && ax < R_(1e30))) return ps_cbrt(x); /* 0, huge, NaN: exact path */
+    b.f = (float)ax;
+    u = b.u;
+    /* u/3 as a sum of shifts (1/3 = 1/4 + 1/16 + ...): no divide on cores without one */
+    u = (u >> 2) + (u >> 4) + (u >> 6) + (u >> 8) + (u >> 10) + (u >> 12) + (u >> 14)
+        + (u >> 16) + 709921077UL;
+    b.u = (unsigned int)u;
+    y = (ps_real)b.f;
+    for (k = 0; k < PS_CBRT_REFINE; ++k) y = (R_(2) * y + ax / (y * y)) * R_(1.0 / 3.0);
+    return x < R_(0) ? -y : y;
+#else
+    return ps_cbrt(x);
+#endif
+}
 
 /* ---- public API of the contract ----------------------------------------------------- */
 
@@ -211,7 +253,7 @@ int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, 
                     ps_real h, ps_real theta, ps_real *ia, ps_real *ii)
 {
     ps_real T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES];
-    ps_real dL;
+    ps_real dL, r_ia, r_ii;
     int i, status, p_is_2, a_is_03;
 
     if (s == NULL || p == NULL) return PS_ERR_NULL;
@@ -274,7 +316,7 @@ int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, 
             z0_7 *= a_is_03 ? z0_7 * z0_7 * ps_fabs(z0)
                             : ps_pow(ps_fabs(z0), R_(3) / p->a[i] - R_(3));
             slope = a2 * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
-            z = ps_cbrt(rhs / slope);
+            z = cube_root(rhs / slope);
             status = newton(&z, a2, p0, rhs, cS, dC, th_h, p->a[i], a_is_03);
             if (status != PS_OK) return status;
             velocity_from_z(z, p->a[i], a_is_03, &v1[i], NULL);
@@ -285,16 +327,18 @@ int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, 
             return PS_ERR_NONFINITE;
         }
     }
-    for (i = 0; i < PS_NFIBRES; ++i) {
-        s->T[i] = T1[i];
-        s->v[i] = v1[i];
-        s->z[i] = z1[i];
-        s->f[i] = f1[i];
-    }
+    afferents(T1, L1, p, &r_ia, &r_ii);
+    /* a tension so large that the rates overflow (float) is a failure too */
+    if (!is_finite(r_ia) || !is_finite(r_ii)) return PS_ERR_NONFINITE;
+    copy3(s->T, T1);
+    copy3(s->v, v1);
+    copy3(s->z, z1);
+    copy3(s->f, f1);
     s->L = L1;
     s->gd = gd1;
     s->gs = gs1;
-    afferents(s->T, L1, p, ia, ii);
+    if (ia != NULL) *ia = r_ia;
+    if (ii != NULL) *ii = r_ii;
     return PS_OK;
 }
 
@@ -352,4 +396,248 @@ int ps_spindle_run(ps_spindle *s, const ps_params *p, const ps_real *L, const ps
         if (done != NULL) *done = j + 1;
     }
     return status;
+}
+
+/* ---- embedded fast path ------------------------------------------------------------- */
+
+int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
+{
+    ps_plan out;
+    int i;
+    if (q == NULL || p == NULL) return PS_ERR_NULL;
+    if (ps_params_check(p) != PS_OK) return PS_ERR_CONFIG;
+    if (!(theta >= R_(0) && theta <= R_(1))) return PS_ERR_METHOD;
+    if (!(is_finite(h) && h > R_(0))) return PS_ERR_STEP;
+    memset(&out, 0, sizeof out);
+    out.h = h;
+    out.theta = theta;
+    out.one_minus_theta = R_(1) - theta;
+    out.th_h = theta * h;
+    out.max_dL = R_(PS_MAX_SPEED_L0_S) * h;
+    out.S = p->S;
+    out.p_is_2 = all_equal(p->p, R_(2));
+    out.a_is_03 = all_equal(p->a, R_(0.3));
+    out.explicit_step = theta == R_(0);
+    out.uses_F0 = theta < R_(1);
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        ps_real KSR = p->KSR[i];
+        ps_real k1 = R_(1) + p->KPR[i] / KSR;
+        ps_real rate = p->tau[i] > R_(0) ? h / p->tau[i] : R_(0);
+        ps_real den = R_(1) + theta * rate;
+        out.KSR[i] = KSR;
+        out.inv_KSR[i] = R_(1) / KSR;
+        out.lagged[i] = p->tau[i] > R_(0);
+        if (out.lagged[i]) {
+            out.c_f0[i] = (R_(1) - (R_(1) - theta) * rate) / den;
+            out.c_a0[i] = (R_(1) - theta) * rate / den;
+            out.c_a1[i] = theta * rate / den;
+        } else { /* no lag: f = a* */
+            out.c_f0[i] = R_(0);
+            out.c_a0[i] = R_(0);
+            out.c_a1[i] = R_(1);
+        }
+        out.c_a01[i] = out.c_a0[i] + out.c_a1[i];
+        out.freq_p[i] = out.p_is_2 ? p->freq[i] * p->freq[i] : ps_pow(p->freq[i], p->p[i]);
+        out.p[i] = p->p[i];
+        out.a[i] = p->a[i];
+        out.beta0[i] = p->beta0[i];
+        out.beta_drive[i] = p->beta_drive[i];
+        out.Gamma_drive[i] = p->Gamma_drive[i];
+        out.CL[i] = p->CL[i];
+        out.CS[i] = p->CS[i];
+        out.KPR[i] = p->KPR[i];
+        out.LPR0[i] = p->LPR0[i];
+        out.R[i] = p->R[i];
+        out.LSR0[i] = p->LSR0[i];
+        out.LSR0_R[i] = p->LSR0[i] + p->R[i];
+        out.LSR0_LPR0[i] = p->LSR0[i] + p->LPR0[i];
+        out.h_KSR[i] = h * KSR;
+        out.h_M[i] = h / p->M[i];
+        out.c_Av[i] = (R_(1) - theta) * h * KSR;
+        out.a2[i] = p->M[i] / h + theta * theta * h * k1 * KSR;
+        out.inv_a2[i] = R_(1) / out.a2[i];
+        out.M_h[i] = p->M[i] / h;
+        out.th_h_KSR[i] = theta * h * KSR;
+        out.th_k1[i] = theta * k1;
+        out.th_KPR[i] = theta * p->KPR[i];
+        out.th_CS[i] = theta * p->CS[i];
+        out.th_dC[i] = theta * (p->CL[i] - p->CS[i]);
+        out.stretch0[i] = p->LNSR[i] - p->LSR0[i];
+        out.G_pri[i] = p->G_pri[i];
+        out.c_sec1[i] = p->G_sec[i] * p->X[i] * (p->Lsec[i] / p->LSR0[i]);
+        out.c_sec2[i] = p->G_sec[i] * (R_(1) - p->X[i]) * (p->Lsec[i] / p->LPR0[i]);
+        out.sec_off[i] = p->LSR0[i] + p->LNPR[i];
+    }
+    *q = out;
+    return PS_OK;
+}
+
+/* x^(1/10) to ~1 %: the exponent bits divided by 10 (shifts), no refinement. Only a bound
+ * for the starting guess below. */
+static ps_real tenth_root_estimate(ps_real x)
+{
+    ps_bits b;
+    unsigned long u;
+    if (!(x > R_(1e-30) && x < R_(1e30))) return x > R_(1) ? ps_pow(x, R_(0.1)) : R_(0);
+    b.f = (float)x;
+    u = b.u;
+    /* u/10 = u * 0.000110011001100...b */
+    u = (u >> 4) + (u >> 5) + (u >> 8) + (u >> 9) + (u >> 12) + (u >> 13) + (u >> 16)
+        + (u >> 17) + (u >> 20) + (u >> 21) + 958817894UL;
+    b.u = (unsigned int)u;
+    return (ps_real)b.f;
+}
+
+/* The implicit equation for a = 0.3, solved for y = |z| (the root has the sign of rhs, since
+ * g rises through g(0) = -rhs, so the damping coefficient c = C*theta*beta is known before
+ * iterating): a2*y^10 + c*y^3*(p0 + s*th_h*y^10) = |rhs|. Each term alone would reach |rhs|
+ * at a larger y than the root, so (|rhs|/a2)^(1/10) bounds it from above; the start is the
+ * smaller of that and the linearised guess z (spindle.core's), and Newton from above on this
+ * convex function needs few iterations. Writes z and v = sgn(z)|z|^10. */
+static int solve_03(ps_real *z_io, ps_real *v, ps_real a2, ps_real inv_a2, ps_real p0,
+                    ps_real rhs, ps_real c, ps_real th_h)
+{
+    const ps_real r = ps_fabs(rhs);
+    const ps_real s_th_h = rhs < R_(0) ? -th_h : th_h;
+    const ps_real ten_a2 = R_(10) * a2, ten_c_th_h = R_(10) * c * s_th_h, three_c = R_(3) * c;
+    ps_real y = ps_fabs(*z_io), bound = tenth_root_estimate(r * inv_a2);
+    ps_real y2, y3, y4, y9, y10 = R_(0), dg, dy = R_(0);
+    int it;
+    if (!(y <= bound)) y = bound; /* also replaces a NaN guess */
+#if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
+    for (it = 0; it < PS_NEWTON_ITER; ++it) {
+#else
+    for (it = 0; it < PS_NEWTON_MAX_ITER; ++it) {
+#endif
+        ps_real qy, g;
+        y2 = y * y;
+        y3 = y2 * y;
+        y4 = y2 * y2;
+        y9 = y4 * y4 * y;
+        y10 = y9 * y;
+        qy = p0 + s_th_h * y10;
+        g = a2 * y10 + c * y3 * qy - r;
+        dg = y9 * (ten_a2 + ten_c_th_h * y3) + three_c * y2 * qy;
+        dy = g / (dg < R_(PS_TINY) ? R_(PS_TINY) : dg);
+        if (dy > R_(PS_NEWTON_MAX_DZ)) dy = R_(PS_NEWTON_MAX_DZ);
+        if (dy < R_(-PS_NEWTON_MAX_DZ)) dy = R_(-PS_NEWTON_MAX_DZ);
+        y -= dy;
+        if (y < R_(0)) y = R_(0);
+#if !(defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0)
+        if (ps_fabs(dy) <= R_(PS_NEWTON_TOL_Z)) break;
+#endif
+    }
+#if !(defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0)
+    if (!(ps_fabs(dy) <= R_(PS_NEWTON_TOL_Z))) return PS_ERR_NO_CONVERGENCE;
+#endif
+    y2 = y * y;
+    y4 = y2 * y2;
+    y10 = y4 * y4 * y2;
+    *z_io = rhs < R_(0) ? -y : y;
+    *v = rhs < R_(0) ? -y10 : y10;
+    return PS_OK;
+}
+
+static ps_real plan_target(const ps_plan *q, int i, ps_real drive)
+{
+    ps_real gp = q->p_is_2 ? drive * drive : ps_pow(drive, q->p[i]);
+    if (!is_finite(gp)) return R_(1);
+    return gp / (gp + q->freq_p[i]);
+}
+
+int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd1,
+                         ps_real gs1, ps_real *ia, ps_real *ii)
+{
+    ps_real T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES];
+    ps_real dL, primary[PS_NFIBRES], sec[PS_NFIBRES], a_dyn, b_stat, r_ia, r_ii;
+    int i, status;
+
+    if (s == NULL || q == NULL) return PS_ERR_NULL;
+    status = check_inputs(L1, gd1, gs1);
+    if (status != PS_OK) return status;
+    dL = L1 - s->L;
+    if (ps_fabs(dL) > q->max_dL) return PS_ERR_SPEED;
+
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        const ps_real T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i];
+        const ps_real drive1 = fibre_drive(i, gd1, gs1);
+        const int same_drive = drive1 == fibre_drive(i, s->gd, s->gs);
+        ps_real beta1, Gamma1, A, F0 = R_(0), z02, z03, f;
+        if (!q->lagged[i]) {
+            /* f is the target itself: unchanged with the drive */
+            f = same_drive ? f0 : plan_target(q, i, drive1);
+        } else if (same_drive) { /* the previous target is the new one */
+            f = q->c_f0[i] * f0 + q->c_a01[i] * plan_target(q, i, drive1);
+        } else {
+            f = q->c_f0[i] * f0 + q->c_a1[i] * plan_target(q, i, drive1);
+            if (q->c_a0[i] != R_(0)) {
+                f += q->c_a0[i] * plan_target(q, i, fibre_drive(i, s->gd, s->gs));
+            }
+        }
+        f1[i] = f;
+        beta1 = q->beta0[i] + q->beta_drive[i] * f;
+        Gamma1 = q->Gamma_drive[i] * f;
+        A = T0 + q->KSR[i] * dL;
+        z02 = z0 * z0;
+        z03 = z02 * z0;
+        if (q->uses_F0) {
+            ps_real polar = s->L - q->LSR0[i] - T0 * q->inv_KSR[i];
+            ps_real beta0 = q->beta0[i] + q->beta_drive[i] * f0;
+            ps_real damping = (z0 > R_(0) ? q->CL[i] : q->CS[i]) * beta0 * z03;
+            F0 = T0 - q->Gamma_drive[i] * f0 - q->KPR[i] * (polar - q->LPR0[i])
+                 - damping * (polar - q->R[i]);
+        }
+        if (q->explicit_step) {
+            T1[i] = A - q->h_KSR[i] * v0;
+            v1[i] = v0 + q->h_M[i] * F0;
+            z1[i] = sign_r(v1[i]) * ps_pow(ps_fabs(v1[i]), q->a[i] / R_(3));
+        } else {
+            ps_real p0, rhs, cS, dC, z0_7, slope, z;
+            A -= q->c_Av[i] * v0;
+            p0 = L1 - q->LSR0_R[i] - A * q->inv_KSR[i];
+            rhs = q->M_h[i] * v0 + q->th_k1[i] * A - q->theta * Gamma1
+                  - q->th_KPR[i] * (L1 - q->LSR0_LPR0[i]) + q->one_minus_theta * F0;
+            cS = q->th_CS[i] * beta1;
+            dC = q->th_dC[i] * beta1;
+            z0_7 = q->a_is_03 ? z03 * z03 * ps_fabs(z0)
+                              : z02 * ps_pow(ps_fabs(z0), R_(3) / q->a[i] - R_(3));
+            slope = q->a2[i] * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
+            z = cube_root(rhs / slope);
+            if (q->a_is_03) {
+                status = solve_03(&z, &v1[i], q->a2[i], q->inv_a2[i], p0, rhs,
+                                  rhs > R_(0) ? cS + dC : cS, q->th_h);
+                if (status != PS_OK) return status;
+            } else {
+                status = newton(&z, q->a2[i], p0, rhs, cS, dC, q->th_h, q->a[i], 0);
+                if (status != PS_OK) return status;
+                velocity_from_z(z, q->a[i], 0, &v1[i], NULL);
+            }
+            T1[i] = A - q->th_h_KSR[i] * v1[i];
+            z1[i] = z;
+        }
+        if (!is_finite(T1[i]) || !is_finite(v1[i]) || !is_finite(z1[i]) || !is_finite(f1[i])) {
+            return PS_ERR_NONFINITE;
+        }
+    }
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        ps_real t_ksr = T1[i] * q->inv_KSR[i];
+        ps_real stretch = t_ksr - q->stretch0[i];
+        primary[i] = max_r(q->G_pri[i] * stretch, R_(0));
+        sec[i] = q->c_sec1[i] * stretch + q->c_sec2[i] * (L1 - t_ksr - q->sec_off[i]);
+    }
+    a_dyn = primary[0];
+    b_stat = primary[1] + primary[2];
+    r_ia = max_r(a_dyn, b_stat) + q->S * min_r(a_dyn, b_stat);
+    r_ii = max_r(sec[1], R_(0)) + max_r(sec[2], R_(0));
+    if (!is_finite(r_ia) || !is_finite(r_ii)) return PS_ERR_NONFINITE;
+    copy3(s->T, T1);
+    copy3(s->v, v1);
+    copy3(s->z, z1);
+    copy3(s->f, f1);
+    s->L = L1;
+    s->gd = gd1;
+    s->gs = gs1;
+    if (ia != NULL) *ia = r_ia;
+    if (ii != NULL) *ii = r_ii;
+    return PS_OK;
 }

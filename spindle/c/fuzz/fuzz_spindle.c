@@ -217,6 +217,31 @@ int main(int argc, char **argv)
             }
         }
 
+        /* the embedded fast path with the same draws */
+        {
+            ps_plan plan, plan_before;
+            memset(&plan, 0x5a, sizeof plan);
+            plan_before = plan;
+            st = ps_plan_init(pick(&r, 30) ? &plan : NULL, pick(&r, 30) ? &p : NULL, h, theta);
+            if (!valid_status(st)) FAIL("plan init status %d", st);
+            if (st != PS_OK && memcmp(&plan, &plan_before, sizeof plan) != 0) {
+                FAIL("plan init changed the plan on status %d", st);
+            }
+            if (st == PS_OK) {
+                ps_real pia = (ps_real)-7, pii = (ps_real)-7;
+                ps_spindle s2 = before;
+                st = ps_spindle_step_plan(pick(&r, 50) ? &s2 : NULL, &plan, L, gd, gs,
+                                          pick(&r, 10) ? &pia : NULL, pick(&r, 10) ? &pii : NULL);
+                if (!valid_status(st)) FAIL("plan step status %d", st);
+                if (st != PS_OK) {
+                    if (memcmp(&s2, &before, sizeof s2) != 0) FAIL("plan step changed the state");
+                    if (pia != (ps_real)-7 || pii != (ps_real)-7) FAIL("plan step wrote outputs");
+                } else if (mode != 0 && valid_state && !finite_state(&s2)) {
+                    FAIL("plan step success left a non-finite state");
+                }
+            }
+        }
+
         /* the other entry points, with the same draws */
         ps_spindle_afferents(pick(&r, 20) ? &s : NULL, pick(&r, 20) ? &p : NULL,
                              pick(&r, 5) ? &ia : NULL, pick(&r, 5) ? &ii : NULL);

@@ -1,0 +1,587 @@
+"""Cost of the C spindle on a Cortex-M0+: instructions per step, MIPS, flash and RAM.
+
+Cross-compiles spindle/c/spindle.c with the firmware spindle/c/m0plus/firmware.c (two
+muscles, HUMAN constants in flash) for -mcpu=cortex-m0plus -mthumb, soft float, newlib-nano,
+and runs the step in an instruction-set emulator (unicorn >= 2.1) on the Mileusnic Fig. 3
+protocol (ramps 0.95 -> 1.08 L0 at 0.11, 0.66, 1.55 L0/s, drive (0,0), (70,0), (0,70) pps,
+3.3 s), sampled once per spindle step. For every configuration of the lever table it prints
+the executed instructions per step, MIPS per muscle (instructions per step / step), flash and
+RAM of the firmware (arm-none-eabi-size: flash = text + data, RAM = data + bss including the
+reserved stack, whose high-water mark is measured in the emulator) and the accuracy: the
+worst-run RMS of Ia and II against the stiff reference (spindle.reference, scipy Radau).
+
+Instruction-set check: unicorn opened in M-class mode silently models a Cortex-M33 (its CPU
+model cannot be changed there, and sdiv runs). The emulator is therefore opened in Thumb
+mode with the Cortex-M0 model (ARMv6-M), and the script checks that sdiv and a Thumb-2
+32-bit data-processing instruction do fault. That model still executes cbz/cbnz and it
+(ARMv7-M only), so every executed instruction is also decoded with the ARMv6-M encoding
+rules, and the whole binary is disassembled with arm-none-eabi-objdump and checked the same
+way; any ARMv7-M-only instruction is an error.
+
+The emulated rates are compared with a host build of the same sources and options (all
+float32, no libm call on the measured path when PS_FAST_CBRT is set, so they agree to the
+bit); the accuracy of each configuration is measured on the host build over all 9 runs.
+
+Usage:
+    PYTHONPATH=. python scripts/bench_embedded.py            # all levers, all 9 runs (~10 min)
+    PYTHONPATH=. python scripts/bench_embedded.py --quick    # final configuration, 2 runs
+Needs: gcc-arm-none-eabi, libnewlib-arm-none-eabi, a host C compiler, unicorn, scipy.
+The last line reads
+    m0plus_mips_per_muscle=<float> rms_pps=<float> flash_bytes=<int> ram_bytes=<int>
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import collections
+import ctypes
+import dataclasses
+import hashlib
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+import spindle
+from spindle import cbackend, cbuild
+
+REPO = Path(__file__).resolve().parents[1]
+C_DIR = REPO / "spindle" / "c"
+FW_DIR = C_DIR / "m0plus"
+TOOL_PREFIX = "arm-none-eabi-"
+ARM_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wdouble-promotion",
+             "-Os", "-mcpu=cortex-m0plus", "-mthumb", "-mfloat-abi=soft",
+             "-ffunction-sections", "-fdata-sections", "-DPS_FLOAT"]
+LINK_FLAGS = ["-nostartfiles", "--specs=nano.specs", "-Wl,--gc-sections", "-lm"]
+PARAMS = spindle.HUMAN
+SPEEDS = (0.11, 0.66, 1.55)
+DRIVES = ((0.0, 0.0), (70.0, 0.0), (0.0, 70.0))
+DURATION_S = 3.3
+REFERENCE_DT_S = 1e-3
+QUICK_RUNS = ((1.55, 70.0, 0.0), (0.66, 0.0, 70.0))
+STACK_PATTERN = 0xA5
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """One row of the lever table."""
+
+    label: str
+    step_s: float
+    theta: float = 0.5
+    plan: bool = False
+    plan_in_flash: bool = False
+    defines: tuple[str, ...] = ()
+
+    def c_defines(self) -> list[str]:
+        out = [f"-DFW_STEP_S={self.step_s!r}", f"-DFW_THETA={self.theta!r}",
+               *(f"-D{d}" for d in self.defines)]
+        if self.plan:
+            out.append("-DFW_USE_PLAN")
+        if self.plan_in_flash:
+            out.append("-DFW_PLAN_IN_FLASH")
+        return out
+
+
+FAST = ("PS_FAST_CBRT", "PS_CBRT_REFINE=1")
+LOOSE = ("PS_NEWTON_TOL_Z=1e-3",)
+LEVERS = [
+    Config("forward Euler, z = powf(|v|, 0.1) (orientation)", 1e-3, theta=0.0),
+    Config("trapezoidal, z = sgn(v)|v|^0.1 (no powf), Newton to 2e-6", 1e-3),
+    Config("+ plan: derived constants, reciprocals, bounded Newton start", 1e-3, plan=True),
+    Config("+ cube root without libm (PS_FAST_CBRT)", 1e-3, plan=True, defines=FAST),
+    Config("+ Newton tolerance 1e-3 in z (PS_NEWTON_TOL_Z)", 1e-3, plan=True,
+           defines=(*FAST, *LOOSE)),
+    Config("  fixed 2 Newton iterations instead (PS_NEWTON_ITER=2)", 1e-3, plan=True,
+           defines=(*FAST, "PS_NEWTON_ITER=2")),
+    Config("  tolerance 1e-3 at a 2 ms step", 2e-3, plan=True, defines=(*FAST, *LOOSE)),
+    Config("  tolerance 1e-3 at a 3 ms step", 3e-3, plan=True, defines=(*FAST, *LOOSE)),
+    Config("  tolerance 1e-3 at a 5 ms step", 5e-3, plan=True, defines=(*FAST, *LOOSE)),
+    Config("+ plan const in flash (5 ms)", 5e-3, plan=True, plan_in_flash=True,
+           defines=(*FAST, *LOOSE)),
+]
+FINAL = LEVERS[-1]
+
+
+# ---- building ---------------------------------------------------------------------------
+
+def tool(name: str) -> str:
+    path = shutil.which(TOOL_PREFIX + name)
+    if path is None:
+        sys.exit(f"{TOOL_PREFIX}{name} not found: apt-get install -y gcc-arm-none-eabi "
+                 "libnewlib-arm-none-eabi")
+    return path
+
+
+def key(*parts: object) -> str:
+    """A file-name key of the parts and of the C sources (a rebuild after any edit)."""
+    digest = hashlib.sha256(repr(parts).encode())
+    for path in (C_DIR / "proprio.h", C_DIR / "spindle.c", FW_DIR / "firmware.c"):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def host_library(cfg: Config, build_dir: Path) -> ctypes.CDLL:
+    """The same spindle.c and options, float32, as a host shared library."""
+    out = build_dir / f"host_{key(cfg)}.so"
+    if not out.exists():
+        cmd = [cbuild.find_compiler(), *cbuild.WARNING_FLAGS, "-O2", "-fPIC", "-shared",
+               "-DPS_FLOAT", *cfg.c_defines(), "-I", str(C_DIR), str(C_DIR / "spindle.c"),
+               "-o", str(out), "-lm"]
+        subprocess.run(cmd, check=True)
+    lib = ctypes.CDLL(str(out))
+    PsParams, PsSpindle = cbuild.structs("float")
+    PsPlan = cbackend.plan_struct("float")
+    P, f = ctypes.POINTER, ctypes.c_float
+    lib.ps_spindle_init.argtypes = [P(PsSpindle), P(PsParams), f, f, f]
+    lib.ps_spindle_step.argtypes = [P(PsSpindle), P(PsParams), f, f, f, f, f, P(f), P(f)]
+    lib.ps_plan_init.argtypes = [P(PsPlan), P(PsParams), f, f]
+    lib.ps_spindle_step_plan.argtypes = [P(PsSpindle), P(PsPlan), f, f, f, P(f), P(f)]
+    lib.ps_spindle_afferents.argtypes = [P(PsSpindle), P(PsParams), P(f), P(f)]
+    lib.ps_spindle_afferents.restype = None
+    return lib
+
+
+def plan_header(cfg: Config, build_dir: Path) -> Path:
+    """fw_plan.h: the plan of ps_plan_init (host, float32) as a const initializer."""
+    lib = host_library(cfg, build_dir)
+    PsPlan = cbackend.plan_struct("float")
+    plan = PsPlan()
+    params = cbuild.params_struct(PARAMS, "float")
+    code = lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(params), cfg.step_s, cfg.theta)
+    if code != 0:
+        raise RuntimeError(f"ps_plan_init: {cbackend.status_name(code)}")
+
+    def literal(x: float) -> str:
+        return f"{float(np.float32(x)).hex()}f"
+
+    parts = []
+    for name, ctype in PsPlan._fields_:
+        value = getattr(plan, name)
+        if ctype is ctypes.c_int:
+            parts.append(str(int(value)))
+        elif ctype is ctypes.c_float:
+            parts.append(literal(value))
+        elif ctype._type_ is ctypes.c_int:
+            parts.append("{" + ", ".join(str(int(v)) for v in value) + "}")
+        else:
+            parts.append("{" + ", ".join(literal(v) for v in value) + "}")
+    path = build_dir / f"plan_{key(cfg)}" / "fw_plan.h"
+    path.parent.mkdir(exist_ok=True)
+    path.write_text("/* generated by scripts/bench_embedded.py from ps_plan_init */\n"
+                    "const ps_plan fw_plan = {\n    " + ",\n    ".join(parts) + "\n};\n")
+    return path
+
+
+def build_firmware(cfg: Config, build_dir: Path, stack_bytes: int = 0x400) -> Path:
+    elf = build_dir / f"fw_{key(cfg, stack_bytes)}.elf"
+    extra = []
+    if cfg.plan_in_flash:
+        extra = ["-I", str(plan_header(cfg, build_dir).parent)]
+    cmd = [tool("gcc"), *ARM_FLAGS, *cfg.c_defines(), "-I", str(C_DIR), *extra,
+           str(C_DIR / "spindle.c"), str(FW_DIR / "firmware.c"), "-T", str(FW_DIR / "m0plus.ld"),
+           f"-Wl,--defsym=FW_STACK_SIZE={stack_bytes}", *LINK_FLAGS, "-o", str(elf)]
+    subprocess.run(cmd, check=True)
+    return elf
+
+
+def sizes(elf: Path) -> tuple[int, int]:
+    """(flash, RAM) bytes from arm-none-eabi-size: text + data, data + bss."""
+    out = subprocess.run([tool("size"), str(elf)], check=True, capture_output=True,
+                         text=True).stdout.splitlines()[1].split()
+    text, data, bss = (int(x) for x in out[:3])
+    return text + data, data + bss
+
+
+def symbols(elf: Path) -> dict[str, tuple[int, int]]:
+    out = subprocess.run([tool("nm"), "-S", str(elf)], check=True, capture_output=True,
+                         text=True).stdout
+    table = {}
+    for line in out.splitlines():
+        parts = line.split()
+        if len(parts) == 4:
+            table[parts[3]] = (int(parts[0], 16), int(parts[1], 16))
+        elif len(parts) == 3:
+            table[parts[2]] = (int(parts[0], 16), 0)
+    return table
+
+
+# ---- ARMv6-M instruction rules ------------------------------------------------------------
+
+def is_32bit(first: int) -> bool:
+    return (first >> 11) in (0b11101, 0b11110, 0b11111)
+
+
+def armv6m_violation(first: int, second: int | None) -> str | None:
+    """None if the Thumb instruction exists on ARMv6-M, else why not."""
+    if second is None:
+        if (first & 0xF500) == 0xB100:
+            return "cbz/cbnz"
+        if (first & 0xFF00) == 0xBF00 and (first & 0x000F) != 0:
+            return "it"
+        return None
+    if (first & 0xF800) == 0xF000 and (second & 0xD000) == 0xD000:
+        return None  # bl
+    if (first & 0xFFF0) == 0xF380 and (second & 0xFF00) == 0x8800:
+        return None  # msr
+    if first == 0xF3EF and (second & 0xF000) == 0x8000:
+        return None  # mrs
+    if first == 0xF3BF and (second & 0xFFF0) in (0x8F40, 0x8F50, 0x8F60):
+        return None  # dsb, dmb, isb
+    if (first & 0xFFF0) == 0xF7F0 and (second & 0xF000) == 0xA000:
+        return None  # udf.w
+    return f"32-bit {first:04x} {second:04x}"
+
+
+def decode_block(code: bytes) -> tuple[int, list[str]]:
+    """(instruction count, violations) of a straight run of Thumb code."""
+    count, bad, i = 0, [], 0
+    while i + 1 < len(code):
+        first = code[i] | code[i + 1] << 8
+        if is_32bit(first):
+            second = code[i + 2] | code[i + 3] << 8
+            i += 4
+        else:
+            second = None
+            i += 2
+        count += 1
+        why = armv6m_violation(first, second)
+        if why:
+            bad.append(why)
+    return count, bad
+
+
+ARMV6M_32BIT = {"bl", "msr", "mrs", "dsb", "dmb", "isb", "udf.w"}
+ARMV7M_ONLY_16BIT = {"cbz", "cbnz", "it", "ite", "itt", "itte", "ittt", "itee", "itet", "ittee"}
+
+
+def objdump_violations(elf: Path) -> tuple[int, list[str]]:
+    """Disassemble every code section; (instructions seen, ARMv7-M-only ones)."""
+    raw = subprocess.run([tool("objdump"), "-d", str(elf)], check=True, capture_output=True,
+                         text=True).stdout
+    seen, bad = 0, []
+    for line in raw.splitlines():
+        parts = line.split("\t")
+        if len(parts) < 3 or not parts[0].strip().endswith(":"):
+            continue
+        words = parts[1].split()
+        mnemonic = parts[2].split()[0] if parts[2].split() else ""
+        if mnemonic.startswith(".") or not words:
+            continue  # data words in code
+        seen += 1
+        base = mnemonic.split(".")[0] if mnemonic != "udf.w" else mnemonic
+        if len(words) == 2 and len(words[0]) == 4 and len(words[1]) == 4:
+            if base not in ARMV6M_32BIT and mnemonic not in ARMV6M_32BIT:
+                bad.append(line.strip())
+        elif base in ARMV7M_ONLY_16BIT:
+            bad.append(line.strip())
+    return seen, bad
+
+
+# ---- emulator -----------------------------------------------------------------------------
+
+class M0Plus:
+    """The firmware in unicorn's ARMv6-M (Cortex-M0) model, counting executed instructions."""
+
+    def __init__(self, elf: Path):
+        from unicorn import UC_ARCH_ARM, UC_HOOK_BLOCK, UC_MODE_THUMB, Uc
+        from unicorn.arm_const import UC_CPU_ARM_CORTEX_M0
+
+        self.uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB)
+        self.uc.ctl_set_cpu_model(UC_CPU_ARM_CORTEX_M0)
+        self.model = self.uc.ctl_get_cpu_model()
+        self.sym = symbols(elf)
+        self.flash = (0x00000000, 64 * 1024)
+        self.ram = (0x20000000, 8 * 1024)
+        for base, size in (self.flash, self.ram):
+            self.uc.mem_map(base, size)
+        for vaddr, data in elf_load_segments(elf):
+            self.uc.mem_write(vaddr, data)
+        self.stack = (self.sym["_sstack"][0], self.sym["_estack"][0])
+        self.uc.mem_write(self.stack[0], bytes([STACK_PATTERN]) * (self.stack[1] - self.stack[0]))
+        self.count = 0
+        self.blocks: dict[tuple[int, int], int] = {}
+        self.violations: set[str] = set()
+        functions = sorted((addr & ~1, name) for name, (addr, size) in self.sym.items()
+                           if size > 0 and addr < self.flash[0] + self.flash[1])
+        self._fn_addr = [a for a, _ in functions]
+        self._fn_name = [n for _, n in functions]
+        self.profile: collections.Counter = collections.Counter()
+        self.uc.hook_add(UC_HOOK_BLOCK, self._on_block)
+
+    def _on_block(self, uc, address, size, _user):
+        key = (address, size)
+        n = self.blocks.get(key)
+        if n is None:
+            n, bad = decode_block(bytes(uc.mem_read(address, size)))
+            self.violations.update(f"{address:#x}: {b}" for b in bad)
+            self.blocks[key] = n
+        self.count += n
+        self.profile[self._fn_name[bisect.bisect_right(self._fn_addr, address) - 1]] += n
+
+    def call(self, name: str, *args: int) -> tuple[int, int]:
+        """Run a firmware function to its return; (return value, instructions executed)."""
+        from unicorn.arm_const import UC_ARM_REG_LR, UC_ARM_REG_R0, UC_ARM_REG_SP
+
+        halt = self.sym["fw_halt"][0] & ~1
+        for k, value in enumerate(args):
+            self.uc.reg_write(UC_ARM_REG_R0 + k, value)
+        self.uc.reg_write(UC_ARM_REG_SP, self.stack[1])
+        self.uc.reg_write(UC_ARM_REG_LR, halt | 1)
+        before = self.count
+        self.uc.emu_start(self.sym[name][0] | 1, halt)
+        return self.uc.reg_read(UC_ARM_REG_R0), self.count - before
+
+    def stack_used(self) -> int:
+        lo, hi = self.stack
+        data = bytes(self.uc.mem_read(lo, hi - lo))
+        untouched = len(data) - len(data.lstrip(bytes([STACK_PATTERN])))
+        return hi - lo - untouched
+
+    def write_io(self, L, gd, gs) -> None:
+        self.uc.mem_write(self.sym["io"][0], struct.pack("<6f", *L, *gd, *gs))
+
+    def read_rates(self) -> tuple[tuple[float, float], tuple[float, float], tuple[int, int]]:
+        raw = bytes(self.uc.mem_read(self.sym["io"][0] + 24, 24))
+        ia0, ia1, ii0, ii1 = struct.unpack("<4f", raw[:16])
+        st = struct.unpack("<2i", raw[16:])
+        return (ia0, ia1), (ii0, ii1), st
+
+    def read_symbol(self, name: str) -> bytes:
+        addr, size = self.sym[name]
+        return bytes(self.uc.mem_read(addr, size))
+
+
+def elf_load_segments(elf: Path) -> list[tuple[int, bytes]]:
+    """(address, bytes) of every PT_LOAD segment, at its run address (as after start-up)."""
+    data = elf.read_bytes()
+    e_phoff, = struct.unpack_from("<I", data, 0x1C)
+    e_phentsize, e_phnum = struct.unpack_from("<HH", data, 0x2A)
+    out = []
+    for k in range(e_phnum):
+        p_type, p_offset, p_vaddr, _paddr, p_filesz, _memsz = struct.unpack_from(
+            "<6I", data, e_phoff + k * e_phentsize)
+        if p_type == 1 and p_filesz:
+            out.append((p_vaddr, data[p_offset:p_offset + p_filesz]))
+    return out
+
+
+def isa_probe() -> dict[str, str]:
+    """What the emulator does with instructions an M0+ lacks (sdiv, add.w, cbz)."""
+    from unicorn import UC_ARCH_ARM, UC_MODE_MCLASS, UC_MODE_THUMB, Uc, UcError
+    from unicorn.arm_const import UC_ARM_REG_SP, UC_CPU_ARM_CORTEX_M0
+
+    probes = {"sdiv r0, r0, r1": struct.pack("<HH", 0xFB90, 0xF0F1),
+              "add.w r0, r0, r1": struct.pack("<HH", 0xEB00, 0x0001),
+              "cbz r0, .+4": struct.pack("<H", 0xB100)}
+    result = {}
+    for mode_name, mode in (("thumb+M0 model", UC_MODE_THUMB),
+                            ("mclass", UC_MODE_THUMB | UC_MODE_MCLASS)):
+        for name, code in probes.items():
+            uc = Uc(UC_ARCH_ARM, mode)
+            uc.ctl_set_cpu_model(UC_CPU_ARM_CORTEX_M0)
+            uc.mem_map(0, 0x10000)
+            uc.mem_map(0x20000000, 0x1000)
+            uc.reg_write(UC_ARM_REG_SP, 0x20001000)
+            uc.mem_write(0x1000, code + b"\x00\xbf" * 4)
+            try:
+                uc.emu_start(0x1001, 0x1000 + len(code), count=1)
+                outcome = "executed"
+            except UcError as exc:
+                outcome = f"faults ({exc})"
+            result[f"{mode_name} (model {uc.ctl_get_cpu_model()}): {name}"] = outcome
+    return result
+
+
+# ---- protocol, reference, accuracy ------------------------------------------------------
+
+def protocol(speed: float, step_s: float) -> np.ndarray:
+    t = np.arange(round(DURATION_S / step_s) + 1) * step_s
+    end = 1.0 + (1.08 - 0.95) / speed
+    return 0.95 + speed * np.clip(t - 1.0, 0.0, end - 1.0)
+
+
+def references(runs) -> dict[tuple, tuple[np.ndarray, np.ndarray]]:
+    from spindle.reference import ramp_and_hold, solve_reference
+
+    t = np.arange(round(DURATION_S / REFERENCE_DT_S) + 1) * REFERENCE_DT_S
+    out = {}
+    for run in runs:
+        speed, gd, gs = run
+        ref = solve_reference(ramp_and_hold(speed_L0_s=speed, gamma_dyn_pps=gd,
+                                            gamma_stat_pps=gs), t, params=PARAMS)
+        out[run] = (ref.ia, ref.ii)
+    return out
+
+
+def host_rates(lib, cfg: Config, run) -> tuple[np.ndarray, np.ndarray]:
+    speed, gd, gs = run
+    L = protocol(speed, cfg.step_s).astype(np.float32)
+    _, PsSpindle = cbuild.structs("float")
+    params = cbuild.params_struct(PARAMS, "float")
+    s = PsSpindle()
+    if lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(params), L[0], gd, gs) != 0:
+        raise RuntimeError("init failed")
+    ia = np.empty(len(L))
+    ii = np.empty(len(L))
+    a, b = ctypes.c_float(), ctypes.c_float()
+    lib.ps_spindle_afferents(ctypes.byref(s), ctypes.byref(params), ctypes.byref(a),
+                             ctypes.byref(b))
+    ia[0], ii[0] = a.value, b.value
+    if cfg.plan:
+        plan = cbackend.plan_struct("float")()
+        lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(params), cfg.step_s, cfg.theta)
+    for j in range(1, len(L)):
+        if cfg.plan:
+            code = lib.ps_spindle_step_plan(ctypes.byref(s), ctypes.byref(plan), L[j], gd, gs,
+                                            ctypes.byref(a), ctypes.byref(b))
+        else:
+            code = lib.ps_spindle_step(ctypes.byref(s), ctypes.byref(params), L[j], gd, gs,
+                                       cfg.step_s, cfg.theta, ctypes.byref(a), ctypes.byref(b))
+        if code != 0:
+            raise RuntimeError(f"host step {j}: {cbackend.status_name(code)}")
+        ia[j], ii[j] = a.value, b.value
+    return ia, ii
+
+
+def accuracy(lib, cfg: Config, refs) -> float:
+    """Worst-run RMS (pps) of Ia and II against the reference, over the 9 runs."""
+    every = round(cfg.step_s / REFERENCE_DT_S)
+    worst = 0.0
+    for run, (ref_ia, ref_ii) in refs.items():
+        ia, ii = host_rates(lib, cfg, run)
+        for got, ref in ((ia, ref_ia[::every]), (ii, ref_ii[::every])):
+            worst = max(worst, float(np.sqrt(np.mean((got - ref) ** 2))))
+    return worst
+
+
+# ---- one configuration --------------------------------------------------------------------
+
+@dataclasses.dataclass
+class Measured:
+    cfg: Config
+    instr_mean: float
+    instr_max: int
+    mips: float
+    rms_pps: float
+    flash: int
+    ram: int
+    stack_used: int
+    max_diff_host_pps: float
+    steps: int
+    violations: list[str]
+    profile: list[tuple[str, int]]
+
+
+def measure(cfg: Config, runs, refs, build_dir: Path) -> Measured:
+    lib = host_library(cfg, build_dir)
+    rms = accuracy(lib, cfg, refs)
+    elf = build_firmware(cfg, build_dir)
+    emu = M0Plus(elf)
+    if emu.read_symbol("fw_params") != bytes(cbuild.params_struct(PARAMS, "float")):
+        raise RuntimeError("fw_params in firmware.c differ from spindle.HUMAN")
+    counts = []
+    max_diff = 0.0
+    # the runs in pairs: muscle 0 and muscle 1 follow different runs at once
+    pairs = [runs[k:k + 2] for k in range(0, len(runs), 2)]
+    for pair in pairs:
+        pair = list(pair) + [pair[0]] * (2 - len(pair))
+        lengths = [protocol(speed, cfg.step_s) for speed, _, _ in pair]
+        gds = [gd for _, gd, _ in pair]
+        gss = [gs for _, _, gs in pair]
+        emu.write_io([x[0] for x in lengths], gds, gss)
+        status, _ = emu.call("fw_init")
+        if status != 0:
+            raise RuntimeError(f"fw_init: {cbackend.status_name(status)}")
+        host = [host_rates(lib, cfg, run) for run in pair]
+        for j in range(1, len(lengths[0])):
+            emu.write_io([x[j] for x in lengths], gds, gss)
+            for k in range(2):
+                status, n = emu.call("fw_step_muscle", k)
+                if status != 0:
+                    raise RuntimeError(f"fw_step_muscle: {cbackend.status_name(status)}")
+                counts.append(n)
+            ia, ii, _ = emu.read_rates()
+            for k in range(2):
+                max_diff = max(max_diff, abs(ia[k] - host[k][0][j]), abs(ii[k] - host[k][1][j]))
+    # RAM: re-link with the stack reservation cut to the measured high-water mark plus a
+    # 64-byte margin (rounded to 64 B); arm-none-eabi-size then counts it in bss.
+    stack = (emu.stack_used() + 64 + 63) // 64 * 64
+    sized = build_firmware(cfg, build_dir, stack_bytes=stack)
+    flash, ram = sizes(sized)
+    seen, bad = objdump_violations(sized)
+    if seen < 100:
+        raise RuntimeError("objdump parsing found almost no instructions")
+    counts = np.array(counts)
+    return Measured(cfg, float(counts.mean()), int(counts.max()),
+                    float(counts.mean()) / cfg.step_s / 1e6, rms, flash, ram, emu.stack_used(),
+                    max_diff, len(counts), sorted(emu.violations) + bad,
+                    [(name, n // len(counts)) for name, n in emu.profile.most_common(12)])
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="only the final configuration, emulated on 2 of the 9 runs")
+    ap.add_argument("--build-dir", type=Path, default=None)
+    ap.add_argument("--profile", action="store_true",
+                    help="print the instructions per step spent in each function")
+    ap.add_argument("--only", type=int, nargs="*", default=None,
+                    help="indices of the lever rows to measure")
+    args = ap.parse_args(argv)
+    try:
+        import unicorn
+    except ImportError:
+        sys.exit("needs unicorn >= 2.1: pip install 'unicorn>=2.1'")
+    t0 = time.perf_counter()
+    all_runs = [(v, gd, gs) for v in SPEEDS for gd, gs in DRIVES]
+    build_dir = args.build_dir or Path(tempfile.mkdtemp(prefix="bench_embedded_"))
+    build_dir.mkdir(parents=True, exist_ok=True)
+    print(f"unicorn {unicorn.__version__}; instruction-set probe:")
+    for what, outcome in isa_probe().items():
+        print(f"  {what}: {outcome}")
+    refs = references(all_runs)
+    print(f"reference (scipy Radau, HUMAN, 9 runs): {time.perf_counter() - t0:.0f} s")
+    configs = [FINAL] if args.quick else LEVERS
+    if args.only is not None:
+        configs = [LEVERS[k] for k in args.only]
+    rows = []
+    for cfg in configs:
+        # lever rows: instructions over 2 runs (the fastest ramp with dynamic drive, the
+        # medium one with static drive); the final row in full mode: all 9 runs
+        emulated = all_runs if (cfg is FINAL and not args.quick) else list(QUICK_RUNS)
+        m = measure(cfg, emulated, refs, build_dir)
+        rows.append(m)
+        print(f"{cfg.label}: {m.instr_mean:.0f} instr/step (max {m.instr_max}), "
+              f"{m.mips:.3f} MIPS/muscle, rms {m.rms_pps:.3f} pps, flash {m.flash} B, "
+              f"RAM {m.ram} B (stack high-water {m.stack_used} B), emulator vs host "
+              f"{m.max_diff_host_pps:.2g} pps over {m.steps} steps", flush=True)
+        if args.profile:
+            print("  instructions per step by function:",
+                  ", ".join(f"{name} {n}" for name, n in m.profile))
+        if m.violations:
+            print("  ARMv7-M-only instructions:", *m.violations[:10], sep="\n    ")
+            return 1
+    print("\n| configuration | step (ms) | instr/step | MIPS/muscle | RMS (pps) | flash (B) "
+          "| RAM (B) |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for m in rows:
+        print(f"| {m.cfg.label} | {m.cfg.step_s * 1e3:g} | {m.instr_mean:.0f} | {m.mips:.3f} | "
+              f"{m.rms_pps:.3f} | {m.flash} | {m.ram} |")
+    final = rows[-1]
+    print(f"ARMv6-M check: every executed instruction decoded, objdump of the whole firmware: "
+          f"no ARMv7-M-only instruction; total {time.perf_counter() - t0:.0f} s")
+    print(f"m0plus_mips_per_muscle={final.mips:.4f} rms_pps={final.rms_pps:.4f} "
+          f"flash_bytes={final.flash} ram_bytes={final.ram}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
