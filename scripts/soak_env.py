@@ -3,6 +3,7 @@ bounded. Every 1000 steps a NaN action and an out-of-box action are tried: each 
 ``ValueError`` and leave the state untouched.
 
     python scripts/soak_env.py --steps 1000000 [--env proprio_env/ElbowReach-v0] [--seed 0]
+        [--max-minutes M]
 
 Bounds checked at every step: elbow angle within the joint range +- 5 deg (soft joint
 limits), |angular velocity| < 5000 deg/s, Ia and II in [0, 1000) pps, gamma drives finite and
@@ -53,9 +54,10 @@ def check_step(obs: np.ndarray, info: dict[str, Any], joint_range_deg, step: int
 
 
 def soak(env_id: str, steps: int, seed: int = 0, report_every: int = 0,
-         **env_kwargs: Any) -> dict[str, Any]:
-    """Run ``steps`` random-action steps of ``env_id``; raise :class:`SoakError` on a bound
-    violation. Returns the extremes seen and the rate."""
+         max_minutes: float = math.inf, **env_kwargs: Any) -> dict[str, Any]:
+    """Run ``steps`` random-action steps of ``env_id`` (fewer if ``max_minutes`` of wall time
+    run out first); raise :class:`SoakError` on a bound violation. Returns the number of
+    steps done, the extremes seen and the rate."""
     import gymnasium as gym
 
     import proprio_env  # noqa: F401  (registers the envs)
@@ -70,7 +72,10 @@ def soak(env_id: str, steps: int, seed: int = 0, report_every: int = 0,
                 "ii_pps": [math.inf, -math.inf]}
     episodes, rejected = 1, 0
     start = time.perf_counter()
+    done = 0
     for step in range(1, steps + 1):
+        if step % 1000 == 0 and time.perf_counter() - start > 60 * max_minutes:
+            break
         if step % 1000 == 0:
             before = (base.data.time, base.angle_deg)
             for bad in (np.full(n_act, np.nan), space.high + 1.0):
@@ -88,6 +93,7 @@ def soak(env_id: str, steps: int, seed: int = 0, report_every: int = 0,
             v = np.asarray(info[key])
             extremes[key][0] = min(extremes[key][0], float(v.min()))
             extremes[key][1] = max(extremes[key][1], float(v.max()))
+        done = step
         if terminated or truncated:
             env.reset()
             episodes += 1
@@ -100,8 +106,8 @@ def soak(env_id: str, steps: int, seed: int = 0, report_every: int = 0,
     elapsed = time.perf_counter() - start
     counters = dict(base.afferents.chain.counters)
     env.close()
-    return {"steps": steps, "episodes": episodes, "elapsed_s": elapsed,
-            "steps_per_s": steps / elapsed, "bad_actions_rejected": rejected,
+    return {"steps": done, "episodes": episodes, "elapsed_s": elapsed,
+            "steps_per_s": done / elapsed, "bad_actions_rejected": rejected,
             "extremes": extremes, "chain_counters_last_episode": counters}
 
 
@@ -112,16 +118,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--afferent-source", default=None)
     parser.add_argument("--report-every", type=int, default=10_000)
+    parser.add_argument("--max-minutes", type=float, default=math.inf,
+                        help="stop (and report the steps done) after this wall time")
     args = parser.parse_args(argv)
     if args.steps < 1:
         parser.error("--steps must be >= 1")
     kwargs = {} if args.afferent_source is None else {"afferent_source": args.afferent_source}
     try:
-        result = soak(args.env, args.steps, args.seed, args.report_every, **kwargs)
+        result = soak(args.env, args.steps, args.seed, args.report_every,
+                      args.max_minutes, **kwargs)
     except SoakError as exc:
         print(f"SOAK FAILED: {exc}")
         return 1
     ex = result["extremes"]
+    if result["steps"] < args.steps:
+        print(f"stopped by --max-minutes after {result['steps']} of {args.steps} steps")
     print(f"{args.env}: {result['steps']} steps ({result['episodes']} episodes) in "
           f"{result['elapsed_s'] / 60:.1f} min, {result['steps_per_s']:.1f} steps/s; no "
           f"NaN/inf, state bounded: angle {ex['angle_deg'][0]:.2f}..{ex['angle_deg'][1]:.2f} "
