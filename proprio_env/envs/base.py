@@ -92,14 +92,6 @@ class ElbowProprioEnv(gym.Env):
         width: int = 320,
         height: int = 320,
     ) -> None:
-        self._init_kwargs = dict(
-            control_hz=control_hz, afferent_source=afferent_source, backend=backend,
-            chain_config=chain_config, encoder_params=encoder_params,
-            include_fusimotor=include_fusimotor, target_ranges_deg=target_ranges_deg,
-            initial_angle_ranges_deg=initial_angle_ranges_deg,
-            distance_reward_weight=distance_reward_weight,
-            control_cost_weight=control_cost_weight, clip_actions=clip_actions,
-            xml_file=xml_file, render_mode=render_mode, width=width, height=height)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode={render_mode!r} is not one of "
                              f"{self.metadata['render_modes']}")
@@ -201,7 +193,6 @@ class ElbowProprioEnv(gym.Env):
         mujoco.mj_forward(m, d)
         length = self._fibre_lengths(d.ten_length[self._tendon_ids][None, :])[0]
         self._sample = self.afferents.reset(d.time, angle, length, rng)
-        self._last_action = np.zeros(self.action_space.shape)
         return self._observation(), self._info(0, 0.0, 0.0)
 
     def step(self, action):
@@ -229,7 +220,6 @@ class ElbowProprioEnv(gym.Env):
             raise RuntimeError(f"physics diverged: elbow angle {d.qpos[self._qadr]!r} rad, "
                                f"velocity {d.qvel[self._vadr]!r} rad/s")
         self._sample, pushed = self.afferents.push(t_buf, np.degrees(a_buf), lengths)
-        self._last_action = action
         obs = self._observation()
         error_rad = abs(math.radians(self.angle_deg - self._target_deg))
         reward_distance = -self.distance_reward_weight * error_rad
