@@ -9,8 +9,8 @@ angles. The score of an episode is its mean |elbow angle - target| over the last
 Needs the ``train`` extra (stable-baselines3, a CPU torch, matplotlib, tqdm). Runs on one
 core (torch threads = 1, one env in-process).
 
-    python scripts/train.py --timesteps 300000 --max-minutes 28 --out out/train \
-        --curve docs/img/train_curve.png          # the documented full run
+    python scripts/train.py --timesteps 250000 --max-minutes 80 --out out/train_full \
+        --curve docs/img/train_curve.png          # the documented full run (docs/envs.md)
     python scripts/train.py --timesteps 256 --smoke --out /tmp/smoke   # seconds
 
 Prints progress lines (steps, steps/s, ETA, training |error|) and at the end one line per
@@ -181,8 +181,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
     parser.add_argument("--afferent-source", default=None,
                         help="exact | reduced | encoder (default: the env's)")
-    parser.add_argument("--timesteps", type=int, default=300_000)
-    parser.add_argument("--max-minutes", type=float, default=28.0,
+    parser.add_argument("--timesteps", type=int, default=250_000)
+    parser.add_argument("--max-minutes", type=float, default=80.0,
                         help="stop training after this wall time (min)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--eval-episodes", type=int, default=30)
