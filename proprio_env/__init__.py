@@ -1,9 +1,37 @@
-"""MuJoCo side of the proprioception toolkit: the Arm26 elbow model and its exact muscle lengths.
+"""MuJoCo side of the proprioception toolkit: the Arm26 elbow model, its exact muscle lengths
+and the Gymnasium envs.
 
-Kept light on purpose: importing the package does not import MuJoCo or Gymnasium; the
-submodules do (``proprio_env.model``, ``proprio_env.muscle_length``).
+Kept light on purpose: importing the package does not import MuJoCo or the env modules. It
+registers two Gymnasium ids by their entry-point strings (``proprio_env.envs`` is imported
+only when ``gymnasium.make`` builds one):
+
+- ``proprio_env/ElbowReach-v0``: muscle-driven elbow, spindle afferents as observation;
+- ``proprio_env/ProsthesisElbow-v0``: servo-driven prosthetic elbow, afferents through the
+  encoder chain.
 """
 
 from proprio_env.model import JOINT, MUSCLES, model_path
 
-__all__ = ["JOINT", "MUSCLES", "model_path"]
+__all__ = ["ENV_IDS", "JOINT", "MUSCLES", "model_path", "register_envs"]
+
+ENV_IDS = {
+    "proprio_env/ElbowReach-v0": "proprio_env.envs.elbow_reach:ElbowReachEnv",
+    "proprio_env/ProsthesisElbow-v0": "proprio_env.envs.prosthesis_elbow:ProsthesisElbowEnv",
+}
+MAX_EPISODE_STEPS = 200
+"""Truncation of the registered envs: 200 steps, 4 s at the default 50 Hz."""
+
+
+def register_envs() -> None:
+    """Register :data:`ENV_IDS` with Gymnasium (idempotent; done on import)."""
+    try:
+        import gymnasium
+    except ImportError:  # gymnasium is a core dependency; tolerate its absence for model use
+        return
+    for env_id, entry_point in ENV_IDS.items():
+        if env_id not in gymnasium.registry:
+            gymnasium.register(id=env_id, entry_point=entry_point,
+                               max_episode_steps=MAX_EPISODE_STEPS)
+
+
+register_envs()

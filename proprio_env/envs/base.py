@@ -1,0 +1,336 @@
+"""What the two elbow envs share: physics, timing, targets, afferent observation, rendering.
+
+One env step of ``dt = 1 / control_hz`` seconds applies the action, runs ``dt / timestep``
+MuJoCo steps (2 ms each in ``elbow.xml``), collects the sensor samples of that interval
+(one per physics step, or the encoder's own jittered ~500 Hz readings) and pushes them in one
+block through the spindle chain, so the physics, the sensor and the spindles always end the
+step at the same time. The observation is the chain's output at the end of the step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from gymnasium import spaces
+
+from proprio_env.envs.afferents import AfferentReadout, check_source
+from proprio_env.model import JOINT, MUSCLES, load_model
+from proprio_env.muscle_length import fibre_length_L0, muscle_geometry
+from spindle.chain import ArmSample, ChainConfig
+from spindle.sensor import AX12, EncoderParams
+
+RATE_SCALE_PPS = 100.0
+"""Afferent and fusimotor rates enter the observation divided by this (pps)."""
+
+MUSCLE_GROUP_BIT = 1 << 1
+SERVO_GROUP_BIT = 1 << 2
+"""``model.opt.disableactuator`` bits: actuator group 1 = muscles, group 2 = servo."""
+
+
+def check_ranges_deg(name: str, ranges: Any, limits_deg: tuple[float, float]
+                     ) -> tuple[tuple[float, float], ...]:
+    """``ranges`` as a tuple of (low, high) intervals (deg) inside ``limits_deg``."""
+    try:
+        out = tuple((float(lo), float(hi)) for lo, hi in ranges)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}={ranges!r} must be a sequence of (low, high) pairs "
+                         "in degrees") from exc
+    if not out:
+        raise ValueError(f"{name} must hold at least one (low, high) interval")
+    lo_lim, hi_lim = limits_deg
+    for lo, hi in out:
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo_lim <= lo <= hi <= hi_lim):
+            raise ValueError(f"{name} interval ({lo!r}, {hi!r}) must satisfy "
+                             f"{lo_lim:g} <= low <= high <= {hi_lim:g} deg")
+    return out
+
+
+def draw_from_ranges(rng: np.random.Generator, ranges: tuple[tuple[float, float], ...]
+                     ) -> float:
+    """A uniform draw from the union of the intervals ``ranges`` (by width; a zero-width
+    interval is a fixed value)."""
+    widths = np.array([hi - lo for lo, hi in ranges])
+    if widths.sum() == 0:
+        lo, _ = ranges[int(rng.integers(len(ranges)))]
+        return lo
+    k = int(rng.choice(len(ranges), p=widths / widths.sum()))
+    lo, hi = ranges[k]
+    return float(rng.uniform(lo, hi))
+
+
+class ElbowProprioEnv(gym.Env):
+    """Base class; see :class:`~proprio_env.envs.ElbowReachEnv` and
+    :class:`~proprio_env.envs.ProsthesisElbowEnv` for the documented envs."""
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    #: set by subclasses
+    disabled_groups: ClassVar[int] = 0
+    default_source: ClassVar[str] = "exact"
+
+    def __init__(
+        self,
+        *,
+        control_hz: float = 50.0,
+        afferent_source: str | None = None,
+        backend: str = "numpy",
+        chain_config: ChainConfig | None = None,
+        encoder_params: EncoderParams = AX12,
+        include_fusimotor: bool = False,
+        target_ranges_deg: Any = ((15.0, 115.0),),
+        initial_angle_ranges_deg: Any = ((10.0, 120.0),),
+        distance_reward_weight: float = 1.0,
+        control_cost_weight: float = 0.0,
+        clip_actions: bool = False,
+        xml_file: str | None = None,
+        render_mode: str | None = None,
+        width: int = 320,
+        height: int = 320,
+    ) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r} is not one of "
+                             f"{self.metadata['render_modes']}")
+        self.render_mode = render_mode
+        self.width, self.height = int(width), int(height)
+
+        self.model = load_model(xml_file)
+        self.model.opt.disableactuator = self.disabled_groups
+        self.data = mujoco.MjData(self.model)
+        timestep = float(self.model.opt.timestep)
+        if not (isinstance(control_hz, int | float) and math.isfinite(control_hz)
+                and control_hz > 0):
+            raise ValueError(f"control_hz={control_hz!r} must be a finite number > 0")
+        frames = round(1.0 / (control_hz * timestep))
+        if frames < 1 or abs(frames * timestep * control_hz - 1.0) > 1e-9:
+            raise ValueError(
+                f"control_hz={control_hz!r}: the env step 1/control_hz must be a whole number "
+                f"of physics steps of {timestep:g} s (e.g. 50, 100, 125, 250, 500 Hz)")
+        self.frame_skip = frames
+        self.control_hz = float(control_hz)
+        self.metadata = {**self.metadata, "render_fps": self.control_hz}
+
+        self._qadr = int(self.model.jnt_qposadr[self.model.joint(JOINT).id])
+        self._vadr = int(self.model.jnt_dofadr[self.model.joint(JOINT).id])
+        lo, hi = (math.degrees(x) for x in self.model.jnt_range[self.model.joint(JOINT).id])
+        self.joint_range_deg = (lo, hi)
+        self.target_ranges_deg = check_ranges_deg("target_ranges_deg", target_ranges_deg,
+                                                  self.joint_range_deg)
+        self.initial_angle_ranges_deg = check_ranges_deg(
+            "initial_angle_ranges_deg", initial_angle_ranges_deg, self.joint_range_deg)
+        for name, w in (("distance_reward_weight", distance_reward_weight),
+                        ("control_cost_weight", control_cost_weight)):
+            if not (math.isfinite(w) and w >= 0):
+                raise ValueError(f"{name}={w!r} must be finite and >= 0")
+        self.distance_reward_weight = float(distance_reward_weight)
+        self.control_cost_weight = float(control_cost_weight)
+        self.clip_actions = bool(clip_actions)
+        self.include_fusimotor = bool(include_fusimotor)
+
+        self._geometries = tuple(muscle_geometry(self.model, m) for m in MUSCLES)
+        self._tendon_ids = np.array([self.model.tendon(m).id for m in MUSCLES])
+        source = self.default_source if afferent_source is None else afferent_source
+        config = replace(ChainConfig() if chain_config is None else chain_config,
+                         backend=backend)
+        self.afferents = AfferentReadout(check_source(source), config, encoder_params)
+        self.afferent_source = source
+        self.backend = backend
+
+        n_obs = 5 + (4 if self.include_fusimotor else 0)
+        low = np.zeros(n_obs, dtype=np.float32)
+        high = np.full(n_obs, np.inf, dtype=np.float32)
+        low[4], high[4] = 0.0, math.radians(hi)
+        self.observation_space = spaces.Box(low, high, dtype=np.float32)
+        self.action_space = self._make_action_space()
+
+        self._target_deg = 0.5 * (lo + hi)
+        self._sample: ArmSample | None = None
+        self._renderer: mujoco.Renderer | None = None
+        self._t_buf = np.empty(self.frame_skip)
+        self._angle_buf = np.empty(self.frame_skip)
+        self._mtu_buf = np.empty((self.frame_skip, 2))
+
+    # -- subclass hooks ---------------------------------------------------------------------
+    def _make_action_space(self) -> spaces.Box:
+        raise NotImplementedError
+
+    def _apply_action(self, action: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def _control_cost(self, action: np.ndarray) -> float:
+        return self.control_cost_weight * float(np.dot(action, action))
+
+    # -- gymnasium API ----------------------------------------------------------------------
+    @property
+    def dt(self) -> float:
+        """Duration of one env step (s)."""
+        return self.frame_skip * float(self.model.opt.timestep)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Start an episode. ``options`` may fix ``"target_deg"`` and ``"angle_deg"``
+        (elbow flexion, deg, inside the joint range) instead of drawing them."""
+        super().reset(seed=seed)
+        options = {} if options is None else dict(options)
+        unknown = set(options) - {"target_deg", "angle_deg"}
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; "
+                             "known: 'target_deg', 'angle_deg'")
+        rng = self.np_random
+        target = (self._fixed_angle("target_deg", options["target_deg"])
+                  if "target_deg" in options else draw_from_ranges(rng, self.target_ranges_deg))
+        angle = (self._fixed_angle("angle_deg", options["angle_deg"])
+                 if "angle_deg" in options
+                 else draw_from_ranges(rng, self.initial_angle_ranges_deg))
+        self._target_deg = target
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        d.qpos[self._qadr] = math.radians(angle)
+        self._reset_controls(angle)
+        mujoco.mj_forward(m, d)
+        length = self._fibre_lengths(d.ten_length[self._tendon_ids][None, :])[0]
+        self._sample = self.afferents.reset(d.time, angle, length, rng)
+        return self._observation(), self._info(0, 0.0, 0.0)
+
+    def step(self, action):
+        if self._sample is None:
+            raise RuntimeError("call reset() before step()")
+        action = self._check_action(action)
+        self._apply_action(action)
+        m, d = self.model, self.data
+        t_buf, a_buf, mtu = self._t_buf, self._angle_buf, self._mtu_buf
+        exact = self.afferent_source == "exact"
+        n = self.frame_skip
+        for k in range(n):
+            mujoco.mj_step(m, d)
+            t_buf[k] = d.time
+            a_buf[k] = d.qpos[self._qadr]
+            if exact and k:
+                # after mj_step, ten_length is the length at the start of that step
+                mtu[k - 1] = d.ten_length[self._tendon_ids]
+        lengths = None
+        if exact:
+            mujoco.mj_fwdPosition(m, d)
+            mtu[n - 1] = d.ten_length[self._tendon_ids]
+            lengths = self._fibre_lengths(mtu)
+        if not (np.isfinite(d.qpos[self._qadr]) and np.isfinite(d.qvel[self._vadr])):
+            raise RuntimeError(f"physics diverged: elbow angle {d.qpos[self._qadr]!r} rad, "
+                               f"velocity {d.qvel[self._vadr]!r} rad/s")
+        self._sample, pushed = self.afferents.push(t_buf, np.degrees(a_buf), lengths)
+        obs = self._observation()
+        error_rad = abs(math.radians(self.angle_deg - self._target_deg))
+        reward_distance = -self.distance_reward_weight * error_rad
+        reward_control = -self._control_cost(action)
+        reward = reward_distance + reward_control
+        return obs, reward, False, False, self._info(pushed, reward_distance, reward_control)
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.model, height=self.height, width=self.width)
+        self._renderer.update_scene(self.data, camera=self._camera())
+        return self._renderer.render()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # -- pickling: everything but the GL renderer ---------------------------------------------
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_renderer"] = None
+        return state
+
+    # -- state readouts -----------------------------------------------------------------------
+    @property
+    def angle_deg(self) -> float:
+        """Elbow flexion (deg, 0 = straight)."""
+        return math.degrees(float(self.data.qpos[self._qadr]))
+
+    @property
+    def target_deg(self) -> float:
+        """This episode's target elbow flexion (deg)."""
+        return self._target_deg
+
+    # -- helpers ------------------------------------------------------------------------------
+    def _reset_controls(self, angle_deg: float) -> None:
+        self.data.ctrl[:] = 0.0
+
+    def _camera(self) -> mujoco.MjvCamera:
+        cam = mujoco.MjvCamera()
+        cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+        cam.lookat[:] = (0.0, 0.0, 0.55)
+        cam.distance = 0.9
+        cam.azimuth = 90.0
+        cam.elevation = -5.0
+        return cam
+
+    def _fixed_angle(self, name: str, value: Any) -> float:
+        lo, hi = self.joint_range_deg
+        x = float(value)
+        if not (math.isfinite(x) and lo <= x <= hi):
+            raise ValueError(f"{name}={value!r} must be finite and within the joint range "
+                             f"[{lo:g}, {hi:g}] deg")
+        return x
+
+    def _fibre_lengths(self, mtu_m: np.ndarray) -> np.ndarray:
+        return np.stack([fibre_length_L0(mtu_m[:, j], g)
+                         for j, g in enumerate(self._geometries)], axis=-1)
+
+    def _check_action(self, action: Any) -> np.ndarray:
+        space = self.action_space
+        try:
+            a = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"action {action!r} is not numeric") from exc
+        if a.shape != space.shape:
+            raise ValueError(f"action has shape {a.shape}, expected {space.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"action {a.tolist()} holds NaN or inf")
+        low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+        if np.any(a < low) or np.any(a > high):
+            if not self.clip_actions:
+                raise ValueError(
+                    f"action {a.tolist()} is outside the action box [{low.tolist()}, "
+                    f"{high.tolist()}] (pass clip_actions=True to clip instead)")
+            a = np.clip(a, low, high)
+        return a
+
+    def _observation(self) -> np.ndarray:
+        s = self._sample
+        parts = [s.ia_pps / RATE_SCALE_PPS, s.ii_pps / RATE_SCALE_PPS,
+                 [math.radians(self._target_deg)]]
+        if self.include_fusimotor:
+            parts += [s.gamma_static_pps / RATE_SCALE_PPS, s.gamma_dynamic_pps / RATE_SCALE_PPS]
+        obs = np.concatenate(parts).astype(np.float32)
+        if not np.all(np.isfinite(obs)):
+            raise RuntimeError(f"non-finite observation {obs.tolist()} (chain output "
+                               f"t={s.t_s!r})")
+        return obs
+
+    def _info(self, pushed: int, reward_distance: float, reward_control: float
+              ) -> dict[str, Any]:
+        s = self._sample
+        angle = self.angle_deg
+        return {
+            "time_s": float(self.data.time),
+            "angle_deg": angle,
+            "angular_velocity_deg_s": math.degrees(float(self.data.qvel[self._vadr])),
+            "target_deg": self._target_deg,
+            "angle_error_deg": angle - self._target_deg,
+            "length_L0": s.length_L0.copy(),
+            "velocity_L0_s": s.velocity_L0_s.copy(),
+            "gamma_static_pps": s.gamma_static_pps.copy(),
+            "gamma_dynamic_pps": s.gamma_dynamic_pps.copy(),
+            "ia_pps": s.ia_pps.copy(),
+            "ii_pps": s.ii_pps.copy(),
+            "sensor_time_s": float(s.t_s),
+            "sensor_samples": int(pushed),
+            "reward_distance": reward_distance,
+            "reward_control": reward_control,
+        }

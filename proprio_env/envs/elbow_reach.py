@@ -1,0 +1,130 @@
+# ruff: noqa: E501  (Gymnasium-style markdown tables in the class docstring)
+"""``proprio_env/ElbowReach-v0``: the muscle-driven elbow, felt only through its spindles."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+
+from proprio_env.envs.base import SERVO_GROUP_BIT, ElbowProprioEnv
+from proprio_env.model import MUSCLES
+
+
+class ElbowReachEnv(ElbowProprioEnv):
+    r"""
+    ## Description
+    The Arm26 elbow (OpenSim's Arm26, Holzbaur et al. 2005; ``models/elbow.xml``) moved by
+    two MuJoCo muscles, the brachialis (BRA, flexor) and the medial head of the triceps
+    (TRImed, extensor), under gravity. Each episode draws a target elbow angle; the agent
+    must bring the forearm there and hold it. It never sees the joint angle: it feels the
+    arm only through the primary (Ia) and secondary (II) afferents of one Mileusnic (2006)
+    muscle spindle per muscle (human gains), computed by the package's spindle chain
+    (``spindle.chain.ArmChain``) from the muscles' fibre lengths, with the fusimotor drive
+    (gamma_s, gamma_d) of the seed paper's PI template.
+
+    ## Action Space
+    The action space is a `Box(0, 1, (2,), float32)`: the neural excitations of the two
+    muscles (MuJoCo muscle ``ctrl``; activation follows with time constants 10 ms / 40 ms).
+
+    | Num | Action                          | Control Min | Control Max | Name (in XML) | Actuator | Type (Unit)          |
+    |-----|---------------------------------|-------------|-------------|---------------|----------|----------------------|
+    | 0   | excitation of the brachialis    | 0           | 1           | BRA           | muscle   | excitation (unitless)|
+    | 1   | excitation of the triceps medial| 0           | 1           | TRImed        | muscle   | excitation (unitless)|
+
+    An action holding NaN/inf, of the wrong shape or outside the box raises ``ValueError``
+    naming it; with ``clip_actions=True`` finite out-of-box actions are clipped instead.
+
+    ## Observation Space
+    A `Box(low, high, (5,), float32)` (9 with ``include_fusimotor=True``); rates are divided
+    by 100 pps (``RATE_SCALE_PPS``). The joint angle is *not* observed.
+
+    | Num | Observation                              | Min | Max   | Muscle | Type (Unit)              |
+    |-----|------------------------------------------|-----|-------|--------|--------------------------|
+    | 0   | Ia (primary afferent) rate / 100         | 0   | Inf   | BRA    | firing rate (100 pps)    |
+    | 1   | Ia rate / 100                            | 0   | Inf   | TRImed | firing rate (100 pps)    |
+    | 2   | II (secondary afferent) rate / 100       | 0   | Inf   | BRA    | firing rate (100 pps)    |
+    | 3   | II rate / 100                            | 0   | Inf   | TRImed | firing rate (100 pps)    |
+    | 4   | target elbow flexion                     | 0   | 2.269 | -      | angle (rad)              |
+    | 5   | gamma static drive / 100 (optional)      | 0   | Inf   | BRA    | firing rate (100 pps)    |
+    | 6   | gamma static drive / 100 (optional)      | 0   | Inf   | TRImed | firing rate (100 pps)    |
+    | 7   | gamma dynamic drive / 100 (optional)     | 0   | Inf   | BRA    | firing rate (100 pps)    |
+    | 8   | gamma dynamic drive / 100 (optional)     | 0   | Inf   | TRImed | firing rate (100 pps)    |
+
+    The rates are the chain's output at the end of the env step. The observation never holds
+    NaN: bad sensor samples are rejected by the chain (the previous output is kept), and a
+    non-finite physics state raises ``RuntimeError`` instead of being observed.
+
+    ``info`` carries the raw signals: ``angle_deg``, ``angular_velocity_deg_s``,
+    ``target_deg``, ``angle_error_deg`` (angle - target), ``length_L0`` and ``velocity_L0_s``
+    (the low-passed fibre lengths the spindles were stretched by, (2,)), ``gamma_static_pps``,
+    ``gamma_dynamic_pps``, ``ia_pps``, ``ii_pps`` ((2,), BRA then TRImed, in pps),
+    ``time_s`` (physics time), ``sensor_time_s`` (the chain's last sample time),
+    ``sensor_samples`` (samples pushed in the step), ``reward_distance``, ``reward_control``.
+
+    ## Rewards
+    ***reward*** *=* *reward_distance + reward_control*, with
+    *reward_distance* $= -w_{dist} |\theta - \theta_{target}|$ (rad, after the step) and
+    *reward_control* $= -w_{ctrl} \|a\|_2^2$; $w_{dist}$ = ``distance_reward_weight``
+    (default 1), $w_{ctrl}$ = ``control_cost_weight`` (default 0.05).
+
+    ## Starting State
+    Elbow flexion uniform over ``initial_angle_ranges_deg`` (default 10-120 deg), at rest,
+    muscles inactive; the target uniform over the union of ``target_ranges_deg`` (default
+    15-115 deg). ``reset(options={"target_deg": x, "angle_deg": y})`` fixes either. The
+    spindle chain starts at equilibrium on the initial lengths.
+
+    ## Timing
+    Each step lasts ``dt = 1 / control_hz`` (default 20 ms): 10 MuJoCo steps of 2 ms, a
+    sensor sample after each (500 Hz: the exact fibre lengths, or the angle for
+    ``afferent_source="reduced"``), all pushed through the chain in one block call; the
+    spindles advance in 1 ms sub-steps up to the end of the step.
+
+    ## Episode End
+    ### Termination
+    Never terminates.
+    ### Truncation
+    200 steps (4 s at 50 Hz) when made with ``gymnasium.make``.
+
+    ## Arguments
+    ```python
+    import gymnasium as gym
+    import proprio_env  # registers the envs
+    env = gym.make("proprio_env/ElbowReach-v0", afferent_source="reduced")
+    ```
+
+    | Parameter                  | Type        | Default           | Description |
+    |----------------------------|-------------|-------------------|-------------|
+    | `control_hz`               | float       | `50`              | env steps per second; 1/control_hz must be a multiple of the 2 ms physics step |
+    | `afferent_source`          | str         | `"exact"`         | `"exact"` (MuJoCo fibre lengths), `"reduced"` (angle -> fitted lengths) or `"encoder"` (simulated AX-12 -> prosthesis chain) |
+    | `backend`                  | str         | `"numpy"`         | spindle chain backend (`spindle.chain.BACKENDS`) |
+    | `chain_config`             | ChainConfig | `None`            | chain settings (its `backend` is replaced by `backend`) |
+    | `encoder_params`           | EncoderParams | `AX12`          | the simulated encoder (source `"encoder"`) |
+    | `include_fusimotor`        | bool        | `False`           | append gamma_s, gamma_d to the observation |
+    | `target_ranges_deg`        | pairs       | `((15, 115),)`    | intervals the target is drawn from (e.g. leave bands out for held-out evaluation) |
+    | `initial_angle_ranges_deg` | pairs       | `((10, 120),)`    | intervals the initial angle is drawn from |
+    | `distance_reward_weight`   | float       | `1`               | $w_{dist}$ |
+    | `control_cost_weight`      | float       | `0.05`            | $w_{ctrl}$ |
+    | `clip_actions`             | bool        | `False`           | clip out-of-box actions instead of raising |
+    | `xml_file`                 | str         | `None`            | another MJCF with the same names (default `models/elbow.xml`) |
+    | `render_mode`              | str         | `None`            | `"rgb_array"` (headless with `MUJOCO_GL=egl`) |
+    | `width`, `height`          | int         | `320`             | rendered image size (pixels) |
+
+    ## Version History
+    * v0: initial release (Mileusnic 2006 spindles with human gains, seed-paper fusimotor
+      template, 50 Hz control, 500 Hz sensor).
+    """
+
+    disabled_groups: ClassVar[int] = SERVO_GROUP_BIT
+    default_source: ClassVar[str] = "exact"
+
+    def __init__(self, *, control_cost_weight: float = 0.05, **kwargs: Any) -> None:
+        super().__init__(control_cost_weight=control_cost_weight, **kwargs)
+        self._muscle_ids = np.array([self.model.actuator(m).id for m in MUSCLES])
+
+    def _make_action_space(self) -> spaces.Box:
+        return spaces.Box(0.0, 1.0, (2,), dtype=np.float32)
+
+    def _apply_action(self, action: np.ndarray) -> None:
+        self.data.ctrl[self._muscle_ids] = action

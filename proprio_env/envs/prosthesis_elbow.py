@@ -1,0 +1,126 @@
+# ruff: noqa: E501  (Gymnasium-style markdown tables in the class docstring)
+"""``proprio_env/ProsthesisElbow-v0``: a servo-driven prosthetic elbow with artificial
+proprioception through its encoder, as in the seed paper."""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+from gymnasium import spaces
+
+from proprio_env.envs.base import MUSCLE_GROUP_BIT, ElbowProprioEnv
+from proprio_env.model import SERVO
+
+
+class ProsthesisElbowEnv(ElbowProprioEnv):
+    r"""
+    ## Description
+    The Arm26 elbow (``models/elbow.xml``) as a prosthesis: its muscles are passive
+    (disabled) and a position servo (``r_elbow_servo``: kp 100 N m/rad, kv 5 N m s/rad, torque
+    limit 20 N m) moves the forearm under gravity. As in the seed paper, the servo's own
+    position encoder (a simulated Dynamixel AX-12: ~500 Hz jittered readings, 0.29 deg
+    counts, noise, rare invalid readings) feeds the prosthesis chain: median filter (7), f(x),
+    fitted BRA/TRImed fibre lengths, 20 Hz tracking low-pass, PI fusimotor template and the
+    Mileusnic (2006) spindles with human gains. The agent commands the servo and must bring
+    the elbow to a target angle drawn each episode and hold it, feeling the arm only through
+    the Ia and II afferents it produces.
+
+    ## Action Space
+    The action space is a `Box(-1, 1, (1,), float32)`: the servo's commanded angle,
+    normalised over the joint range, $\theta_{cmd} = 65° + 65° \cdot a$.
+
+    | Num | Action                          | Control Min | Control Max | Name (in XML)  | Actuator | Type (Unit)              |
+    |-----|---------------------------------|-------------|-------------|----------------|----------|--------------------------|
+    | 0   | commanded elbow flexion         | -1          | 1           | r_elbow_servo  | position | angle (65 deg per unit, 0 at 65 deg) |
+
+    An action holding NaN/inf, of the wrong shape or outside the box raises ``ValueError``
+    naming it; with ``clip_actions=True`` finite out-of-box actions are clipped instead.
+
+    ## Observation Space
+    A `Box(low, high, (5,), float32)` (9 with ``include_fusimotor=True``); rates are divided
+    by 100 pps. The joint angle and the encoder readings are *not* observed.
+
+    | Num | Observation                              | Min | Max   | Muscle | Type (Unit)              |
+    |-----|------------------------------------------|-----|-------|--------|--------------------------|
+    | 0   | Ia (primary afferent) rate / 100         | 0   | Inf   | BRA    | firing rate (100 pps)    |
+    | 1   | Ia rate / 100                            | 0   | Inf   | TRImed | firing rate (100 pps)    |
+    | 2   | II (secondary afferent) rate / 100       | 0   | Inf   | BRA    | firing rate (100 pps)    |
+    | 3   | II rate / 100                            | 0   | Inf   | TRImed | firing rate (100 pps)    |
+    | 4   | target elbow flexion                     | 0   | 2.269 | -      | angle (rad)              |
+    | 5-8 | gamma static (BRA, TRImed), gamma dynamic (BRA, TRImed) / 100 (optional) | 0 | Inf | - | firing rate (100 pps) |
+
+    The observation never holds NaN: invalid encoder readings are rejected by the chain
+    (counted in ``env.unwrapped.afferents.chain.counters``), the previous output is kept.
+    ``info`` carries the same raw signals as ElbowReach-v0 (``angle_deg``, ``target_deg``,
+    ``angle_error_deg``, ``length_L0``, ``gamma_static_pps``, ``gamma_dynamic_pps``,
+    ``ia_pps``, ``ii_pps``, ``sensor_samples`` ...) plus ``command_deg``.
+
+    ## Rewards
+    ***reward*** *=* $-w_{dist} |\theta - \theta_{target}|$ (rad, after the step)
+    $- w_{ctrl} a^2$, with ``distance_reward_weight`` (default 1) and ``control_cost_weight``
+    (default 0).
+
+    ## Starting State
+    Elbow flexion uniform over ``initial_angle_ranges_deg`` (default 10-120 deg), at rest,
+    the servo holding that angle; target uniform over ``target_ranges_deg`` (default 15-115
+    deg); ``reset(options={"target_deg": x, "angle_deg": y})`` fixes either. The encoder's
+    noise, jitter and glitches come from the env's seeded generator.
+
+    ## Timing
+    Each step lasts ``dt = 1 / control_hz`` (default 20 ms): 10 MuJoCo steps of 2 ms; the
+    encoder reads at its own jittered ~500 Hz times inside that interval (the angle
+    interpolated between physics steps), and all the readings are pushed through the chain in
+    one block call.
+
+    ## Episode End
+    ### Termination
+    Never terminates.
+    ### Truncation
+    200 steps (4 s at 50 Hz) when made with ``gymnasium.make``.
+
+    ## Arguments
+    The same as ElbowReach-v0 (``control_hz``, ``afferent_source``, ``backend``,
+    ``chain_config``, ``encoder_params``, ``include_fusimotor``, ``target_ranges_deg``,
+    ``initial_angle_ranges_deg``, ``distance_reward_weight``, ``control_cost_weight``,
+    ``clip_actions``, ``xml_file``, ``render_mode``, ``width``, ``height``) with these defaults:
+
+    | Parameter              | Type  | Default     | Description |
+    |------------------------|-------|-------------|-------------|
+    | `afferent_source`      | str   | `"encoder"` | `"encoder"` (the prosthesis chain), `"reduced"` (clean angle -> fitted lengths) or `"exact"` (MuJoCo fibre lengths of the passive muscles) |
+    | `control_cost_weight`  | float | `0`         | $w_{ctrl}$ |
+
+    ## Version History
+    * v0: initial release (AX-12 encoder chain of the seed paper, human spindle gains, 50 Hz
+      control).
+    """
+
+    disabled_groups: ClassVar[int] = MUSCLE_GROUP_BIT
+    default_source: ClassVar[str] = "encoder"
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self._servo_id = self.model.actuator(SERVO).id
+        lo, hi = self.joint_range_deg
+        self._command_mid_deg = 0.5 * (lo + hi)
+        self._command_half_deg = 0.5 * (hi - lo)
+
+    def _make_action_space(self) -> spaces.Box:
+        return spaces.Box(-1.0, 1.0, (1,), dtype=np.float32)
+
+    def command_deg(self, action: np.ndarray) -> float:
+        """The servo command (deg) of a (valid) action."""
+        return self._command_mid_deg + self._command_half_deg * float(action[0])
+
+    def _apply_action(self, action: np.ndarray) -> None:
+        self.data.ctrl[self._servo_id] = math.radians(self.command_deg(action))
+
+    def _reset_controls(self, angle_deg: float) -> None:
+        super()._reset_controls(angle_deg)
+        self.data.ctrl[self.model.actuator(SERVO).id] = math.radians(angle_deg)
+
+    def _info(self, pushed, reward_distance, reward_control):
+        info = super()._info(pushed, reward_distance, reward_control)
+        info["command_deg"] = math.degrees(float(self.data.ctrl[self._servo_id]))
+        return info
