@@ -14,8 +14,8 @@ from functools import cache
 
 import numpy as np
 
-from spindle import cbuild, core
-from spindle.methods import Method, get_method
+from spindle import cbuild
+from spindle.methods import Method
 from spindle.params import CAT, SpindleParams
 
 STATUS = {
@@ -175,45 +175,11 @@ def simulate(
     sanitize: bool = False,
 ):
     """:func:`spindle.simulate` in C; ``variant="float"`` runs the float32 build."""
-    from spindle.simulate import SpindleResult, _broadcast_trace, hermite_weights, substeps
+    from spindle.simulate import SpindleResult, hermite_weights, prepare_inputs
 
-    m = get_method(method)
-    length = np.asarray(length, dtype=float)
-    if length.ndim not in (1, 2) or length.shape[0] < 1:
-        raise ValueError(f"length must have shape (T,) or (T, n), got {length.shape}")
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt={dt!r} s must be finite and > 0")
-    h_max = m.default_step_s if step is None else float(step)
-    core.check_step(h_max, m)
-    k = substeps(dt, h_max)
-    h = dt / k
-
-    shape = length.shape
-    L = length.reshape(shape[0], -1)
-    gd = _broadcast_trace("gamma_dyn", gamma_dyn, shape).reshape(L.shape)
-    gs = _broadcast_trace("gamma_stat", gamma_stat, shape).reshape(L.shape)
-    core.check_inputs(L, gd, gs)
-    core.check_speed(np.diff(L, axis=0), dt)
-    derivatives = []
-    if k > 1:
-        if velocity is None:
-            dL = np.gradient(L, dt, axis=0) if shape[0] > 1 else np.zeros_like(L)
-        else:
-            dL = _broadcast_trace("velocity", velocity, shape).reshape(L.shape)
-        derivatives.append(dL)
-        if acceleration is not None:
-            derivatives.append(_broadcast_trace("acceleration", acceleration, shape)
-                               .reshape(L.shape))
-    else:
-        derivatives = [
-            _broadcast_trace(name, x, shape)
-            for name, x in (("velocity", velocity), ("acceleration", acceleration))
-            if x is not None
-        ]
-    for name, arr in zip(("velocity", "acceleration"), derivatives, strict=False):
-        if not np.isfinite(arr).all():
-            raise ValueError(f"{name} contains non-finite values; every value must be finite")
-
+    m, L, gd, gs, derivatives, k, h = prepare_inputs(
+        length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method, step)
+    shape = np.shape(length)
     L_steps = substep_lengths(L, derivatives if k > 1 else [], k, dt, hermite_weights)
     n = L.shape[1]
     ia = np.empty_like(L)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -43,6 +44,68 @@ def _broadcast_trace(name: str, value: object, shape: tuple[int, ...]) -> np.nda
 def substeps(dt_s: float, step_s: float) -> int:
     """Number of equal internal steps, each at most ``step_s``, that make up ``dt_s``."""
     return max(1, math.ceil(dt_s / step_s * (1 - 1e-12)))
+
+
+class PreparedInputs(NamedTuple):
+    """Checked inputs of :func:`simulate`, shared by its numpy and C paths.
+
+    Attributes:
+        method: the integration setting.
+        L, gd, gs: (T, n) lengths and drives.
+        derivatives: the derivative traces (T, n) that shape the length between samples.
+        k: internal steps per sample interval; h: their length (s).
+    """
+
+    method: Method
+    L: np.ndarray
+    gd: np.ndarray
+    gs: np.ndarray
+    derivatives: list[np.ndarray]
+    k: int
+    h: float
+
+
+def prepare_inputs(length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method,
+                   step) -> PreparedInputs:
+    """Check and broadcast :func:`simulate`'s arguments (its Raises section applies)."""
+    m = get_method(method)
+    length = np.asarray(length, dtype=float)
+    if length.ndim not in (1, 2) or length.shape[0] < 1:
+        raise ValueError(f"length must have shape (T,) or (T, n), got {length.shape}")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt={dt!r} s must be finite and > 0")
+    h_max = m.default_step_s if step is None else float(step)
+    core.check_step(h_max, m)
+    k = substeps(dt, h_max)
+    h = dt / k
+
+    shape = length.shape
+    L = length.reshape(shape[0], -1)
+    gd = _broadcast_trace("gamma_dyn", gamma_dyn, shape).reshape(L.shape)
+    gs = _broadcast_trace("gamma_stat", gamma_stat, shape).reshape(L.shape)
+    core.check_inputs(L, gd, gs)
+    core.check_speed(np.diff(L, axis=0), dt)
+    derivatives = []
+    if k > 1:
+        if velocity is None:
+            dL = np.gradient(L, dt, axis=0) if shape[0] > 1 else np.zeros_like(L)
+        else:
+            dL = _broadcast_trace("velocity", velocity, shape).reshape(L.shape)
+        derivatives.append(dL)
+        if acceleration is not None:
+            derivatives.append(_broadcast_trace("acceleration", acceleration, shape)
+                               .reshape(L.shape))
+    else:
+        derivatives = [
+            _broadcast_trace(name, x, shape)
+            for name, x in (("velocity", velocity), ("acceleration", acceleration))
+            if x is not None
+        ]
+    for name, arr in zip(("velocity", "acceleration"), derivatives, strict=False):
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name} contains non-finite values; every value must be finite")
+
+    return PreparedInputs(m, L, gd, gs, derivatives, k, h)
 
 
 def simulate(
@@ -97,43 +160,9 @@ def simulate(
                                  method=method, step=step)
     if backend != "numpy":
         raise ValueError(f"backend={backend!r} is not one of ['c', 'numpy']")
-    m = get_method(method)
-    length = np.asarray(length, dtype=float)
-    if length.ndim not in (1, 2) or length.shape[0] < 1:
-        raise ValueError(f"length must have shape (T,) or (T, n), got {length.shape}")
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt={dt!r} s must be finite and > 0")
-    h_max = m.default_step_s if step is None else float(step)
-    core.check_step(h_max, m)
-    k = substeps(dt, h_max)
-    h = dt / k
-
-    shape = length.shape
-    L = length.reshape(shape[0], -1)
-    gd = _broadcast_trace("gamma_dyn", gamma_dyn, shape).reshape(L.shape)
-    gs = _broadcast_trace("gamma_stat", gamma_stat, shape).reshape(L.shape)
-    core.check_inputs(L, gd, gs)
-    core.check_speed(np.diff(L, axis=0), dt)
-    derivatives = []
-    if k > 1:
-        if velocity is None:
-            dL = np.gradient(L, dt, axis=0) if shape[0] > 1 else np.zeros_like(L)
-        else:
-            dL = _broadcast_trace("velocity", velocity, shape).reshape(L.shape)
-        derivatives.append(dL)
-        if acceleration is not None:
-            derivatives.append(_broadcast_trace("acceleration", acceleration, shape)
-                               .reshape(L.shape))
-    else:
-        derivatives = [
-            _broadcast_trace(name, x, shape)
-            for name, x in (("velocity", velocity), ("acceleration", acceleration))
-            if x is not None
-        ]
-    for name, arr in zip(("velocity", "acceleration"), derivatives, strict=False):
-        if not np.isfinite(arr).all():
-            raise ValueError(f"{name} contains non-finite values; every value must be finite")
-
+    m, L, gd, gs, derivatives, k, h = prepare_inputs(
+        length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method, step)
+    shape = np.shape(length)
     c = core.columns(params)
     state = core.equilibrium_state(L[0], gd[0], gs[0], params)
     ia = np.empty_like(L)
