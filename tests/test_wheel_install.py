@@ -7,6 +7,7 @@ comes from PyPI), and runs the resolvers from outside the repository.
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -39,6 +40,22 @@ CHECK = textwrap.dedent(
     fits = lf.load_length_fits()  # hash check against the installed elbow.xml
     exact = sweep(load_model(), np.radians([0.0, 65.0, 130.0]))
     assert np.max(np.abs(fits.length_L0(exact.angle_rad) - exact.fibre_length_L0)) < 1e-3
+
+    # The envs, the C sources (compiled from the installed copy) and the validation data.
+    import gymnasium as gym
+
+    import proprio_env.envs
+    import proprio_env.validation.ecrb as ecrb
+    import spindle.cbuild as cbuild
+
+    assert prefix in Path(proprio_env.envs.__file__).resolve().parents
+    assert prefix in cbuild.SOURCE_DIR.resolve().parents and cbuild.sources()
+    env = gym.make("proprio_env/ElbowReach-v0", backend="c")
+    obs, _ = env.reset(seed=0)
+    obs, *_ = env.step(env.action_space.sample())
+    assert np.isfinite(obs).all()
+    assert prefix in Path(ecrb.__file__).resolve().parents
+    assert ecrb.EcrbCurve.load().range_deg == (-70.0, 70.0)  # the bundled OpenSim table
     print("ok", model_path())
     """
 )
@@ -68,5 +85,8 @@ def test_wheel_install_finds_models(tmp_path):
     _run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheels[0])], tmp_path)
     work = tmp_path / "elsewhere"
     work.mkdir()
-    done = _run([str(python), "-c", CHECK], work)
+    env = {**os.environ, "PROPRIO_C_CACHE": str(tmp_path / "ccache")}
+    done = subprocess.run([str(python), "-c", CHECK], cwd=work, capture_output=True, text=True,
+                          env=env)
+    assert done.returncode == 0, f"{done.stdout}\n{done.stderr}"
     assert done.stdout.startswith("ok")
