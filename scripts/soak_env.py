@@ -117,13 +117,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--afferent-source", default=None)
+    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
+                        help="spindle chain backend (c: compiled on first use)")
     parser.add_argument("--report-every", type=int, default=10_000)
     parser.add_argument("--max-minutes", type=float, default=math.inf,
                         help="stop (and report the steps done) after this wall time")
     args = parser.parse_args(argv)
     if args.steps < 1:
         parser.error("--steps must be >= 1")
-    kwargs = {} if args.afferent_source is None else {"afferent_source": args.afferent_source}
+    kwargs = {"backend": args.backend}
+    if args.afferent_source is not None:
+        kwargs["afferent_source"] = args.afferent_source
     try:
         result = soak(args.env, args.steps, args.seed, args.report_every,
                       args.max_minutes, **kwargs)

@@ -61,14 +61,12 @@ def held_out_targets(n: int) -> np.ndarray:
     return np.array(targets)
 
 
-def make_env(env_id: str, source: str | None, ranges=None, seed: int | None = None):
+def make_env(env_id: str, env_kwargs: dict[str, Any], ranges=None, seed: int | None = None):
     import gymnasium as gym
 
     import proprio_env  # noqa: F401  (registers the envs)
 
-    kwargs: dict[str, Any] = {}
-    if source is not None:
-        kwargs["afferent_source"] = source
+    kwargs = dict(env_kwargs)
     if ranges is not None:
         kwargs["target_ranges_deg"] = ranges
     env = gym.make(env_id, **kwargs)
@@ -77,14 +75,14 @@ def make_env(env_id: str, source: str | None, ranges=None, seed: int | None = No
     return env
 
 
-def evaluate(policy, env_id: str, source: str | None, n_episodes: int, seed: int
+def evaluate(policy, env_id: str, env_kwargs: dict[str, Any], n_episodes: int, seed: int
              ) -> dict[str, float]:
     """Mean (and spread) over held-out episodes of the hold-phase mean |error| (deg).
 
     ``policy(obs, env) -> action``; episode i has target ``held_out_targets(n)[i]`` and an
     initial angle drawn by ``reset(seed=seed + i)``.
     """
-    env = make_env(env_id, source, seed=seed)
+    env = make_env(env_id, env_kwargs, seed=seed)
     scores = []
     for i, target in enumerate(held_out_targets(n_episodes)):
         obs, _ = env.reset(seed=seed + i, options={"target_deg": float(target)})
@@ -109,7 +107,7 @@ def random_policy(obs, env):
     return env.action_space.sample()
 
 
-def build_callback(args, env_id, source, curve_rows, start):
+def build_callback(args, env_id, env_kwargs, curve_rows, start):
     from stable_baselines3.common.callbacks import BaseCallback
 
     class Progress(BaseCallback):
@@ -135,7 +133,7 @@ def build_callback(args, env_id, source, curve_rows, start):
             held = math.nan
             if steps >= self._next_eval:
                 held = evaluate(lambda o, e: self.model.predict(o, deterministic=True)[0],
-                                env_id, source, args.curve_episodes, seed=10_000)[
+                                env_id, env_kwargs, args.curve_episodes, seed=10_000)[
                     "mean_abs_err_deg"]
                 self._next_eval = steps + args.eval_every
             curve_rows.append((steps, elapsed, train_err, held))
@@ -179,6 +177,9 @@ def plot_curve(rows, results, path: Path) -> None:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
+    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
+                        help="spindle chain backend (c: compiled on first use; needs a C "
+                             "compiler)")
     parser.add_argument("--afferent-source", default=None,
                         help="exact | reduced | encoder (default: the env's)")
     parser.add_argument("--timesteps", type=int, default=250_000)
@@ -202,9 +203,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from stable_baselines3.common.monitor import Monitor
 
     torch.set_num_threads(1)
+    env_kwargs: dict[str, Any] = {"backend": args.backend}
+    if args.afferent_source is not None:
+        env_kwargs["afferent_source"] = args.afferent_source
     args.out.mkdir(parents=True, exist_ok=True)
     curve_path = args.curve if args.curve is not None else args.out / "curve.png"
-    env = Monitor(make_env(args.env, args.afferent_source, training_ranges(), seed=args.seed))
+    env = Monitor(make_env(args.env, env_kwargs, training_ranges(), seed=args.seed))
     ppo_kwargs: dict[str, Any] = dict(n_steps=2048, batch_size=64, gamma=0.98,
                                       policy_kwargs=dict(log_std_init=-0.5))
     if args.smoke:
@@ -216,7 +220,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     print(f"training PPO on {args.env} for up to {args.timesteps} steps or "
           f"{args.max_minutes:g} min (held-out bands {HELD_OUT_BANDS} deg)", flush=True)
     model.learn(args.timesteps,
-                callback=build_callback(args, args.env, args.afferent_source, rows, start))
+                callback=build_callback(args, args.env, env_kwargs, rows, start))
     train_s = time.perf_counter() - start
     model.save(args.out / "policy.zip")
     env.close()
@@ -228,11 +232,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "random": random_policy,
     }
     for name, policy in policies.items():
-        results[name] = evaluate(policy, args.env, args.afferent_source, args.eval_episodes,
+        results[name] = evaluate(policy, args.env, env_kwargs, args.eval_episodes,
                                  seed=20_000)
     results["train"] = {"timesteps": int(model.num_timesteps), "wall_s": train_s,
                         "held_out_bands_deg": HELD_OUT_BANDS, "env": args.env,
-                        "afferent_source": args.afferent_source, "seed": args.seed}
+                        "afferent_source": args.afferent_source, "backend": args.backend,
+                        "seed": args.seed}
     (args.out / "eval.json").write_text(json.dumps(results, indent=2))
     with (args.out / "curve.csv").open("w", newline="") as fh:
         writer = csv.writer(fh)
