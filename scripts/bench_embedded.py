@@ -37,6 +37,7 @@ import bisect
 import collections
 import ctypes
 import dataclasses
+import functools
 import hashlib
 import shutil
 import struct
@@ -147,6 +148,76 @@ def host_library(cfg: Config, build_dir: Path) -> ctypes.CDLL:
     lib.ps_spindle_afferents.argtypes = [P(PsSpindle), P(PsParams), P(f), P(f)]
     lib.ps_spindle_afferents.restype = None
     return lib
+
+
+FX_Q24, FX_DRIVE, FX_RATE = 1 << 24, 256, 1 << 16
+FX_ROOT_TABLE = 31
+
+
+@functools.cache
+def fixed_structs() -> tuple[type, type]:
+    """ctypes mirrors of ps_plan_fx and ps_spindle_fx (proprio.h, fixed-point step)."""
+    i32, n = ctypes.c_int32, 3
+
+    class PsPlanFx(ctypes.Structure):
+        _fields_ = ([(k, i32) for k in ("max_dL", "theta", "one_minus_theta", "th_h", "S",
+                                         "tol", "y_max")]
+                    + [(k, i32 * n) for k in (
+                        "KSR", "inv_KSR", "inv_k1", "c_f0", "c_a0", "c_a1", "freq2",
+                        "beta0", "beta_drive", "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R",
+                        "LSR0", "LSR0_R", "LSR0_LPR0", "c_Av", "a2", "inv_a2", "r_cap", "M_h",
+                        "th_h_KSR", "th_k1", "th_KPR", "th_CL", "th_CS", "stretch0", "G_pri",
+                        "c_sec1", "c_sec2", "sec_off")]
+                    + [("root10", i32 * FX_ROOT_TABLE)])
+
+    class PsSpindleFx(ctypes.Structure):
+        _fields_ = ([(k, i32 * n) for k in ("T", "v", "z", "f", "target")]
+                    + [(k, i32) for k in ("L", "gd", "gs")])
+
+    return PsPlanFx, PsSpindleFx
+
+
+def declare_fixed(lib: ctypes.CDLL, variant: str) -> None:
+    """Prototypes of the fixed-point functions in a host build of spindle.c."""
+    PsPlanFx, PsSpindleFx = fixed_structs()
+    PsParams, _ = cbuild.structs(variant)
+    P, i32 = ctypes.POINTER, ctypes.c_int32
+    real = cbuild.real_type(variant)
+    lib.ps_plan_fx_init.argtypes = [P(PsPlanFx), P(PsParams), real, real]
+    lib.ps_spindle_fx_init.argtypes = [P(PsSpindleFx), P(PsPlanFx), i32, i32, i32]
+    lib.ps_spindle_step_fx.argtypes = [P(PsSpindleFx), P(PsPlanFx), i32, i32, i32, P(i32),
+                                       P(i32)]
+    lib.ps_spindle_fx_afferents.argtypes = [P(PsSpindleFx), P(PsPlanFx), P(i32), P(i32)]
+    lib.ps_spindle_fx_afferents.restype = None
+
+
+def fixed_rates(lib: ctypes.CDLL, plan, L: np.ndarray, gd: np.ndarray,
+                gs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Ia, II (pps) of the fixed-point step along L (L0), gd, gs (pps), starting at rest at
+    L[0]; (ia, ii, status): on a failing step the rest is NaN and its status is returned."""
+    _, PsSpindleFx = fixed_structs()
+    s = PsSpindleFx()
+    q24 = np.round(np.asarray(L, dtype=np.float64) * FX_Q24).astype(np.int64)
+    dgd = np.round(np.broadcast_to(gd, L.shape) * FX_DRIVE).astype(np.int64)
+    dgs = np.round(np.broadcast_to(gs, L.shape) * FX_DRIVE).astype(np.int64)
+    ia = np.full(len(L), np.nan)
+    ii = np.full(len(L), np.nan)
+    code = lib.ps_spindle_fx_init(ctypes.byref(s), ctypes.byref(plan), int(q24[0]),
+                                  int(dgd[0]), int(dgs[0]))
+    if code != 0:
+        return ia, ii, code
+    a, b = ctypes.c_int32(), ctypes.c_int32()
+    lib.ps_spindle_fx_afferents(ctypes.byref(s), ctypes.byref(plan), ctypes.byref(a),
+                                ctypes.byref(b))
+    ia[0], ii[0] = a.value / FX_RATE, b.value / FX_RATE
+    for j in range(1, len(L)):
+        code = lib.ps_spindle_step_fx(ctypes.byref(s), ctypes.byref(plan), int(q24[j]),
+                                      int(dgd[j]), int(dgs[j]), ctypes.byref(a),
+                                      ctypes.byref(b))
+        if code != 0:
+            return ia, ii, code
+        ia[j], ii[j] = a.value / FX_RATE, b.value / FX_RATE
+    return ia, ii, 0
 
 
 def plan_header(cfg: Config, build_dir: Path) -> Path:
