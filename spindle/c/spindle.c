@@ -16,9 +16,6 @@
 #include <math.h>
 #include <stddef.h>
 #include <string.h>
-#ifdef FXDBG
-#include <stdio.h>
-#endif
 
 #define R_(x) ((ps_real)(x))
 
@@ -693,6 +690,14 @@ static int32_t fx_ratio(uint32_t num, uint32_t den)
     return (int32_t)r;
 }
 
+/* Straight-line for the reason of copy3 (no memcpy call). */
+static void fx_copy3(int32_t dst[PS_NFIBRES], const int32_t src[PS_NFIBRES])
+{
+    dst[0] = src[0];
+    dst[1] = src[1];
+    dst[2] = src[2];
+}
+
 static int32_t fx_max(int32_t a, int32_t b) { return a < b ? b : a; }
 
 static int32_t fx_min(int32_t a, int32_t b) { return b < a ? b : a; }
@@ -978,9 +983,6 @@ static int fx_solve_03(int32_t *z_io, int32_t *v, const ps_plan_fx *q, int i, in
         y -= dy;
         if (y < 0) y = 0;
         if (y > q->y_max) y = q->y_max;
-#ifdef FXDBG
-        fprintf(stderr, "it %d y %ld g %ld dg %ld dy %ld r %ld p0 %ld c %ld\n", it, (long)y, (long)g, (long)dg, (long)dy, (long)r, (long)p0, (long)c);
-#endif
         if (fx_abs(dy) <= q->tol) break;
     }
     if (fx_abs(dy) > q->tol) return PS_ERR_NO_CONVERGENCE;
@@ -1042,13 +1044,11 @@ int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_
         if (T1[i] < -t_max || T1[i] > t_max) return PS_ERR_NONFINITE;
     }
     fx_afferents(q, T1, L1, &r_ia, &r_ii);
-    for (i = 0; i < PS_NFIBRES; ++i) {
-        s->T[i] = T1[i];
-        s->v[i] = v1[i];
-        s->z[i] = z1[i];
-        s->f[i] = f1[i];
-        s->target[i] = tg1[i];
-    }
+    fx_copy3(s->T, T1);
+    fx_copy3(s->v, v1);
+    fx_copy3(s->z, z1);
+    fx_copy3(s->f, f1);
+    fx_copy3(s->target, tg1);
     s->L = L1;
     s->gd = gd1;
     s->gs = gs1;
