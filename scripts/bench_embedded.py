@@ -169,9 +169,9 @@ def fixed_structs() -> tuple[type, type]:
 
     class PsPlanFx(ctypes.Structure):
         _fields_ = ([(k, i32) for k in ("max_dL", "theta", "one_minus_theta", "th_h", "S",
-                                         "tol", "y_max")]
+                                         "tol", "y_max", "v_max")]
                     + [(k, i32 * n) for k in (
-                        "KSR", "inv_KSR", "inv_k1", "c_f0", "c_a0", "c_a1", "freq2",
+                        "KSR", "inv_KSR", "inv_k1", "c_f0", "c_a0", "c_a1", "freq",
                         "beta0", "beta_drive", "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R",
                         "LSR0", "LSR0_R", "LSR0_LPR0", "c_Av", "a2", "inv_a2", "r_cap", "M_h",
                         "th_h_KSR", "th_k1", "th_KPR", "th_CL", "th_CS", "stretch0", "G_pri",
