@@ -8,15 +8,24 @@ fixed-point arithmetic (Q24 resolution 6e-8, products rounded to nearest, Newton
 as the float fast path). Measured maxima of |dIa|, |dII|: HUMAN 0.0016 / 0.0038 pps on Fig. 3
 at 5 / 1 ms, 0.0024 / 0.0041 pps on the random trajectories at 5 / 2 ms; CAT (5x the gains)
 0.0080 / 0.019 and 0.012 / 0.021 pps. Documented tolerance: 0.02 pps x (bag1 G_pri / 4000
-pps/L0), i.e. 0.02 pps for HUMAN and 0.1 pps for CAT (~5x the measured maxima). The Cortex-M0+ build computes the
-same integers as this host build (scripts/bench_embedded.py: emulator vs host 0 pps).
+pps/L0), i.e. 0.02 pps for HUMAN and 0.1 pps for CAT (~5x the measured maxima). The
+Cortex-M0+ build computes the same integers as this host build (scripts/bench_embedded.py:
+emulator vs host 0 pps).
+
+The sanitizer fuzz (spindle/c/fuzz/fuzz_fixed.c, ASan + UBSan, which abort on any signed
+int32 overflow) checks the overflow guarantee of ps_plan_fx_init's bound analysis on random
+and perturbed constants, in-range and corrupted states and invalid inputs, and the status
+codes and the untouched state on failure.
 """
 
 from __future__ import annotations
 
 import ctypes
 import importlib.util
+import re
+import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -227,3 +236,56 @@ def test_plan_refuses_what_it_cannot_represent(lib):
     assert init(spindle.CAT.scale_gains(10.0)) == PS_ERR_CONFIG  # rates beyond 32767 pps
     assert init(spindle.HUMAN, h=0.5) == PS_ERR_CONFIG  # KSR*dL bounds beyond the Q range
     assert lib.ps_plan_fx_init(None, None, 5e-3, 0.5) == PS_ERR_NULL
+
+
+# ---- sanitizer fuzz (spindle/c/fuzz/fuzz_fixed.c) -------------------------------------------
+
+FUZZ_SOURCE = cbuild.SOURCE_DIR / "fuzz" / "fuzz_fixed.c"
+SANITIZER_REPORT = re.compile(r"runtime error|AddressSanitizer|LeakSanitizer|SUMMARY:")
+
+
+@pytest.fixture(scope="module")
+def fuzzers(tmp_path_factory) -> dict[str, Path]:
+    """fuzz_fixed.c + spindle.c under ASan + UBSan, ps_real double and float."""
+    if not FUZZ_SOURCE.exists():  # pragma: no cover - an installed wheel
+        pytest.skip(f"{FUZZ_SOURCE} not found (run the tests from a source checkout)")
+    root = tmp_path_factory.mktemp("fuzz_fixed")
+    out = {}
+    for variant in cbuild.VARIANTS:
+        flags = [f for f in cbuild.compile_flags(variant, sanitize=True)
+                 if f not in ("-fPIC", "-shared")]
+        binary = root / f"fuzz_fixed_{variant}"
+        cmd = [cbuild.find_compiler(), *flags, "-I", str(cbuild.SOURCE_DIR),
+               str(cbuild.SOURCE_DIR / "spindle.c"), str(FUZZ_SOURCE), "-o", str(binary), "-lm"]
+        result = subprocess.run(cmd, capture_output=True, text=True)
+        if result.returncode != 0 and "sanitize" in result.stderr:
+            pytest.skip(f"the compiler has no ASan/UBSan: {result.stderr.strip()[:200]}")
+        assert result.returncode == 0, result.stderr
+        out[variant] = binary
+    return out
+
+
+def run_fuzzer(binary: Path, seed: int, iterations: int) -> dict[str, int]:
+    result = subprocess.run([str(binary), str(seed), str(iterations)], capture_output=True,
+                            text=True, timeout=900)
+    report = result.stdout + result.stderr
+    assert result.returncode == 0, report[-3000:]
+    assert not SANITIZER_REPORT.search(report), report[-3000:]
+    counts = {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", result.stdout)}
+    assert counts["iterations"] == iterations
+    # accepted plans, accepted steps and refused ones all exercised
+    assert counts["plans"] > iterations // 2
+    assert counts["ok"] > iterations // 10 and counts["refused"] > iterations // 10
+    return counts
+
+
+@pytest.mark.parametrize("variant", cbuild.VARIANTS)
+def test_fixed_sanitizer_smoke(fuzzers, variant):
+    run_fuzzer(fuzzers[variant], seed=1, iterations=50_000)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", cbuild.VARIANTS)
+@pytest.mark.parametrize("seed", [2, 3, 4, 5])
+def test_fixed_sanitizer_long_random_runs(fuzzers, variant, seed):
+    run_fuzzer(fuzzers[variant], seed=seed, iterations=1_000_000)

@@ -214,7 +214,8 @@ int ps_spindle_fx_init(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L, int32_t
 int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_t gd1,
                        int32_t gs1, int32_t *ia, int32_t *ii);
 
-/* Ia and II (Q16 pps) of a state; writes nothing if s or q is NULL. */
+/* Ia and II (Q16 pps) of a state; writes nothing if s or q is NULL or the state is outside
+ * its ranges. */
 void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_t *ia,
                              int32_t *ii);
 

@@ -723,6 +723,8 @@ static int fx_log2(uint32_t x)
 /* g^2 / (g^2 + freq^2) in Q24 for a drive g >= 0 and freq > 0, both Q8: both are shifted
  * right (rounded) by the same k until the larger is below 2^15, so that g^2 + freq^2 <= 2^31
  * (any int32 drive; the ratio keeps >= 15 significant bits of the larger one). */
+static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q);
+
 static int32_t fx_target(const ps_plan_fx *q, int i, int32_t drive)
 {
     uint32_t g = (uint32_t)drive, F = (uint32_t)q->freq[i], big = g > F ? g : F, g2;
@@ -759,30 +761,38 @@ static int fx_gain(int32_t *out, double x)
 
 static double fx_absd(double x) { return x < 0.0 ? -x : x; }
 
-/* Worst-case bounds of the step's intermediates for fibre i (see proprio.h). */
+/* Worst-case magnitudes of the step's intermediates for fibre i over the state and input
+ * ranges of proprio.h (|T| <= T_MAX, |z| <= Y_MAX, |v| <= Y_MAX^10, f in [0, 1], L in
+ * [0.5, 1.5], |dL| <= 10 h): sums of the magnitudes of their terms, so that every partial
+ * sum and every fx_mul result of ps_spindle_step_fx (and of ps_spindle_fx_init) is bounded
+ * by one of them. 1 if all are <= FX_LIMIT (2^30 in Q24) and the equilibria are states in
+ * range; the rate bounds go to prim_out, sec_out. */
 static int fx_bounds_ok(const ps_params *p, int i, double h, double theta, double *prim_out,
                         double *sec_out)
 {
-    const double KSR = D_(p->KSR[i]), inv_KSR = 1.0 / KSR, k1 = 1.0 + D_(p->KPR[i]) / KSR;
+    const double KSR = D_(p->KSR[i]), inv_KSR = 1.0 / KSR;
+    const double KPR = fx_absd(D_(p->KPR[i])), k1 = fx_absd(1.0 + D_(p->KPR[i]) / KSR);
     const double T = PS_FX_T_MAX, Y = PS_FX_Y_MAX, Y2 = Y * Y, Y3 = Y2 * Y;
     const double Y9 = Y3 * Y3 * Y3, V = Y9 * Y, Lmax = PS_LENGTH_MAX_L0;
     const double max_dL = PS_MAX_SPEED_L0_S * h;
     const double Cmax = D_(p->CL[i]) > D_(p->CS[i]) ? D_(p->CL[i]) : D_(p->CS[i]);
     const double beta = fx_absd(D_(p->beta0[i])) + fx_absd(D_(p->beta_drive[i]));
     const double Gam = fx_absd(D_(p->Gamma_drive[i]));
-    const double a2 = D_(p->M[i]) / h + theta * theta * h * k1 * KSR;
+    const double LSR0 = fx_absd(D_(p->LSR0[i])), LPR0 = fx_absd(D_(p->LPR0[i]));
+    const double R = fx_absd(D_(p->R[i]));
+    const double a2 = fx_absd(D_(p->M[i]) / h + theta * theta * h * (1.0 + D_(p->KPR[i]) / KSR)
+                              * KSR);
     const double c = theta * Cmax * beta;
+    const double init_sum = Gam + KPR * (Lmax + LSR0 + LPR0);
     double A, polar, F0, p0, rhs, qy, g, dg, T1, stretch, prim, sec, L_sec;
-    double bound[16];
+    double bound[22];
     int k;
     A = T + KSR * max_dL + (1.0 - theta) * h * KSR * V;
-    polar = Lmax + D_(p->LSR0[i]) + T * inv_KSR;
-    F0 = T + Gam + D_(p->KPR[i]) * (polar + fx_absd(D_(p->LPR0[i])))
-         + Cmax * beta * Y3 * (polar + fx_absd(D_(p->R[i])));
-    p0 = Lmax + fx_absd(D_(p->LSR0[i]) + D_(p->R[i])) + A * inv_KSR;
+    polar = Lmax + LSR0 + T * inv_KSR;
+    F0 = T + Gam + KPR * (polar + LPR0) + Cmax * beta * Y3 * (polar + R);
+    p0 = Lmax + LSR0 + R + A * inv_KSR;
     rhs = D_(p->M[i]) / h * V + theta * k1 * A + theta * Gam
-          + theta * D_(p->KPR[i]) * (Lmax + fx_absd(D_(p->LSR0[i]) + D_(p->LPR0[i])))
-          + (1.0 - theta) * F0;
+          + theta * KPR * (Lmax + LSR0 + LPR0) + (1.0 - theta) * F0;
     qy = p0 + theta * h * V;
     g = a2 * V + c * Y3 * qy + rhs;
     dg = Y9 * (10.0 * a2 + 10.0 * c * theta * h * Y3) + 3.0 * c * Y2 * qy;
@@ -791,12 +801,18 @@ static int fx_bounds_ok(const ps_params *p, int i, double h, double theta, doubl
     L_sec = Lmax + T * inv_KSR + fx_absd(D_(p->LSR0[i]) + D_(p->LNPR[i]));
     prim = fx_absd(D_(p->G_pri[i])) * stretch;
     sec = fx_absd(D_(p->G_sec[i]) * D_(p->X[i]) * D_(p->Lsec[i]) / D_(p->LSR0[i])) * stretch
-          + fx_absd(D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * D_(p->Lsec[i]) / D_(p->LPR0[i])) * L_sec;
+          + fx_absd(D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * D_(p->Lsec[i]) / D_(p->LPR0[i]))
+            * L_sec;
     bound[0] = A; bound[1] = polar; bound[2] = F0; bound[3] = p0; bound[4] = rhs;
     bound[5] = qy; bound[6] = g; bound[7] = dg; bound[8] = T1; bound[9] = V;
-    bound[10] = 10.0 * a2; bound[11] = 10.0 * c * theta * h; bound[12] = 3.0 * c;
+    bound[10] = 10.0 * a2; bound[11] = 10.0 * c * theta * h; bound[12] = 3.0 * c * Y2;
     bound[13] = stretch; bound[14] = L_sec; bound[15] = a2 * V;
-    for (k = 0; k < 16; ++k) {
+    bound[16] = beta * Cmax; bound[17] = Cmax * beta * Y3; bound[18] = init_sum;
+    bound[19] = c * Y3;
+    /* the equilibria must be states in range: |T| = |init_sum / k1| <= T_MAX */
+    bound[20] = init_sum / k1 <= T ? 0.0 : FX_LIMIT + 1.0;
+    bound[21] = 1.0 / k1;
+    for (k = 0; k < 22; ++k) {
         if (!(bound[k] <= FX_LIMIT)) return 0;
     }
     *prim_out = prim;
@@ -867,7 +883,8 @@ int ps_plan_fx_init(ps_plan_fx *q, const ps_params *p, ps_real h_in, ps_real the
         st |= fx_const(&out.th_CS[i], theta * D_(p->CS[i]), FX_LIMIT);
         st |= fx_const(&out.stretch0[i], D_(p->LNSR[i]) - D_(p->LSR0[i]), FX_LIMIT);
         st |= fx_gain(&out.G_pri[i], D_(p->G_pri[i]));
-        st |= fx_gain(&out.c_sec1[i], D_(p->G_sec[i]) * D_(p->X[i]) * (D_(p->Lsec[i]) / D_(p->LSR0[i])));
+        st |= fx_gain(&out.c_sec1[i],
+                      D_(p->G_sec[i]) * D_(p->X[i]) * (D_(p->Lsec[i]) / D_(p->LSR0[i])));
         st |= fx_gain(&out.c_sec2[i],
                       D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * (D_(p->Lsec[i]) / D_(p->LPR0[i])));
         st |= fx_const(&out.sec_off[i], D_(p->LSR0[i]) + D_(p->LNPR[i]), FX_LIMIT);
@@ -913,7 +930,7 @@ static void fx_afferents(const ps_plan_fx *q, const int32_t T[PS_NFIBRES], int32
 void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_t *ia,
                              int32_t *ii)
 {
-    if (s == NULL || q == NULL) return;
+    if (s == NULL || q == NULL || !fx_state_ok(s, q)) return;
     fx_afferents(q, s->T, s->L, ia, ii);
 }
 
@@ -948,8 +965,7 @@ static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q)
     int i;
     if (fx_check_inputs(q, s->L, s->gd, s->gs) != PS_OK) return 0;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        int32_t y = fx_abs(s->z[i]);
-        if (s->T[i] < -t_max || s->T[i] > t_max || s->z[i] < -q->y_max || y > q->y_max) {
+        if (s->T[i] < -t_max || s->T[i] > t_max || s->z[i] < -q->y_max || s->z[i] > q->y_max) {
             return 0;
         }
         if (s->f[i] < 0 || s->f[i] > FX_ONE || s->target[i] < 0 || s->target[i] > FX_ONE) {
