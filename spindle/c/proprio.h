@@ -146,8 +146,8 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
 
 /* ---- fixed-point step (Cortex-M0+ and other cores without an FPU) ---------------------
  * The trapezoidal-family step of ps_spindle_step_plan (theta in (0, 1], a = 0.3, p = 2) in
- * int32 arithmetic: products (a * b) >> 24 from 16-bit halves (the M0+ multiplies 32x32->32
- * only), the Newton divide as a shift-subtract loop; no float, no libgcc call on the step's
+ * int32 arithmetic: products round(a * b / 2^24) from 16-bit halves (the M0+ multiplies
+ * 32x32->32 only), the Newton divide as a shift-subtract loop; no float, no libgcc call on the step's
  * path. Same model, same state quantities, same status codes. Q formats (value = int / 2^k):
  *   Q24 (PS_FX_ONE): lengths L (L0), T (tension), v (L0/s), z = sgn(v)|v|^0.1, f, targets
  *                    and every plan constant except the gains;
@@ -203,14 +203,16 @@ typedef struct ps_plan_fx {
  * finite and > 0); PS_ERR_METHOD (theta outside (0, 1]). q is untouched on failure. */
 int ps_plan_fx_init(ps_plan_fx *q, const ps_params *p, ps_real h, ps_real theta);
 
-/* At rest at length L (Q24) with drives gd, gs (Q8): ps_spindle_init in fixed point. */
+/* At rest at length L (Q24) with drives gd, gs (Q8): ps_spindle_init in fixed point.
+ * PS_ERR_NULL, PS_ERR_LENGTH_RANGE, PS_ERR_NEGATIVE_DRIVE; s is untouched on failure. */
 int ps_spindle_fx_init(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L, int32_t gd,
                        int32_t gs);
 
 /* One step of the plan's h to (L1 Q24, gd1 Q8, gs1 Q8); rates in Q16 pps (NULL outputs
- * skipped). PS_ERR_NULL, PS_ERR_LENGTH_RANGE, PS_ERR_NEGATIVE_DRIVE, PS_ERR_SPEED,
- * PS_ERR_NONFINITE (state or result outside its range), PS_ERR_NO_CONVERGENCE; on failure
- * the state and outputs are untouched. */
+ * skipped). Checks in this order: PS_ERR_NULL, PS_ERR_LENGTH_RANGE, PS_ERR_NEGATIVE_DRIVE,
+ * PS_ERR_NONFINITE (the state outside its ranges), PS_ERR_SPEED; then at run time
+ * PS_ERR_NO_CONVERGENCE or PS_ERR_NONFINITE (a result outside its range). On failure the
+ * state and outputs are untouched. */
 int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_t gd1,
                        int32_t gs1, int32_t *ia, int32_t *ii);
 
