@@ -22,12 +22,19 @@ The emulated rates are compared with a host build of the same sources and option
 float32, no libm call on the measured path when PS_FAST_CBRT is set, so they agree to the
 bit); the accuracy of each configuration is measured on the host build over all 9 runs.
 
+The last rows are the fixed-point step (ps_spindle_step_fx, int32 Q24, firmware option
+FW_FIXED): its plan is made on the host by ps_plan_fx_init from spindle.HUMAN and compiled
+into the firmware as a const; lengths go to the firmware in Q24 and drives in Q8, rates come
+back in Q16 (the host build gets the same rounded inputs, and the two agree to the bit).
+
 Usage:
     PYTHONPATH=. python scripts/bench_embedded.py            # all levers, all 9 runs (~10 min)
     PYTHONPATH=. python scripts/bench_embedded.py --quick    # final configuration, 2 runs
 Needs: gcc-arm-none-eabi, libnewlib-arm-none-eabi, a host C compiler, unicorn, scipy.
 The last line reads
     m0plus_mips_per_muscle=<float> rms_pps=<float> flash_bytes=<int> ram_bytes=<int>
+for the cheapest measured configuration within RMS_TARGET_PPS (2 pps; --quick measures only
+the final one, the fixed-point step at 5 ms).
 """
 
 from __future__ import annotations
