@@ -176,7 +176,7 @@ def fixed_structs() -> tuple[type, type]:
 
     class PsPlanFx(ctypes.Structure):
         _fields_ = ([(k, i32) for k in ("max_dL", "theta", "one_minus_theta", "th_h", "S",
-                                         "tol", "y_max", "v_max")]
+                                         "tol", "y_max", "v_max", "dg_shift")]
                     + [(k, i32 * n) for k in (
                         "KSR", "inv_KSR", "inv_k1", "c_f0", "c_a0", "c_a1", "freq",
                         "beta0", "beta_drive", "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R",

@@ -158,7 +158,7 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
  * which one could leave +-64 in Q24 (2^30) or a rate +-32767 pps: with a plan it accepted,
  * no int32 overflows. State ranges (checked at each step; outside: PS_ERR_NONFINITE, the
  * fixed-point analogue of a non-finite state): |T| <= PS_FX_T_MAX, |z| <= PS_FX_Y_MAX
- * (so |v| <= PS_FX_Y_MAX^10 = 28.9 L0/s), 0 <= f, target <= 1, L in [0.5, 1.5] L0, drives in
+ * (so |v| <= PS_FX_Y_MAX^10 = 80.1 L0/s), 0 <= f, target <= 1, L in [0.5, 1.5] L0, drives in
  * [0, 2^31). A step whose result leaves those ranges returns PS_ERR_NONFINITE and writes
  * nothing. */
 #include <stdint.h>
@@ -168,7 +168,7 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
 #define PS_FX_DRIVE_ONE 256L         /* 1 pps in Q8 */
 #define PS_FX_RATE_ONE 65536L        /* 1 pps in Q16 */
 #define PS_FX_T_MAX 4                /* |T| bound of the state */
-#define PS_FX_Y_MAX 1.4              /* |z| bound of the state */
+#define PS_FX_Y_MAX 1.55             /* |z| bound of the state */
 #define PS_FX_ROOT_TABLE 31
 
 /* State of one spindle in fixed point: the fields of ps_spindle in the Q formats above, plus
@@ -183,6 +183,7 @@ typedef struct ps_spindle_fx {
  * const in flash). All Q24 except freq (pps, Q8), G_pri, c_sec1, c_sec2 (Q16). */
 typedef struct ps_plan_fx {
     int32_t max_dL, theta, one_minus_theta, th_h, S, tol, y_max, v_max;
+    int32_t dg_shift; /* Newton's derivative is computed divided by 2^dg_shift */
     int32_t KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES], inv_k1[PS_NFIBRES];
     int32_t c_f0[PS_NFIBRES], c_a0[PS_NFIBRES], c_a1[PS_NFIBRES], freq[PS_NFIBRES];
     int32_t beta0[PS_NFIBRES], beta_drive[PS_NFIBRES], Gamma_drive[PS_NFIBRES];
