@@ -999,11 +999,11 @@ static int fx_solve_03(int32_t *z_io, int32_t *v, const ps_plan_fx *q, int i, in
     const int32_t ten_c_th_h = (10 * fx_mul(c, s_th_h)) >> sh;
     const int32_t quarter = FX_ONE / 4;
     int32_t y = fx_abs(*z_io), bound = q->y_max;
+    int32_t y2, y4, y10, dy = quarter;
+    int it;
     if (r < q->r_cap[i]) { /* x = r/a2 < y_max^10; + 3: rounding of r, inv_a2 */
         bound = q->root10[fx_log2((uint32_t)(fx_mul(r, q->inv_a2[i]) + 3))];
     }
-    int32_t y2, y4, y10, dy = quarter;
-    int it;
     if (bound > q->y_max) bound = q->y_max;
     if (y > bound) y = bound;
     for (it = 0; it < PS_NEWTON_MAX_ITER; ++it) {
