@@ -144,6 +144,84 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta);
 int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd1,
                          ps_real gs1, ps_real *ia, ps_real *ii);
 
+/* ---- fixed-point step (Cortex-M0+ and other cores without an FPU) ---------------------
+ * The trapezoidal-family step of ps_spindle_step_plan (theta in (0, 1], a = 0.3, p = 2) in
+ * int32 arithmetic: products round(a * b / 2^24) from 16-bit halves (the M0+ multiplies
+ * 32x32->32 only), the Newton divide as a shift-subtract loop; no float, no libgcc call on the step's
+ * path. Same model, same state quantities, same status codes. Q formats (value = int / 2^k):
+ *   Q24 (PS_FX_ONE): lengths L (L0), T (tension), v (L0/s), z = sgn(v)|v|^0.1, f, targets
+ *                    and every plan constant except the gains;
+ *   Q8  (PS_FX_DRIVE_ONE): fusimotor drives gd, gs (pps);
+ *   Q16 (PS_FX_RATE_ONE): the rates Ia, II (pps) and the gains G_pri, c_sec1, c_sec2.
+ * ps_plan_fx_init computes, from the constants, worst-case bounds of every intermediate of
+ * the step over the state and input ranges below and refuses (PS_ERR_CONFIG) constants for
+ * which one could leave +-64 in Q24 (2^30) or a rate +-32767 pps: with a plan it accepted,
+ * no int32 overflows. State ranges (checked at each step; outside: PS_ERR_NONFINITE, the
+ * fixed-point analogue of a non-finite state): |T| <= PS_FX_T_MAX, |z| <= PS_FX_Y_MAX
+ * (so |v| <= PS_FX_Y_MAX^10 = 80.1 L0/s), 0 <= f, target <= 1, L in [0.5, 1.5] L0, drives in
+ * [0, 2^31). A step whose result leaves those ranges returns PS_ERR_NONFINITE and writes
+ * nothing. */
+#include <stdint.h>
+
+#define PS_FX_Q 24
+#define PS_FX_ONE 16777216L          /* 1.0 in Q24 */
+#define PS_FX_DRIVE_ONE 256L         /* 1 pps in Q8 */
+#define PS_FX_RATE_ONE 65536L        /* 1 pps in Q16 */
+#define PS_FX_T_MAX 4                /* |T| bound of the state */
+#define PS_FX_Y_MAX 1.55             /* |z| bound of the state */
+#define PS_FX_ROOT_TABLE 31
+
+/* State of one spindle in fixed point: the fields of ps_spindle in the Q formats above, plus
+ * the activation targets of the current drives (a function of gd, gs kept so that a step
+ * with unchanged drives needs no divide). */
+typedef struct ps_spindle_fx {
+    int32_t T[PS_NFIBRES], v[PS_NFIBRES], z[PS_NFIBRES], f[PS_NFIBRES], target[PS_NFIBRES];
+    int32_t L, gd, gs;
+} ps_spindle_fx;
+
+/* Precomputed constants of the fixed-point step (read-only after ps_plan_fx_init; can be a
+ * const in flash). All Q24 except freq (pps, Q8), G_pri, c_sec1, c_sec2 (Q16). */
+typedef struct ps_plan_fx {
+    int32_t max_dL, theta, one_minus_theta, th_h, S, tol, y_max, v_max;
+    int32_t dg_shift; /* Newton's derivative is computed divided by 2^dg_shift */
+    int32_t KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES], inv_k1[PS_NFIBRES];
+    int32_t c_f0[PS_NFIBRES], c_a0[PS_NFIBRES], c_a1[PS_NFIBRES], freq[PS_NFIBRES];
+    int32_t beta0[PS_NFIBRES], beta_drive[PS_NFIBRES], Gamma_drive[PS_NFIBRES];
+    int32_t CL[PS_NFIBRES], CS[PS_NFIBRES], KPR[PS_NFIBRES], LPR0[PS_NFIBRES], R[PS_NFIBRES];
+    int32_t LSR0[PS_NFIBRES], LSR0_R[PS_NFIBRES], LSR0_LPR0[PS_NFIBRES];
+    int32_t c_Av[PS_NFIBRES], a2[PS_NFIBRES], inv_a2[PS_NFIBRES], r_cap[PS_NFIBRES];
+    int32_t M_h[PS_NFIBRES];
+    int32_t th_h_KSR[PS_NFIBRES], th_k1[PS_NFIBRES], th_KPR[PS_NFIBRES];
+    int32_t th_CL[PS_NFIBRES], th_CS[PS_NFIBRES];
+    int32_t stretch0[PS_NFIBRES], G_pri[PS_NFIBRES], c_sec1[PS_NFIBRES], c_sec2[PS_NFIBRES];
+    int32_t sec_off[PS_NFIBRES];
+    int32_t root10[PS_FX_ROOT_TABLE]; /* 2^((k - 23)/10): bounds of x^(1/10), x < 2^(k+1) */
+} ps_plan_fx;
+
+/* Fill q for constants p, step h (s) and theta in (0, 1] (computed in ps_real: on the host,
+ * or once at start-up). PS_ERR_NULL; PS_ERR_CONFIG (p refused by ps_params_check, a != 0.3,
+ * p != 2, or a constant or a worst-case intermediate outside its Q range); PS_ERR_STEP (h not
+ * finite and > 0); PS_ERR_METHOD (theta outside (0, 1]). q is untouched on failure. */
+int ps_plan_fx_init(ps_plan_fx *q, const ps_params *p, ps_real h, ps_real theta);
+
+/* At rest at length L (Q24) with drives gd, gs (Q8): ps_spindle_init in fixed point.
+ * PS_ERR_NULL, PS_ERR_LENGTH_RANGE, PS_ERR_NEGATIVE_DRIVE; s is untouched on failure. */
+int ps_spindle_fx_init(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L, int32_t gd,
+                       int32_t gs);
+
+/* One step of the plan's h to (L1 Q24, gd1 Q8, gs1 Q8); rates in Q16 pps (NULL outputs
+ * skipped). Checks in this order: PS_ERR_NULL, PS_ERR_LENGTH_RANGE, PS_ERR_NEGATIVE_DRIVE,
+ * PS_ERR_NONFINITE (the state outside its ranges), PS_ERR_SPEED; then at run time
+ * PS_ERR_NO_CONVERGENCE or PS_ERR_NONFINITE (a result outside its range). On failure the
+ * state and outputs are untouched. */
+int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_t gd1,
+                       int32_t gs1, int32_t *ia, int32_t *ii);
+
+/* Ia and II (Q16 pps) of a state; writes nothing if s or q is NULL or the state is outside
+ * its ranges. */
+void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_t *ia,
+                             int32_t *ii);
+
 /* ---- end of spindle section ---- */
 
 

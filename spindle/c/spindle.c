@@ -641,3 +641,468 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
     if (ii != NULL) *ii = r_ii;
     return PS_OK;
 }
+
+/* ---- fixed-point step ------------------------------------------------------------------
+ * Q formats and ranges: see proprio.h. The bound analysis of ps_plan_fx_init guarantees that
+ * every product and sum below stays within +-2^30 (Q24: +-64) for states and inputs in range;
+ * the step checks those ranges first. Right shifts of negative int32 are arithmetic (C99
+ * leaves that to the implementation; gcc and clang define it so). */
+
+#define FX_ONE ((int32_t)PS_FX_ONE)
+#define FX_LIMIT 64.0 /* every Q24 intermediate, in units of 1 */
+#define FX_V_LIMIT 127.0 /* v = y^10, only ever a factor of a product, never a term of a sum */
+#define FX_MAX_DG_SHIFT 6
+#define FX_RATE_LIMIT 32767.0
+/* Newton tolerance in y = |z| of the fixed-point step (1e-4: with the float fast path's 1e-3,
+ * 10 L0/s moves with 300 pps drives, where |v| reaches 40 L0/s, differ from the double step
+ * by up to 0.4 pps with the CAT gains; 1e-4 costs 13 % more iterations), and the
+ * residual (Q24 LSB) at which the iteration stops anyway: near v = 0 the residual g is a few
+ * LSB, rounding noise, and y cannot be resolved better (v = y^10 is then below 1e-9 L0/s). */
+#ifndef PS_FX_TOL_Z
+#define PS_FX_TOL_Z 1e-4
+#endif
+#define FX_G_TOL 8
+
+/* round(a * b / 2^24) without a 64-bit product (the M0+ multiplies 32x32->32 only):
+ * a = ah 2^16 + al, b = bh 2^16 + bl with al, bl unsigned 16-bit, |ah|, |bh| <= 2^15, so each
+ * partial product fits in 32 bits, and a*b = H 2^32 + m 2^16 + (ll mod 2^16) with
+ * H = hh + hl/2^16 + lh/2^16 (floored) and 0 <= m < 3 * 2^16. Exact round-half-up: a floor
+ * here would bias every product by -1.5 LSB, and the bias accumulates in the state (measured:
+ * 5x larger errors at 1 ms than at 5 ms). The caller keeps the result within +-2^30. */
+static int32_t fx_mul(int32_t a, int32_t b)
+{
+    int32_t ah = a >> 16, bh = b >> 16;
+    uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
+    int32_t hl = ah * (int32_t)bl;
+    int32_t lh = (int32_t)al * bh;
+    uint32_t ll = al * bl;
+    uint32_t m = ((uint32_t)hl & 0xFFFFu) + ((uint32_t)lh & 0xFFFFu) + (ll >> 16);
+    int32_t H = ah * bh + (hl >> 16) + (lh >> 16);
+    return H * 256 + (int32_t)((m + 128u) >> 8);
+}
+
+/* num / den in Q24 for 0 <= num < den <= 2^31 (restoring division, 24 quotient bits; the
+ * M0+ has no divide instruction). */
+static int32_t fx_ratio(uint32_t num, uint32_t den)
+{
+    uint32_t r = 0;
+    int k;
+    for (k = 0; k < PS_FX_Q; ++k) {
+        num <<= 1;
+        r <<= 1;
+        if (num >= den) {
+            num -= den;
+            r |= 1u;
+        }
+    }
+    return (int32_t)r;
+}
+
+/* Straight-line for the reason of copy3 (no memcpy call). */
+static void fx_copy3(int32_t dst[PS_NFIBRES], const int32_t src[PS_NFIBRES])
+{
+    dst[0] = src[0];
+    dst[1] = src[1];
+    dst[2] = src[2];
+}
+
+static int32_t fx_max(int32_t a, int32_t b) { return a < b ? b : a; }
+
+static int32_t fx_min(int32_t a, int32_t b) { return b < a ? b : a; }
+
+static int32_t fx_abs(int32_t a) { return a < 0 ? -a : a; }
+
+/* Index of the highest set bit of x > 0 (binary search; the M0+ has no CLZ). */
+static int fx_log2(uint32_t x)
+{
+    int k = 0;
+    if (x >> 16) { x >>= 16; k += 16; }
+    if (x >> 8) { x >>= 8; k += 8; }
+    if (x >> 4) { x >>= 4; k += 4; }
+    if (x >> 2) { x >>= 2; k += 2; }
+    if (x >> 1) { k += 1; }
+    return k;
+}
+
+/* g^2 / (g^2 + freq^2) in Q24 for a drive g >= 0 and freq > 0, both Q8: both are shifted
+ * right (rounded) by the same k until the larger is below 2^15, so that g^2 + freq^2 <= 2^31
+ * (any int32 drive; the ratio keeps >= 15 significant bits of the larger one). */
+static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q);
+
+static int32_t fx_target(const ps_plan_fx *q, int i, int32_t drive)
+{
+    uint32_t g = (uint32_t)drive, F = (uint32_t)q->freq[i], big = g > F ? g : F, g2;
+    int k = 0;
+    if (g == 0) return 0;
+    while ((big >> k) >= 32768u) ++k;
+    if (k > 0) {
+        const uint32_t half = 1u << (k - 1);
+        g = (g + half) >> k;
+        F = (F + half) >> k;
+    }
+    g2 = g * g;
+    return fx_ratio(g2, g2 + F * F);
+}
+
+static int32_t fx_round(double x) { return (int32_t)(x < 0.0 ? x - 0.5 : x + 0.5); }
+
+/* x in Q24 if |x| <= limit, else PS_ERR_CONFIG. */
+static int fx_const(int32_t *out, double x, double limit)
+{
+    if (!(x >= -limit && x <= limit)) return PS_ERR_CONFIG;
+    *out = fx_round(x * (double)PS_FX_ONE);
+    return PS_OK;
+}
+
+static int fx_gain(int32_t *out, double x)
+{
+    if (!(x >= -FX_RATE_LIMIT && x <= FX_RATE_LIMIT)) return PS_ERR_CONFIG;
+    *out = fx_round(x * (double)PS_FX_RATE_ONE);
+    return PS_OK;
+}
+
+#define D_(x) ((double)(x))
+
+static double fx_absd(double x) { return x < 0.0 ? -x : x; }
+
+/* Worst-case magnitudes of the step's intermediates for fibre i over the state and input
+ * ranges of proprio.h (|T| <= T_MAX, |z| <= Y_MAX, |v| <= Y_MAX^10, f in [0, 1], L in
+ * [0.5, 1.5], |dL| <= 10 h): sums of the magnitudes of their terms, so that every partial
+ * sum and every fx_mul result of ps_spindle_step_fx (and of ps_spindle_fx_init) is bounded
+ * by one of them. 1 if all are <= FX_LIMIT (2^30 in Q24) and the equilibria are states in
+ * range; the rate bounds go to prim_out, sec_out. */
+static int fx_bounds_ok(const ps_params *p, int i, double h, double theta, double *prim_out,
+                        double *sec_out, int *dg_shift)
+{
+    const double KSR = D_(p->KSR[i]), inv_KSR = 1.0 / KSR;
+    const double KPR = fx_absd(D_(p->KPR[i])), k1 = fx_absd(1.0 + D_(p->KPR[i]) / KSR);
+    const double T = PS_FX_T_MAX, Y = PS_FX_Y_MAX, Y2 = Y * Y, Y3 = Y2 * Y;
+    const double Y9 = Y3 * Y3 * Y3, V = Y9 * Y, Lmax = PS_LENGTH_MAX_L0;
+    const double max_dL = PS_MAX_SPEED_L0_S * h;
+    const double Cmax = D_(p->CL[i]) > D_(p->CS[i]) ? D_(p->CL[i]) : D_(p->CS[i]);
+    const double beta = fx_absd(D_(p->beta0[i])) + fx_absd(D_(p->beta_drive[i]));
+    const double Gam = fx_absd(D_(p->Gamma_drive[i]));
+    const double LSR0 = fx_absd(D_(p->LSR0[i])), LPR0 = fx_absd(D_(p->LPR0[i]));
+    const double R = fx_absd(D_(p->R[i]));
+    const double a2 = fx_absd(D_(p->M[i]) / h + theta * theta * h * (1.0 + D_(p->KPR[i]) / KSR)
+                              * KSR);
+    const double c = theta * Cmax * beta;
+    const double init_sum = Gam + KPR * (Lmax + LSR0 + LPR0);
+    double A, polar, F0, p0, rhs, qy, g, dg, T1, stretch, prim, sec, L_sec;
+    double bound[22];
+    int k;
+    A = T + KSR * max_dL + (1.0 - theta) * h * KSR * V;
+    polar = Lmax + LSR0 + T * inv_KSR;
+    F0 = T + Gam + KPR * (polar + LPR0) + Cmax * beta * Y3 * (polar + R);
+    p0 = Lmax + LSR0 + R + A * inv_KSR;
+    rhs = D_(p->M[i]) / h * V + theta * k1 * A + theta * Gam
+          + theta * KPR * (Lmax + LSR0 + LPR0) + (1.0 - theta) * F0;
+    qy = p0 + theta * h * V;
+    g = a2 * V + c * Y3 * qy + rhs;
+    dg = Y9 * (10.0 * a2 + 10.0 * c * theta * h * Y3) + 3.0 * c * Y2 * qy;
+    T1 = A + theta * h * KSR * V;
+    stretch = T * inv_KSR + fx_absd(D_(p->LNSR[i]) - D_(p->LSR0[i]));
+    L_sec = Lmax + T * inv_KSR + fx_absd(D_(p->LSR0[i]) + D_(p->LNPR[i]));
+    prim = fx_absd(D_(p->G_pri[i])) * stretch;
+    sec = fx_absd(D_(p->G_sec[i]) * D_(p->X[i]) * D_(p->Lsec[i]) / D_(p->LSR0[i])) * stretch
+          + fx_absd(D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * D_(p->Lsec[i]) / D_(p->LPR0[i]))
+            * L_sec;
+    bound[0] = A; bound[1] = polar; bound[2] = F0; bound[3] = p0; bound[4] = rhs;
+    /* dg is computed divided by 2^shift (the ratio g/dg does not change): at small steps
+     * M/h makes it the largest intermediate */
+    for (*dg_shift = 0; *dg_shift < FX_MAX_DG_SHIFT && dg > FX_LIMIT; ++*dg_shift) dg *= 0.5;
+    bound[5] = qy; bound[6] = g; bound[7] = dg; bound[8] = T1;
+    bound[9] = V * (FX_LIMIT / FX_V_LIMIT);
+    bound[10] = 10.0 * a2; bound[11] = 10.0 * c * theta * h; bound[12] = 3.0 * c * Y2;
+    bound[13] = stretch; bound[14] = L_sec; bound[15] = a2 * V;
+    bound[16] = beta * Cmax; bound[17] = Cmax * beta * Y3; bound[18] = init_sum;
+    bound[19] = c * Y3;
+    /* the equilibria must be states in range: |T| = |init_sum / k1| <= T_MAX */
+    bound[20] = init_sum / k1 <= T ? 0.0 : FX_LIMIT + 1.0;
+    bound[21] = 1.0 / k1;
+    for (k = 0; k < 22; ++k) {
+        if (!(bound[k] <= FX_LIMIT)) return 0;
+    }
+    *prim_out = prim;
+    *sec_out = sec;
+    return 1;
+}
+
+int ps_plan_fx_init(ps_plan_fx *q, const ps_params *p, ps_real h_in, ps_real theta_in)
+{
+    ps_plan_fx out;
+    const double h = (double)h_in, theta = (double)theta_in;
+    double prim[PS_NFIBRES], sec[PS_NFIBRES], big;
+    int i, k, st = PS_OK, shift;
+    if (q == NULL || p == NULL) return PS_ERR_NULL;
+    if (ps_params_check(p) != PS_OK) return PS_ERR_CONFIG;
+    if (!(theta > 0.0 && theta <= 1.0)) return PS_ERR_METHOD;
+    if (!(is_finite(h_in) && h > 0.0)) return PS_ERR_STEP;
+    if (!all_equal(p->a, R_(0.3)) || !all_equal(p->p, R_(2))) return PS_ERR_CONFIG;
+    memset(&out, 0, sizeof out);
+    st |= fx_const(&out.max_dL, PS_MAX_SPEED_L0_S * h, 1.0);
+    st |= fx_const(&out.theta, theta, 1.0);
+    st |= fx_const(&out.one_minus_theta, 1.0 - theta, 1.0);
+    st |= fx_const(&out.th_h, theta * h, 1.0);
+    st |= fx_const(&out.S, D_(p->S), FX_LIMIT);
+    st |= fx_const(&out.y_max, PS_FX_Y_MAX, FX_LIMIT);
+    st |= fx_const(&out.v_max, pow(PS_FX_Y_MAX, 10.0), FX_V_LIMIT);
+    out.v_max += 16; /* z^10 in Q24 is rounded */
+    st |= fx_const(&out.tol, PS_FX_TOL_Z, 1.0);
+    if (out.tol < 1) out.tol = 1;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        const double KSR = D_(p->KSR[i]), k1 = 1.0 + D_(p->KPR[i]) / KSR;
+        const double rate = p->tau[i] > R_(0) ? h / D_(p->tau[i]) : 0.0;
+        const double den = 1.0 + theta * rate, freq = D_(p->freq[i]);
+        const double a2 = D_(p->M[i]) / h + theta * theta * h * k1 * KSR;
+        if (!fx_bounds_ok(p, i, h, theta, &prim[i], &sec[i], &shift)) return PS_ERR_CONFIG;
+        if (shift > out.dg_shift) out.dg_shift = shift;
+        st |= fx_const(&out.KSR[i], KSR, FX_LIMIT);
+        st |= fx_const(&out.inv_KSR[i], 1.0 / KSR, FX_LIMIT);
+        st |= fx_const(&out.inv_k1[i], 1.0 / k1, FX_LIMIT);
+        if (p->tau[i] > R_(0)) {
+            st |= fx_const(&out.c_f0[i], (1.0 - (1.0 - theta) * rate) / den, 1.0);
+            st |= fx_const(&out.c_a0[i], (1.0 - theta) * rate / den, 1.0);
+            st |= fx_const(&out.c_a1[i], theta * rate / den, 1.0);
+        } else {
+            out.c_a1[i] = FX_ONE;
+        }
+        if (!(freq * 256.0 <= 2147483000.0)) return PS_ERR_CONFIG;
+        out.freq[i] = fx_round(freq * 256.0);
+        st |= fx_const(&out.beta0[i], D_(p->beta0[i]), FX_LIMIT);
+        st |= fx_const(&out.beta_drive[i], D_(p->beta_drive[i]), FX_LIMIT);
+        st |= fx_const(&out.Gamma_drive[i], D_(p->Gamma_drive[i]), FX_LIMIT);
+        st |= fx_const(&out.CL[i], D_(p->CL[i]), FX_LIMIT);
+        st |= fx_const(&out.CS[i], D_(p->CS[i]), FX_LIMIT);
+        st |= fx_const(&out.KPR[i], D_(p->KPR[i]), FX_LIMIT);
+        st |= fx_const(&out.LPR0[i], D_(p->LPR0[i]), FX_LIMIT);
+        st |= fx_const(&out.R[i], D_(p->R[i]), FX_LIMIT);
+        st |= fx_const(&out.LSR0[i], D_(p->LSR0[i]), FX_LIMIT);
+        st |= fx_const(&out.LSR0_R[i], D_(p->LSR0[i]) + D_(p->R[i]), FX_LIMIT);
+        st |= fx_const(&out.LSR0_LPR0[i], D_(p->LSR0[i]) + D_(p->LPR0[i]), FX_LIMIT);
+        st |= fx_const(&out.c_Av[i], (1.0 - theta) * h * KSR, FX_LIMIT);
+        st |= fx_const(&out.a2[i], a2, FX_LIMIT);
+        st |= fx_const(&out.inv_a2[i], 1.0 / a2, FX_LIMIT);
+        st |= fx_const(&out.r_cap[i], a2 * pow(PS_FX_Y_MAX, 10.0), FX_LIMIT);
+        st |= fx_const(&out.M_h[i], D_(p->M[i]) / h, FX_LIMIT);
+        st |= fx_const(&out.th_h_KSR[i], theta * h * KSR, FX_LIMIT);
+        st |= fx_const(&out.th_k1[i], theta * k1, FX_LIMIT);
+        st |= fx_const(&out.th_KPR[i], theta * D_(p->KPR[i]), FX_LIMIT);
+        st |= fx_const(&out.th_CL[i], theta * D_(p->CL[i]), FX_LIMIT);
+        st |= fx_const(&out.th_CS[i], theta * D_(p->CS[i]), FX_LIMIT);
+        st |= fx_const(&out.stretch0[i], D_(p->LNSR[i]) - D_(p->LSR0[i]), FX_LIMIT);
+        st |= fx_gain(&out.G_pri[i], D_(p->G_pri[i]));
+        st |= fx_gain(&out.c_sec1[i],
+                      D_(p->G_sec[i]) * D_(p->X[i]) * (D_(p->Lsec[i]) / D_(p->LSR0[i])));
+        st |= fx_gain(&out.c_sec2[i],
+                      D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * (D_(p->Lsec[i]) / D_(p->LPR0[i])));
+        st |= fx_const(&out.sec_off[i], D_(p->LSR0[i]) + D_(p->LNPR[i]), FX_LIMIT);
+    }
+    /* rates: primary and secondary sums, Ia = max + S min <= (1 + |S|) max(a_dyn, b_stat) */
+    big = prim[1] + prim[2] > prim[0] ? prim[1] + prim[2] : prim[0];
+    if (!((1.0 + fx_absd(D_(p->S))) * big <= FX_RATE_LIMIT && sec[1] + sec[2] <= FX_RATE_LIMIT)) {
+        return PS_ERR_CONFIG;
+    }
+    for (k = 0; k < PS_FX_ROOT_TABLE; ++k) {
+        st |= fx_const(&out.root10[k], pow(2.0, (k - 23) / 10.0), FX_LIMIT);
+    }
+    if (st != PS_OK) return PS_ERR_CONFIG;
+    *q = out;
+    return PS_OK;
+}
+
+static int fx_check_inputs(const ps_plan_fx *q, int32_t L, int32_t gd, int32_t gs)
+{
+    (void)q;
+    if (L < FX_ONE / 2 || L > FX_ONE + FX_ONE / 2) return PS_ERR_LENGTH_RANGE;
+    if (gd < 0 || gs < 0) return PS_ERR_NEGATIVE_DRIVE;
+    return PS_OK;
+}
+
+static void fx_afferents(const ps_plan_fx *q, const int32_t T[PS_NFIBRES], int32_t L,
+                         int32_t *ia, int32_t *ii)
+{
+    int32_t primary[PS_NFIBRES], sec[PS_NFIBRES], a_dyn, b_stat;
+    int i;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        int32_t t_ksr = fx_mul(T[i], q->inv_KSR[i]);
+        int32_t stretch = t_ksr - q->stretch0[i];
+        primary[i] = fx_max(fx_mul(stretch, q->G_pri[i]), 0);
+        sec[i] = fx_mul(stretch, q->c_sec1[i]) + fx_mul(L - t_ksr - q->sec_off[i], q->c_sec2[i]);
+    }
+    a_dyn = primary[0];
+    b_stat = primary[1] + primary[2];
+    if (ia != NULL) *ia = fx_max(a_dyn, b_stat) + fx_mul(q->S, fx_min(a_dyn, b_stat));
+    if (ii != NULL) *ii = fx_max(sec[1], 0) + fx_max(sec[2], 0);
+}
+
+void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_t *ia,
+                             int32_t *ii)
+{
+    if (s == NULL || q == NULL || !fx_state_ok(s, q)) return;
+    fx_afferents(q, s->T, s->L, ia, ii);
+}
+
+int ps_spindle_fx_init(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L, int32_t gd,
+                       int32_t gs)
+{
+    ps_spindle_fx out;
+    int i, status;
+    if (s == NULL || q == NULL) return PS_ERR_NULL;
+    status = fx_check_inputs(q, L, gd, gs);
+    if (status != PS_OK) return status;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        int32_t f = fx_target(q, i, i == 0 ? gd : gs);
+        out.target[i] = f;
+        out.f[i] = f;
+        out.T[i] = fx_mul(fx_mul(q->Gamma_drive[i], f) + fx_mul(q->KPR[i], L - q->LSR0_LPR0[i]),
+                          q->inv_k1[i]);
+        out.v[i] = 0;
+        out.z[i] = 0;
+    }
+    out.L = L;
+    out.gd = gd;
+    out.gs = gs;
+    *s = out;
+    return PS_OK;
+}
+
+/* A state a step can work on without overflow (the ranges of proprio.h). */
+static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q)
+{
+    const int32_t t_max = PS_FX_T_MAX * FX_ONE;
+    int i;
+    if (fx_check_inputs(q, s->L, s->gd, s->gs) != PS_OK) return 0;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        if (s->T[i] < -t_max || s->T[i] > t_max || s->z[i] < -q->y_max || s->z[i] > q->y_max) {
+            return 0;
+        }
+        if (s->f[i] < 0 || s->f[i] > FX_ONE || s->target[i] < 0 || s->target[i] > FX_ONE) {
+            return 0;
+        }
+        /* v is z^10 (a few LSB of rounding): its own bound */
+        if (s->v[i] < -q->v_max || s->v[i] > q->v_max) return 0;
+    }
+    return 1;
+}
+
+/* Newton for a = 0.3 in y = |z| (the fixed-point solve_03): a2 y^10 + c y^3 (p0 + s th_h
+ * y^10) = |rhs|, started at min(|z0|, an upper bound of the root from (|rhs|/a2)^(1/10)). */
+static int fx_solve_03(int32_t *z_io, int32_t *v, const ps_plan_fx *q, int i, int32_t p0,
+                       int32_t rhs, int32_t c)
+{
+    const int32_t r = fx_abs(rhs);
+    const int32_t s_th_h = rhs < 0 ? -q->th_h : q->th_h;
+    /* the derivative's coefficients divided by 2^dg_shift (so is |g| below) */
+    const int sh = (int)q->dg_shift;
+    const int32_t ten_a2 = (10 * q->a2[i]) >> sh, three_c = (3 * c) >> sh;
+    const int32_t ten_c_th_h = (10 * fx_mul(c, s_th_h)) >> sh;
+    const int32_t quarter = FX_ONE / 4;
+    int32_t y = fx_abs(*z_io), bound = q->y_max;
+    int32_t y2, y4, y10, dy = quarter;
+    int it;
+    if (r < q->r_cap[i]) { /* x = r/a2 < y_max^10; + 3: rounding of r, inv_a2 */
+        bound = q->root10[fx_log2((uint32_t)(fx_mul(r, q->inv_a2[i]) + 3))];
+    }
+    if (bound > q->y_max) bound = q->y_max;
+    if (y > bound) y = bound;
+    for (it = 0; it < PS_NEWTON_MAX_ITER; ++it) {
+        int32_t y3, y8, y9, qy, g, dg, ag;
+        y2 = fx_mul(y, y);
+        y3 = fx_mul(y2, y);
+        y4 = fx_mul(y2, y2);
+        y8 = fx_mul(y4, y4);
+        y9 = fx_mul(y8, y);
+        y10 = fx_mul(y8, y2);
+        qy = p0 + fx_mul(s_th_h, y10);
+        g = fx_mul(q->a2[i], y10) + fx_mul(fx_mul(c, y3), qy) - r;
+        dg = fx_mul(y9, ten_a2 + fx_mul(ten_c_th_h, y3)) + fx_mul(fx_mul(three_c, y2), qy);
+        if (dg < 1) dg = 1;
+        ag = fx_abs(g);
+        if (ag <= FX_G_TOL) {
+            dy = 0;
+            break;
+        }
+        ag >>= sh;
+        if (ag >= dg / 4) {
+            dy = quarter;
+        } else {
+            dy = fx_ratio((uint32_t)ag, (uint32_t)dg);
+        }
+        if (g < 0) dy = -dy;
+        y -= dy;
+        if (y < 0) y = 0;
+        if (y > q->y_max) y = q->y_max;
+        if (fx_abs(dy) <= q->tol) break;
+    }
+    if (fx_abs(dy) > q->tol) return PS_ERR_NO_CONVERGENCE;
+    if (y == q->y_max) return PS_ERR_NONFINITE; /* the root is outside the Q range */
+    y2 = fx_mul(y, y);
+    y4 = fx_mul(y2, y2);
+    y10 = fx_mul(fx_mul(y4, y4), y2);
+    *z_io = rhs < 0 ? -y : y;
+    *v = rhs < 0 ? -y10 : y10;
+    return PS_OK;
+}
+
+int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_t gd1,
+                       int32_t gs1, int32_t *ia, int32_t *ii)
+{
+    int32_t T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES], tg1[PS_NFIBRES];
+    int32_t dL, r_ia, r_ii;
+    const int32_t t_max = PS_FX_T_MAX * FX_ONE;
+    int i, status;
+
+    if (s == NULL || q == NULL) return PS_ERR_NULL;
+    status = fx_check_inputs(q, L1, gd1, gs1);
+    if (status != PS_OK) return status;
+    if (!fx_state_ok(s, q)) return PS_ERR_NONFINITE;
+    dL = L1 - s->L;
+    if (fx_abs(dL) > q->max_dL) return PS_ERR_SPEED;
+
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        const int32_t T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i];
+        const int32_t drive1 = i == 0 ? gd1 : gs1;
+        const int32_t tg0 = s->target[i];
+        const int32_t tg = drive1 == (i == 0 ? s->gd : s->gs) ? tg0 : fx_target(q, i, drive1);
+        int32_t f, beta1, A, F0, p0, rhs, c, z;
+        f = fx_mul(q->c_f0[i], f0) + fx_mul(q->c_a0[i], tg0) + fx_mul(q->c_a1[i], tg);
+        f = fx_min(fx_max(f, 0), FX_ONE);
+        tg1[i] = tg;
+        f1[i] = f;
+        beta1 = q->beta0[i] + fx_mul(q->beta_drive[i], f);
+        A = T0 + fx_mul(q->KSR[i], dL);
+        {   /* F0: the force at the start of the step (theta < 1) */
+            int32_t polar = s->L - q->LSR0[i] - fx_mul(T0, q->inv_KSR[i]);
+            int32_t beta0 = q->beta0[i] + fx_mul(q->beta_drive[i], f0);
+            int32_t z03 = fx_mul(fx_mul(z0, z0), z0);
+            int32_t damping = fx_mul(fx_mul(z0 > 0 ? q->CL[i] : q->CS[i], beta0), z03);
+            F0 = T0 - fx_mul(q->Gamma_drive[i], f0) - fx_mul(q->KPR[i], polar - q->LPR0[i])
+                 - fx_mul(damping, polar - q->R[i]);
+        }
+        A -= fx_mul(q->c_Av[i], v0);
+        p0 = L1 - q->LSR0_R[i] - fx_mul(A, q->inv_KSR[i]);
+        rhs = fx_mul(q->M_h[i], v0) + fx_mul(q->th_k1[i], A)
+              - fx_mul(q->theta, fx_mul(q->Gamma_drive[i], f))
+              - fx_mul(q->th_KPR[i], L1 - q->LSR0_LPR0[i]) + fx_mul(q->one_minus_theta, F0);
+        c = fx_mul(rhs > 0 ? q->th_CL[i] : q->th_CS[i], beta1);
+        z = z0;
+        status = fx_solve_03(&z, &v1[i], q, i, p0, rhs, c);
+        if (status != PS_OK) return status;
+        z1[i] = z;
+        T1[i] = A - fx_mul(q->th_h_KSR[i], v1[i]);
+        if (T1[i] < -t_max || T1[i] > t_max) return PS_ERR_NONFINITE;
+    }
+    fx_afferents(q, T1, L1, &r_ia, &r_ii);
+    fx_copy3(s->T, T1);
+    fx_copy3(s->v, v1);
+    fx_copy3(s->z, z1);
+    fx_copy3(s->f, f1);
+    fx_copy3(s->target, tg1);
+    s->L = L1;
+    s->gd = gd1;
+    s->gs = gs1;
+    if (ia != NULL) *ia = r_ia;
+    if (ii != NULL) *ii = r_ii;
+    return PS_OK;
+}
