@@ -29,6 +29,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from oracle_csv import write_table
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OSIM = REPO_ROOT / ".." / "shared" / "reference" / "opensim" / "arm26.osim"
@@ -87,13 +88,7 @@ def sweep(model_file: Path, angles_deg: np.ndarray) -> dict[str, np.ndarray]:
 def write_csv(path: Path, angles_deg: np.ndarray, data: dict[str, np.ndarray], header: str):
     names = ["elbow_flex_deg", "elbow_flex_rad"] + [f"{m}_{c}" for m in MUSCLES for c in COLUMNS]
     table = np.column_stack([angles_deg, np.radians(angles_deg)] + [data[n] for n in names[2:]])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    comment = "".join(f"# {line}\n" for line in header.splitlines())
-    with path.open("w", newline="\n") as f:
-        f.write(comment)
-        f.write(",".join(names) + "\n")
-        for row in table:
-            f.write(",".join(f"{v:.10g}" for v in row) + "\n")
+    write_table(path, names, table, header)
 
 
 def main(argv: list[str] | None = None) -> int:
