@@ -27,6 +27,19 @@ FW_FIXED): its plan is made on the host by ps_plan_fx_init from spindle.HUMAN an
 into the firmware as a const; lengths go to the firmware in Q24 and drives in Q8, rates come
 back in Q16 (the host build gets the same rounded inputs, and the two agree to the bit).
 
+A second input, the demo motion, measures the fixed-point step as the prosthesis runs it:
+the Fig. 3 protocol holds the fusimotor drive constant within a run, so the step reuses its
+activation targets there. The demo motion is the seed paper's repeated rapid elbow
+flexion-extension (triangle 20-110 deg at 130 deg/s, proprio_env.servo_motion.triangle_deg)
+through the numpy chain (spindle.chain.run_chain, ChainConfig()) sampled once per spindle step
+(5 ms); the BRA and TRImed lengths and the chain's own gamma_s, gamma_d of every step are fed
+to the two-muscle firmware. It prints the instructions per step per muscle, MIPS per muscle,
+the costliest step, the same lengths with the drives held (the cost of the activation-target
+divides), and the RMS of the fixed-point rates against the double ps_spindle_step at the same
+step and inputs, and against the chain's own rates (numpy, trapezoidal 1 ms). Its summary
+line `demo_mips_per_muscle=... demo_peak_mips=... demo_rms_vs_double_pps=...` precedes the
+last line, which stays the Fig. 3 figure.
+
 Usage:
     PYTHONPATH=. python scripts/bench_embedded.py            # all levers, all 9 runs (~10 min)
     PYTHONPATH=. python scripts/bench_embedded.py --quick    # final configuration, 2 runs
