@@ -16,31 +16,19 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from sanitized_build import SANITIZER_REPORT, build
 
 from spindle import cbuild
 from spindle.chain import ChainConfig
 from spindle.length_fits import load_length_fits
 
 FUZZ_SOURCE = cbuild.SOURCE_DIR / "fuzz" / "fuzz_chain.c"
-SANITIZER_REPORT = re.compile(r"runtime error|AddressSanitizer|LeakSanitizer|SUMMARY:")
 STATUS = re.compile(r"(\d+):(\d+)")
 
 
-def build(out: Path, variant: str) -> Path:
-    try:
-        compiler = cbuild.find_compiler()
-    except cbuild.CBackendError as exc:
-        pytest.skip(str(exc))
-    flags = [f for f in cbuild.compile_flags(variant, sanitize=True)
-             if f not in ("-fPIC", "-shared")]
-    flags.append("-fsanitize=float-cast-overflow")
-    cmd = [compiler, *flags, "-I", str(cbuild.SOURCE_DIR), *map(str, cbuild.sources()),
-           str(FUZZ_SOURCE), "-o", str(out), "-lm"]
-    result = subprocess.run(cmd, capture_output=True, text=True)
-    if result.returncode != 0 and "sanitize" in result.stderr:
-        pytest.skip(f"the compiler has no ASan/UBSan: {result.stderr.strip()[:200]}")
-    assert result.returncode == 0, result.stderr
-    return out
+def build_fuzzer(out: Path, variant: str) -> Path:
+    return build(out, [*cbuild.sources(), FUZZ_SOURCE], variant,
+                 ("-fsanitize=float-cast-overflow",))
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +41,7 @@ def fuzzers(tmp_path_factory) -> dict[str, tuple[Path, Path]]:
     for variant in cbuild.VARIANTS:
         config = root / f"config_{variant}.bin"
         config.write_bytes(bytes(chain_config_struct(ChainConfig(), fits, variant)))
-        out[variant] = (build(root / f"fuzz_chain_{variant}", variant), config)
+        out[variant] = (build_fuzzer(root / f"fuzz_chain_{variant}", variant), config)
     return out
 
 

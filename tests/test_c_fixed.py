@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sanitized_build import SANITIZER_REPORT, build
 
 import spindle
 from spindle import cbuild
@@ -241,7 +242,6 @@ def test_plan_refuses_what_it_cannot_represent(lib):
 # ---- sanitizer fuzz (spindle/c/fuzz/fuzz_fixed.c) -------------------------------------------
 
 FUZZ_SOURCE = cbuild.SOURCE_DIR / "fuzz" / "fuzz_fixed.c"
-SANITIZER_REPORT = re.compile(r"runtime error|AddressSanitizer|LeakSanitizer|SUMMARY:")
 
 
 @pytest.fixture(scope="module")
@@ -252,16 +252,8 @@ def fuzzers(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("fuzz_fixed")
     out = {}
     for variant in cbuild.VARIANTS:
-        flags = [f for f in cbuild.compile_flags(variant, sanitize=True)
-                 if f not in ("-fPIC", "-shared")]
-        binary = root / f"fuzz_fixed_{variant}"
-        cmd = [cbuild.find_compiler(), *flags, "-I", str(cbuild.SOURCE_DIR),
-               str(cbuild.SOURCE_DIR / "spindle.c"), str(FUZZ_SOURCE), "-o", str(binary), "-lm"]
-        result = subprocess.run(cmd, capture_output=True, text=True)
-        if result.returncode != 0 and "sanitize" in result.stderr:
-            pytest.skip(f"the compiler has no ASan/UBSan: {result.stderr.strip()[:200]}")
-        assert result.returncode == 0, result.stderr
-        out[variant] = binary
+        out[variant] = build(root / f"fuzz_fixed_{variant}",
+                             [cbuild.SOURCE_DIR / "spindle.c", FUZZ_SOURCE], variant)
     return out
 
 

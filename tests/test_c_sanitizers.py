@@ -14,33 +14,17 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from sanitized_build import SANITIZER_REPORT, build
 
 from spindle import cbuild
 
 FUZZ_SOURCE = cbuild.SOURCE_DIR / "fuzz" / "fuzz_spindle.c"
-SANITIZER_REPORT = re.compile(r"runtime error|AddressSanitizer|LeakSanitizer|SUMMARY:")
 
 
 # the embedded options too (scripts/bench_embedded.py): no libm cube root, fixed iterations
 BUILDS = {"double": ("double", ()), "float": ("float", ()),
           "float-embedded": ("float", ("-DPS_FAST_CBRT", "-DPS_CBRT_REFINE=0",
                                        "-DPS_NEWTON_ITER=2"))}
-
-
-def build(out: Path, sources: list[Path], variant: str, defines: tuple[str, ...] = ()) -> Path:
-    try:
-        compiler = cbuild.find_compiler()
-    except cbuild.CBackendError as exc:
-        pytest.skip(str(exc))
-    flags = [f for f in cbuild.compile_flags(variant, sanitize=True)
-             if f not in ("-fPIC", "-shared")]
-    cmd = [compiler, *flags, *defines, "-I", str(cbuild.SOURCE_DIR), *map(str, sources),
-           "-o", str(out), "-lm"]
-    result = subprocess.run(cmd, capture_output=True, text=True)
-    if result.returncode != 0 and "sanitize" in result.stderr:
-        pytest.skip(f"the compiler has no ASan/UBSan: {result.stderr.strip()[:200]}")
-    assert result.returncode == 0, result.stderr
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -76,6 +76,21 @@ static void copy3(ps_real dst[PS_NFIBRES], const ps_real src[PS_NFIBRES])
     dst[2] = src[2];
 }
 
+/* The end of a successful step: the state takes the new values only once all are known to
+ * be finite, so a failed step leaves it as it was. */
+static void commit(ps_spindle *s, const ps_real T1[PS_NFIBRES], const ps_real v1[PS_NFIBRES],
+                   const ps_real z1[PS_NFIBRES], const ps_real f1[PS_NFIBRES], ps_real L1,
+                   ps_real gd1, ps_real gs1)
+{
+    copy3(s->T, T1);
+    copy3(s->v, v1);
+    copy3(s->z, z1);
+    copy3(s->f, f1);
+    s->L = L1;
+    s->gd = gd1;
+    s->gs = gs1;
+}
+
 static int all_equal(const ps_real x[PS_NFIBRES], ps_real value)
 {
     return x[0] == value && x[1] == value && x[2] == value;
@@ -330,13 +345,7 @@ int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, 
     afferents(T1, L1, p, &r_ia, &r_ii);
     /* a tension so large that the rates overflow (float) is a failure too */
     if (!is_finite(r_ia) || !is_finite(r_ii)) return PS_ERR_NONFINITE;
-    copy3(s->T, T1);
-    copy3(s->v, v1);
-    copy3(s->z, z1);
-    copy3(s->f, f1);
-    s->L = L1;
-    s->gd = gd1;
-    s->gs = gs1;
+    commit(s, T1, v1, z1, f1, L1, gd1, gs1);
     if (ia != NULL) *ia = r_ia;
     if (ii != NULL) *ii = r_ii;
     return PS_OK;
@@ -630,13 +639,7 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
     r_ia = max_r(a_dyn, b_stat) + q->S * min_r(a_dyn, b_stat);
     r_ii = max_r(sec[1], R_(0)) + max_r(sec[2], R_(0));
     if (!is_finite(r_ia) || !is_finite(r_ii)) return PS_ERR_NONFINITE;
-    copy3(s->T, T1);
-    copy3(s->v, v1);
-    copy3(s->z, z1);
-    copy3(s->f, f1);
-    s->L = L1;
-    s->gd = gd1;
-    s->gs = gs1;
+    commit(s, T1, v1, z1, f1, L1, gd1, gs1);
     if (ia != NULL) *ia = r_ia;
     if (ii != NULL) *ii = r_ii;
     return PS_OK;
