@@ -24,7 +24,8 @@ Shapes: public state arrays have a leading spindle axis, ``(n, 3)`` with columns
 (bag1, bag2, chain). They are transposed views of fibre-major ``(3, n)`` buffers, the layout
 the arithmetic runs on.
 
-Speed (the arithmetic is the same on every path, term by term):
+Speed (every path solves the same equation to the same tolerance, so they agree to
+rounding, ~1e-13 pps):
 
 - up to SMALL_N spindles the implicit step runs on Python floats, fibre by fibre (numpy's
   per-call overhead would dominate);
@@ -34,7 +35,9 @@ Speed (the arithmetic is the same on every path, term by term):
   and hands the last few slow ones to a tail that finishes them together;
 - the starting guess solves the step equation with |v|/|z|^3 frozen and blends it toward the
   previous z by the first-order correction for that freeze (see ``_Workspace._setup``),
-  which leaves most fibres two or three Newton iterations from convergence.
+  which leaves most fibres two or three Newton iterations from convergence. Once a state
+  has taken three steps of one size, the numpy path guesses instead by extrapolating its last
+  three z (see ``_Workspace``): as close, and some 20 passes over each block cheaper.
 """
 
 from __future__ import annotations
@@ -550,7 +553,7 @@ def _step_constants(c: _Columns, h: float, theta: float) -> _StepConstants:
     return hit
 
 
-CHUNK_SPINDLES = 4096
+CHUNK_SPINDLES = 6144
 """Spindles per block of the vectorised step: every working array of a block stays in the
 core's cache (the step makes ~150 passes over them), and each block leaves the Newton loop
 as soon as all of its own fibres have converged."""
@@ -563,11 +566,21 @@ TAIL_FRACTION = 8
 of them remain (a few sign changes of v need more iterations than the rest)."""
 
 
+EXTRAPOLATE_SPINDLES = 8192
+"""From this many spindles on, the guess extrapolates the last steps' z (see
+:class:`_Workspace`). The few fibres it leaves far off (mostly where v is about to cross 0)
+go to the common tail, whose per-call cost outweighs the saving below this size."""
+
+HISTORY_PROBE = 61
+"""Every this many spindles, the state's z is compared with the last step's output before
+that step's history steers the next guess (see :class:`_Workspace`)."""
+
+
 class _Block:
     """Scratch arrays for a block of ``w`` spindles: flat (3*w,) buffers and (3, w) views."""
 
     NAMES = ("a1", "cM", "cD", "A", "p0", "rhs", "z", "az", "sq", "t9", "w", "cb",
-             "phi", "q", "g", "dg", "dz", "tmp")
+             "phi", "q", "g", "dv", "dg", "dz", "tmp", "p3")
 
     def __init__(self, w: int):
         self.w = w
@@ -584,11 +597,13 @@ class _Block:
         """Expand the step's per-fibre constants that the Newton loop uses to (3*w,)."""
         if self.k is not k:
             self.th_h_KSR = np.repeat(k.th_h_KSR_floats, self.w)
+            self.blend_exp = np.repeat([x[k.NAMES.index("blend_exp")] for x in k.fibre], self.w)
             if not k.a_is_03:
                 # per-fibre exponents, expanded like the data (rows of w)
                 e = np.array(k.three_over_a_floats)
                 self.flat["power"] = np.repeat(e - 1.0, self.w)
-                self.flat["dv_scale"] = np.repeat(e / 10.0, self.w)
+                self.flat["three_over_a"] = np.repeat(e, self.w)
+                self.flat["w_coef"] = np.repeat((3.0 + e) * k.th_h, self.w)
             self.k = k
 
 
@@ -597,13 +612,25 @@ class _Workspace:
 
     :func:`advance` returns the output arrays ``T1, v1, z1, f1`` themselves; they hold the
     result until the next ``advance`` of the same state.
+
+    The z outputs rotate through four buffers, so the two before the latest stay available:
+    once three steps of the same size have run, the Newton guess is the quadratic
+    extrapolation 3*(z0 - z_-1) + z_-2 of the state's z and those two (median error ~1e-5
+    on smooth motion, where the frozen-factor guess of :meth:`_setup` is ~1e-4 off and costs
+    ~20 passes over the block). The history only steers the guess: if the state was changed
+    in between (a reset, a failed step, a step that was not committed), Newton still
+    converges to the same tolerance, from farther away. A sample of the state's z is checked
+    against the latest output (every HISTORY_PROBE-th spindle), so a state reset or edited
+    between steps falls back to the frozen-factor guess instead of a far-off one.
     """
 
     def __init__(self, n: int):
         self.n = n
         self.T1 = np.empty((3, n))
         self.v1 = np.empty((3, n))
-        self.z1 = np.empty((3, n))
+        self.z_ring = [np.empty((3, n)) for _ in range(4)]
+        self.z1 = self.z_ring[0]
+        self.history = 0  # consecutive steps of the current size whose z the ring holds
         self.f1 = np.empty((3, n))
         m = min(n, CHUNK_SPINDLES)
         self.blocks = {m: _Block(m)}
@@ -612,6 +639,8 @@ class _Workspace:
         self.k: _StepConstants | None = None
 
     def prepare(self, k: _StepConstants) -> None:
+        if k is not self.k:
+            self.history = 0  # an extrapolation over a different step size is no guess
         self.k = k
         for b in self.blocks.values():
             b.prepare(k)
@@ -630,29 +659,47 @@ class _Workspace:
         # An unchanged drive (the common case) has an unchanged activation target.
         same_drive = k.theta < 1.0 and np.array_equal(gd0, gd1) and np.array_equal(gs0, gs1)
         tail = []
+        ring = self.z_ring
+        if self.history and not np.array_equal(z0[:, ::HISTORY_PROBE],
+                                               ring[0][:, ::HISTORY_PROBE]):
+            self.history = 0  # the state is not the one the last step left
+        self.z1 = ring[3]  # the oldest: no longer part of the history
+        prior = (ring[1], ring[2]) if self.history >= 3 and n >= EXTRAPOLATE_SPINDLES else None
         for j0 in range(0, n, CHUNK_SPINDLES):
             j1 = min(n, j0 + CHUNK_SPINDLES)
             b = self.blocks[j1 - j0]
             cols = slice(j0, j1)
-            self._setup(b, cols, T0[:, cols], v0[:, cols], z0[:, cols], f0[:, cols], L0[cols],
-                        L1[cols], gd0[cols], gs0[cols], gd1[cols], gs1[cols], same_drive)
+            self._setup(b, cols, T0[:, cols], v0[:, cols], z0[:, cols], f0[:, cols],
+                        L0[cols], L1[cols], gd0[cols], gs0[cols], gd1[cols], gs1[cols],
+                        same_drive, guess=prior is None)
+            if prior is not None:
+                z, tmp = b.rows["z"], b.rows["tmp"]
+                np.subtract(z0[:, cols], prior[0][:, cols], out=tmp)
+                np.multiply(tmp, 3.0, out=tmp)
+                np.add(tmp, prior[1][:, cols], out=z)
             left = _newton_block(b, k)
             if left is not None:
                 rows, idx = np.divmod(left, b.w)
                 f = b.flat
-                tail.append((rows * n + (idx + j0), *(x[left] for x in (
-                    f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], f["A"], b.th_h_KSR,
-                    *((f["power"], f["dv_scale"]) if not k.a_is_03 else ())))))
+                tail.append((rows * n + (idx + j0), z0[rows, idx + j0], b.blend_exp[left],
+                             *(x[left] for x in (
+                                 f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], f["A"],
+                                 b.th_h_KSR, *((f["power"], f["three_over_a"], f["w_coef"])
+                                               if not k.a_is_03 else ())))))
             self._finish(b, cols)
         if tail:
-            self._finish_tail(tail)
+            self._finish_tail(tail, restart=prior is not None)
         _check_finite(self.T1, self.v1, k.h)
+        self.z_ring = [ring[3], ring[0], ring[1], ring[2]]
+        self.history += 1
         return self.T1, self.v1, self.z1, self.f1
 
-    def _setup(self, b, cols, T0, v0, z0, f0, L0, L1, gd0, gs0, gd1, gs1, same_drive):
-        """Everything known at the start of the step, and the guess. Wide blocks go fibre row
-        by fibre row (the constants are then Python floats, cheaper to apply than broadcast
-        columns); narrow ones all rows at once with (3, 1) columns (fewer calls)."""
+    def _setup(self, b, cols, T0, v0, z0, f0, L0, L1, gd0, gs0, gd1, gs1, same_drive,
+               guess=True):
+        """Everything known at the start of the step, and (with ``guess``) the frozen-factor
+        guess. Wide blocks go fibre row by fibre row (the constants are then Python floats,
+        cheaper to apply than broadcast columns); narrow ones all rows at once with (3, 1)
+        columns (fewer calls)."""
         k = self.k
         old = k.theta < 1.0
         r = b.rows
@@ -736,71 +783,87 @@ class _Workspace:
                 mul(q0, KPR, out=cb)
             add(rhs, rhs_const, out=rhs)
             sub(rhs, cb, out=rhs)
-            # Starting guess: g with |v|/|z^3| frozen at its previous value |z0|^7 (a = 0.3)
-            # is linear in z^3; its root already has the right sign and, in holds where the
-            # trapezoidal rule rings, the right size, which the previous z has not.
-            a2t, slope, blend, z = r["t9"][i], r["g"][i], r["dg"][i], r["z"][i]
-            if k.a_is_03:
-                mul(sq, sq, out=a2t)
-                mul(a2t, sq, out=a2t)
-                mul(a2t, az, out=a2t)
-            else:
-                np.power(az, blend_exp * 3.0, out=a2t)
-            np.copysign(cD, rhs, out=slope)
-            add(slope, cM, out=slope)
-            np.maximum(p0, 0.0, out=blend)
-            mul(slope, blend, out=slope)
-            add(slope, a2t, out=slope)
-            np.divide(rhs, slope, out=z)
-            np.cbrt(z, out=z)
-            # The frozen factor's error: log z_guess - log z ~ e*s*(log z - log z0), e the
-            # exponent of |z| in it (7/3 for a = 0.3) and s the share of the |v| term in the
-            # slope; solving that to first order blends the guess toward z0 by
-            # e*s/(1 + e*s). Only where z0 and the guess share a sign (v does not reverse).
-            mul(a2t, blend_exp, out=blend)
-            add(slope, blend, out=tmp)
-            np.divide(blend, tmp, out=blend)
-            same_sign = b.same_sign[i]
-            mul(z0i, z, out=tmp)
-            np.greater(tmp, 0.0, out=same_sign)
-            mul(blend, same_sign, out=blend)
-            sub(z0i, z, out=tmp)
-            mul(tmp, blend, out=tmp)
-            add(z, tmp, out=z)
+            if guess:
+                _frozen_guess(z0i, az, sq, rhs, cM, cD, p0, blend_exp, k.a_is_03,
+                              {name: r[name][i] for name in ("z", "t9", "g", "dg", "tmp")},
+                              b.same_sign[i])
 
     def _finish(self, b, cols):
+        """v1, T1 and z1 of a block from its last Newton iteration. That iteration moved z by
+        dz (|dz| <= NEWTON_TOL_Z wherever the block converged; the tail rewrites the rest), so
+        v(z) = v(z_prev) - v'(z_prev)*dz is exact to O(dz^2): below 1e-16 L0/s, v's rounding."""
         r = b.rows
-        f = b.flat
         k = self.k
-        if k.a_is_03:
-            sq, t, az = f["sq"], f["t9"], f["az"]
-            np.multiply(f["z"], f["z"], out=sq)
-            np.multiply(sq, sq, out=t)
-            np.multiply(t, t, out=t)
-            np.abs(f["z"], out=az)
-            np.multiply(t, az, out=t)
-        else:
-            _velocity_into(f["z"], f, k)
         v1 = self.v1[:, cols]
-        np.multiply(r["t9"], r["z"], out=v1)
+        np.multiply(r["dv"], r["dz"], out=r["tmp"])
+        np.subtract(r["w"], r["tmp"], out=v1)
         for i in range(3):
             T1 = self.T1[i, cols]
             np.multiply(v1[i], k.th_h_KSR_floats[i], out=T1)
             np.subtract(r["A"][i], T1, out=T1)
         self.z1[:, cols] = r["z"]
 
-    def _finish_tail(self, tail):
-        idx, z, p0, rhs, cM, cD, A, th_h_KSR, *exponents = (
+    def _finish_tail(self, tail, restart):
+        """Newton to convergence on the fibres the blocks handed over. With ``restart`` (their
+        guess was extrapolated) they start again from the frozen-factor guess: an
+        extrapolation that overshoots toward or across v = 0 leaves Newton far above a small
+        root, where it creeps (each step removes only ~1/10 of the excess of z^10)."""
+        idx, z0, blend_exp, z, p0, rhs, cM, cD, A, th_h_KSR, *exponents = (
             np.concatenate(x) for x in zip(*tail, strict=True))
         s = {name: np.empty(z.size) for name in _Block.NAMES}
+        k = self.k
+        if restart:
+            s["z"] = z
+            _frozen_guess(z0, np.abs(z0), z0 * z0, rhs, cM, cD, p0, blend_exp, k.a_is_03, s,
+                          np.empty(z.size, dtype=bool))
         s["z"] = z
         if exponents:
-            s["power"], s["dv_scale"] = exponents
-        _newton_loop(z, p0, rhs, cM, cD, self.k, s, first=0)
+            s["power"], s["three_over_a"], s["w_coef"] = exponents
+        _newton_loop(z, p0, rhs, cM, cD, k, s, first=0)
         v = _velocity_into(z, s, self.k)
         self.z1.reshape(-1)[idx] = z
         self.v1.reshape(-1)[idx] = v
         self.T1.reshape(-1)[idx] = A - th_h_KSR * v
+
+
+def _frozen_guess(z0, az, sq, rhs, cM, cD, p0, blend_exp, a_is_03, s, same_sign):
+    """The Newton guess from the start of the step, into ``s["z"]``; ``az`` and ``sq`` hold
+    |z0| and z0^2, ``s`` scratch arrays "t9", "g", "dg", "tmp" shaped like z0, ``same_sign``
+    a bool array of that shape.
+
+    g with |v|/|z^3| frozen at its previous value |z0|^7 (a = 0.3) is linear in z^3; its root
+    already has the right sign and, near v = 0 and in holds where the trapezoidal rule rings,
+    the right size, which the previous z has not.
+    """
+    mul, add = np.multiply, np.add
+    a2t, slope, blend, z, tmp = s["t9"], s["g"], s["dg"], s["z"], s["tmp"]
+    if a_is_03:
+        mul(sq, sq, out=a2t)
+        mul(a2t, sq, out=a2t)
+        mul(a2t, az, out=a2t)
+    else:
+        np.power(az, blend_exp * 3.0, out=a2t)
+    np.copysign(cD, rhs, out=slope)
+    add(slope, cM, out=slope)
+    np.maximum(p0, 0.0, out=blend)
+    mul(slope, blend, out=slope)
+    add(slope, a2t, out=slope)
+    np.divide(rhs, slope, out=z)
+    np.cbrt(z, out=z)
+    # The frozen factor's error: log z_guess - log z ~ e*s*(log z - log z0), e the exponent
+    # of |z| in it (7/3 for a = 0.3) and s the share of the |v| term in the slope; solving
+    # that to first order blends the guess toward z0 by e*s/(1 + e*s). Only where z0 and the
+    # guess share a sign (v does not reverse).
+    mul(a2t, blend_exp, out=blend)
+    add(slope, blend, out=tmp)
+    np.divide(blend, tmp, out=blend)
+    mul(z0, z, out=tmp)
+    np.greater(tmp, 0.0, out=same_sign)
+    mul(blend, same_sign, out=blend)
+    np.subtract(z0, z, out=tmp)
+    mul(tmp, blend, out=tmp)
+    add(z, tmp, out=z)
+    return z
 
 
 def _drive_powers(gd, gs, k, out, all_rows=False):
@@ -862,34 +925,44 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
     reverses need more iterations than the rest); else None once all have converged.
     """
     mul, add = np.multiply, np.add
-    t, w, az, cb, phi, q, g, dg, dz, tmp = (
-        s[name] for name in ("t9", "w", "az", "cb", "phi", "q", "g", "dg", "dz", "tmp"))
+    # 12 arrays in all, so that a block's stay in the core's cache: dz holds g before it
+    # turns into dz, t = |z|^(3/a - 1) turns into v'(z) = (3/a)*t, dg is scratch until g'
+    t, w, az, cb, dz, dg, p3 = (s[name] for name in ("dv", "w", "az", "cb", "dz", "dg", "p3"))
     th_h = k.th_h
-    th_h_10 = 10.0 * th_h
+    dv_factor = 10.0 if k.a_is_03 else s["three_over_a"]
+    # g' = v'(z)*(1 + theta*h*phi) + 3*cb*q with phi = cb*z and v' = (3/a)|z|^(3/a - 1), so
+    # phi*v' = (3/a)*cb*w and g' = v' + cb*(3*p0 + (3 + 3/a)*theta*h*w); 3*p0 is fixed.
+    mul(p0, 3.0, out=p3)
+    w_coef = s["w_coef"] if not k.a_is_03 else 13.0 * th_h
     for iteration in range(NEWTON_MAX_ITER):
-        _velocity_into(z, s, k)
-        # Cb*z^2 with Cb = theta*C*beta1 (C = CL for z > 0, CS else)
+        np.abs(z, out=az)
+        if k.a_is_03:
+            mul(z, z, out=t)
+            mul(t, t, out=t)
+            mul(t, t, out=t)
+            mul(t, az, out=t)
+        else:
+            np.power(az, s["power"], out=t)
+        mul(t, z, out=w)
+        # cb = Cb*z^2 with Cb = theta*C*beta1 (C = CL for z > 0, CS else)
         mul(cM, z, out=cb)
-        mul(cD, az, out=tmp)
-        add(cb, tmp, out=cb)
+        mul(cD, az, out=dg)
+        add(cb, dg, out=cb)
         mul(cb, z, out=cb)
-        mul(cb, z, out=phi)
-        mul(w, th_h, out=q)
-        add(q, p0, out=q)
-        mul(phi, q, out=g)
-        add(g, w, out=g)
-        np.subtract(g, rhs, out=g)
-        mul(phi, th_h_10, out=dg)
-        add(dg, 10.0, out=dg)
-        if not k.a_is_03:
-            # dv/dz = (3/a)|z|^(3/a - 1): the 10 above stands for 3/a
-            mul(dg, s["dv_scale"], out=dg)
-        mul(dg, t, out=dg)
-        mul(cb, q, out=tmp)
-        mul(tmp, 3.0, out=tmp)
-        add(dg, tmp, out=dg)
+        # g = w + cb*z*q - rhs with q = p0 + theta*h*w
+        mul(w, th_h, out=dz)
+        add(dz, p0, out=dz)
+        mul(dz, cb, out=dz)
+        mul(dz, z, out=dz)
+        add(dz, w, out=dz)
+        np.subtract(dz, rhs, out=dz)
+        mul(t, dv_factor, out=t)
+        mul(w, w_coef, out=dg)
+        add(dg, p3, out=dg)
+        mul(dg, cb, out=dg)
+        add(dg, t, out=dg)
         np.maximum(dg, 1e-300, out=dg)
-        np.divide(g, dg, out=dz)
+        np.divide(dz, dg, out=dz)
         hi = dz.max()
         lo = dz.min()
         if hi > NEWTON_MAX_DZ or lo < -NEWTON_MAX_DZ:
@@ -898,8 +971,8 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
         if hi <= NEWTON_TOL_Z and lo >= -NEWTON_TOL_Z:
             return None
         if moving is not None and iteration >= first:
-            np.abs(dz, out=tmp)
-            np.greater(tmp, NEWTON_TOL_Z, out=moving)
+            np.abs(dz, out=dg)
+            np.greater(dg, NEWTON_TOL_Z, out=moving)
             left = np.flatnonzero(moving)
             if left.size <= moving.size // TAIL_FRACTION:
                 # none left: the only fibres not converged are NaN, which the finite check

@@ -340,6 +340,42 @@ def test_optimised_trajectory_stays_on_the_reference_trajectory(method):
     assert np.abs(plain.polar_velocity_L0_s).max() > 0.05  # the test did move the spindles
 
 
+def test_extrapolated_guess_survives_a_state_changed_between_steps():
+    """From the fourth step on, the numpy path guesses z by extrapolating its own last outputs.
+    Resetting half the spindles, an uncommitted step and a step of another size in between
+    must not move the result off the plain reference step (they may only cost iterations),
+    over two blocks and a remainder."""
+    rng = np.random.default_rng(21)
+    n = core.EXTRAPOLATE_SPINDLES + 37
+    assert n > core.CHUNK_SPINDLES
+    steps = 24
+    t = np.arange(steps + 1)[:, None] * 1e-3
+    L = 1.0 + 0.08 * np.sin(2 * np.pi * rng.uniform(1, 4, n) * t + rng.uniform(0, 6, n))
+    gd = 50 * (1 + np.sin(2 * np.pi * rng.uniform(0.5, 2, n) * t))
+    gs = np.full(n, 30.0)
+    c = core.columns(spindle.CAT)
+    fast = spindle.equilibrium_state(L[0], gd[0], gs)
+    plain = fast.copy()
+    worst = 0.0
+    for i in range(1, steps + 1):
+        h = 0.5e-3 if i == 17 else 1e-3
+        if i == 9:  # reset half the spindles in place, as a user may
+            half = slice(0, n, 2)
+            for state in (fast, plain):
+                fresh = spindle.equilibrium_state(L[i - 1][half] + 0.05, 80.0, 30.0)
+                for mine, new in zip(state._arrays(), fresh._arrays(), strict=True):
+                    mine[half] = new
+        if i == 13:  # a step taken and thrown away
+            core.advance(fast, L[i] + 0.01, gd[i], gs, h, 0.5, c)
+        core.commit(fast, core.advance(fast, L[i], gd[i], gs, h, 0.5, c), L[i], gd[i], gs)
+        core.commit(plain, reference_advance(plain, L[i], gd[i], gs, h, 0.5), L[i], gd[i], gs)
+        rates = np.concatenate(spindle.afferents(fast))
+        rates_ref = np.concatenate(spindle.afferents(plain))
+        worst = max(worst, np.abs(rates - rates_ref).max())
+    assert worst < 1e-9
+    assert fast._workspace.history >= 3  # so the last steps extrapolated
+
+
 @pytest.mark.parametrize("theta", [0.5, 1.0])
 def test_few_spindle_float_path_equals_the_vectorised_path(theta):
     """The Python-float path (n <= SMALL_N) and the numpy path give the same step."""
@@ -375,7 +411,8 @@ def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch
     calls = []
     finish_tail = core._Workspace._finish_tail
     monkeypatch.setattr(core._Workspace, "_finish_tail",
-                        lambda self, tail: calls.append(len(tail)) or finish_tail(self, tail))
+                        lambda self, tail, **kw: calls.append(len(tail))
+                        or finish_tail(self, tail, **kw))
     c = core.columns(spindle.CAT)
     T1, v1, _, _ = core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)
     assert calls, "the tail was not used"
