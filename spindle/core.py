@@ -571,6 +571,14 @@ EXTRAPOLATE_SPINDLES = 8192
 :class:`_Workspace`). The few fibres it leaves far off (mostly where v is about to cross 0)
 go to the common tail, whose per-call cost outweighs the saving below this size."""
 
+EXTRAPOLATE_MAX_ITER = 3.5
+"""Mean Newton iterations per block above which a step's extrapolated guess counts as worse
+than the frozen-factor one (which needs about 3): inputs noisy from sample to sample (length
+noise of ~1e-4 L0 at 1 ms) make the extrapolation ring."""
+
+EXTRAPOLATE_COOLDOWN = 64
+"""Steps on the frozen-factor guess after such a step, before extrapolating again."""
+
 HISTORY_PROBE = 61
 """Every this many spindles, the state's z is compared with the last step's output before
 that step's history steers the next guess (see :class:`_Workspace`)."""
@@ -621,7 +629,9 @@ class _Workspace:
     in between (a reset, a failed step, a step that was not committed), Newton still
     converges to the same tolerance, from farther away. A sample of the state's z is checked
     against the latest output (every HISTORY_PROBE-th spindle), so a state reset or edited
-    between steps falls back to the frozen-factor guess instead of a far-off one.
+    between steps falls back to the frozen-factor guess instead of a far-off one, and a step
+    whose blocks needed more than EXTRAPOLATE_MAX_ITER Newton iterations on average (inputs
+    noisy from sample to sample) returns to it for EXTRAPOLATE_COOLDOWN steps.
     """
 
     def __init__(self, n: int):
@@ -631,6 +641,7 @@ class _Workspace:
         self.z_ring = [np.empty((3, n)) for _ in range(4)]
         self.z1 = self.z_ring[0]
         self.history = 0  # consecutive steps of the current size whose z the ring holds
+        self.cooldown = 0  # steps left before the extrapolated guess is tried again
         self.f1 = np.empty((3, n))
         m = min(n, CHUNK_SPINDLES)
         self.blocks = {m: _Block(m)}
@@ -659,12 +670,15 @@ class _Workspace:
         # An unchanged drive (the common case) has an unchanged activation target.
         same_drive = k.theta < 1.0 and np.array_equal(gd0, gd1) and np.array_equal(gs0, gs1)
         tail = []
+        evals = 0
         ring = self.z_ring
         if self.history and not np.array_equal(z0[:, ::HISTORY_PROBE],
                                                ring[0][:, ::HISTORY_PROBE]):
             self.history = 0  # the state is not the one the last step left
         self.z1 = ring[3]  # the oldest: no longer part of the history
-        prior = (ring[1], ring[2]) if self.history >= 3 and n >= EXTRAPOLATE_SPINDLES else None
+        self.cooldown = max(0, self.cooldown - 1)
+        prior = (ring[1], ring[2]) if (self.history >= 3 and n >= EXTRAPOLATE_SPINDLES
+                                       and not self.cooldown) else None
         for j0 in range(0, n, CHUNK_SPINDLES):
             j1 = min(n, j0 + CHUNK_SPINDLES)
             b = self.blocks[j1 - j0]
@@ -677,7 +691,8 @@ class _Workspace:
                 np.subtract(z0[:, cols], prior[0][:, cols], out=tmp)
                 np.multiply(tmp, 3.0, out=tmp)
                 np.add(tmp, prior[1][:, cols], out=z)
-            left = _newton_block(b, k)
+            left, iterations = _newton_block(b, k)
+            evals += iterations
             if left is not None:
                 rows, idx = np.divmod(left, b.w)
                 f = b.flat
@@ -692,6 +707,8 @@ class _Workspace:
         _check_finite(self.T1, self.v1, k.h)
         self.z_ring = [ring[3], ring[0], ring[1], ring[2]]
         self.history += 1
+        if prior is not None and evals > EXTRAPOLATE_MAX_ITER * len(range(0, n, CHUNK_SPINDLES)):
+            self.cooldown = EXTRAPOLATE_COOLDOWN  # rough inputs: the frozen guess does better
         return self.T1, self.v1, self.z1, self.f1
 
     def _setup(self, b, cols, T0, v0, z0, f0, L0, L1, gd0, gs0, gd1, gs1, same_drive,
@@ -898,7 +915,8 @@ def _velocity_into(z, s, k):
 
 
 def _newton_block(b, k):
-    """Newton on one block; returns the flat indices handed to the tail, or None."""
+    """Newton on one block; returns (the flat indices handed to the tail or None, the number
+    of iterations)."""
     f = b.flat
     return _newton_loop(f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], k, f,
                         first=NEWTON_FULL_ITER - 1, moving=b.moving)
@@ -922,7 +940,8 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
     ``s`` holds scratch arrays shaped like z. From iteration ``first`` on, if at most
     1/TAIL_FRACTION of the fibres still move (|dz| > tolerance), their flat indices are
     returned and the caller finishes them together with other blocks' (a few fibres whose v
-    reverses need more iterations than the rest); else None once all have converged.
+    reverses need more iterations than the rest); else None once all have converged. The
+    second value returned is the number of iterations.
     """
     mul, add = np.multiply, np.add
     # 12 arrays in all, so that a block's stay in the core's cache: dz holds g before it
@@ -969,7 +988,7 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
             np.clip(dz, -NEWTON_MAX_DZ, NEWTON_MAX_DZ, out=dz)
         np.subtract(z, dz, out=z)
         if hi <= NEWTON_TOL_Z and lo >= -NEWTON_TOL_Z:
-            return None
+            return None, iteration + 1
         if moving is not None and iteration >= first:
             np.abs(dz, out=dg)
             np.greater(dg, NEWTON_TOL_Z, out=moving)
@@ -977,7 +996,7 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
             if left.size <= moving.size // TAIL_FRACTION:
                 # none left: the only fibres not converged are NaN, which the finite check
                 # after the step reports
-                return left if left.size else None
+                return (left if left.size else None), iteration + 1
     raise FloatingPointError(
         f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
         f"(last change in z {max(hi, -lo):.3g}); state left unchanged"

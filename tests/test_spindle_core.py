@@ -376,6 +376,26 @@ def test_extrapolated_guess_survives_a_state_changed_between_steps():
     assert fast._workspace.history >= 3  # so the last steps extrapolated
 
 
+def test_noisy_lengths_send_the_guess_back_to_the_frozen_factor():
+    """Length noise of 1e-4 L0 per 1 ms sample makes the extrapolated z ring: the blocks
+    then need more than EXTRAPOLATE_MAX_ITER Newton iterations, and the workspace returns to
+    the frozen-factor guess for a while. Either way the result is the reference step's."""
+    rng = np.random.default_rng(5)
+    n = core.EXTRAPOLATE_SPINDLES
+    steps = 6
+    L = 1.0 + rng.normal(0.0, 1e-4, (steps + 1, n))
+    gd, gs = np.full(n, 40.0), np.full(n, 40.0)
+    c = core.columns(spindle.CAT)
+    fast = spindle.equilibrium_state(L[0], gd, gs)
+    plain = fast.copy()
+    for i in range(1, steps + 1):
+        core.commit(fast, core.advance(fast, L[i], gd, gs, 1e-3, 0.5, c), L[i], gd, gs)
+        core.commit(plain, reference_advance(plain, L[i], gd, gs, 1e-3, 0.5), L[i], gd, gs)
+    assert fast._workspace.cooldown > 0
+    np.testing.assert_allclose(np.concatenate(spindle.afferents(fast)),
+                               np.concatenate(spindle.afferents(plain)), rtol=0, atol=1e-9)
+
+
 @pytest.mark.parametrize("theta", [0.5, 1.0])
 def test_few_spindle_float_path_equals_the_vectorised_path(theta):
     """The Python-float path (n <= SMALL_N) and the numpy path give the same step."""
