@@ -1,6 +1,6 @@
 """Throughput of the numpy spindle (default method, 1 ms step); a script, not a timed test.
 
-    PYTHONPATH=. python scripts/bench_spindle.py                  # ~2 min, with the baseline
+    PYTHONPATH=. python scripts/bench_spindle.py                  # ~3 min, with the baseline
     PYTHONPATH=. python scripts/bench_spindle.py --quick          # smoke variant, seconds
     PYTHONPATH=. python scripts/bench_spindle.py --baseline none  # this tree only
 
