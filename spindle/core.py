@@ -588,7 +588,7 @@ class _Block:
     """Scratch arrays for a block of ``w`` spindles: flat (3*w,) buffers and (3, w) views."""
 
     NAMES = ("a1", "cM", "cD", "A", "p0", "rhs", "z", "az", "sq", "t9", "w", "cb",
-             "phi", "q", "g", "dv", "dg", "dz", "tmp", "p3")
+             "q", "g", "dv", "dg", "dz", "tmp", "p3")
 
     def __init__(self, w: int):
         self.w = w
@@ -621,17 +621,19 @@ class _Workspace:
     :func:`advance` returns the output arrays ``T1, v1, z1, f1`` themselves; they hold the
     result until the next ``advance`` of the same state.
 
-    The z outputs rotate through four buffers, so the two before the latest stay available:
-    once three steps of the same size have run, the Newton guess is the quadratic
-    extrapolation 3*(z0 - z_-1) + z_-2 of the state's z and those two (median error ~1e-5
-    on smooth motion, where the frozen-factor guess of :meth:`_setup` is ~1e-4 off and costs
-    ~20 passes over the block). The history only steers the guess: if the state was changed
-    in between (a reset, a failed step, a step that was not committed), Newton still
-    converges to the same tolerance, from farther away. A sample of the state's z is checked
-    against the latest output (every HISTORY_PROBE-th spindle), so a state reset or edited
-    between steps falls back to the frozen-factor guess instead of a far-off one, and a step
-    whose blocks needed more than EXTRAPOLATE_MAX_ITER Newton iterations on average (inputs
-    noisy from sample to sample) returns to it for EXTRAPOLATE_COOLDOWN steps.
+    The z outputs rotate through four buffers, so the two before the latest stay available: once
+    three steps of the same size have run (and n >= EXTRAPOLATE_SPINDLES), the Newton guess is
+    the quadratic extrapolation 3*(z0 - z_-1) + z_-2 of the state's z and those two: 3 passes
+    over the block instead of the ~20 of the frozen-factor guess of :meth:`_setup`, and about as
+    close (median error a few 1e-6 in z on smooth motion), except for a few percent of fibres
+    whose v is about to cross 0, which end in the tail and start there again from the
+    frozen-factor guess. The history only steers the guess: if the state was changed in between
+    (a reset, a failed step, a step that was not committed), Newton still converges to the same
+    tolerance, from farther away. A sample of the state's z is checked against the latest output
+    (every HISTORY_PROBE-th spindle), so a state reset or edited between steps falls back to the
+    frozen-factor guess instead of a far-off one, and a step whose blocks needed more than
+    EXTRAPOLATE_MAX_ITER Newton iterations on average (inputs noisy from sample to sample)
+    returns to it for EXTRAPOLATE_COOLDOWN steps.
     """
 
     def __init__(self, n: int):
