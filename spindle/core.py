@@ -839,7 +839,7 @@ class _Workspace:
         if exponents:
             s["power"], s["three_over_a"], s["w_coef"] = exponents
         _newton_loop(z, p0, rhs, cM, cD, k, s, first=0)
-        v = _velocity_into(z, s, self.k)
+        v = _velocity_into(z, s["az"], s["t9"], s["w"], k, s.get("power"))
         self.z1.reshape(-1)[idx] = z
         self.v1.reshape(-1)[idx] = v
         self.T1.reshape(-1)[idx] = A - th_h_KSR * v
@@ -899,19 +899,17 @@ def _drive_powers(gd, gs, k, out, all_rows=False):
     return out
 
 
-def _velocity_into(z, s, k):
-    """v = sgn(z)|z|^(3/a) into s["w"], with |z|^(3/a - 1) left in s["t9"]."""
-    w, t = s["w"], s["t9"]
+def _velocity_into(z, az, t, w, k, power=None):
+    """v = sgn(z)|z|^(3/a) into ``w``, with |z| in ``az`` and |z|^(3/a - 1) in ``t``
+    (``power`` holds 3/a - 1 unless a = 0.3, where it is z^8*|z|: no fractional power)."""
+    np.abs(z, out=az)
     if k.a_is_03:
-        sq = s["sq"]
-        np.multiply(z, z, out=sq)
-        np.multiply(sq, sq, out=t)
+        np.multiply(z, z, out=t)
         np.multiply(t, t, out=t)
-        np.abs(z, out=s["az"])
-        np.multiply(t, s["az"], out=t)
+        np.multiply(t, t, out=t)
+        np.multiply(t, az, out=t)
     else:
-        np.abs(z, out=s["az"])
-        np.power(s["az"], s["power"], out=t)
+        np.power(az, power, out=t)
     np.multiply(t, z, out=w)
     return w
 
@@ -951,20 +949,13 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
     t, w, az, cb, dz, dg, p3 = (s[name] for name in ("dv", "w", "az", "cb", "dz", "dg", "p3"))
     th_h = k.th_h
     dv_factor = 10.0 if k.a_is_03 else s["three_over_a"]
+    power = None if k.a_is_03 else s["power"]
     # g' = v'(z)*(1 + theta*h*phi) + 3*cb*q with phi = cb*z and v' = (3/a)|z|^(3/a - 1), so
     # phi*v' = (3/a)*cb*w and g' = v' + cb*(3*p0 + (3 + 3/a)*theta*h*w); 3*p0 is fixed.
     mul(p0, 3.0, out=p3)
     w_coef = s["w_coef"] if not k.a_is_03 else 13.0 * th_h
     for iteration in range(NEWTON_MAX_ITER):
-        np.abs(z, out=az)
-        if k.a_is_03:
-            mul(z, z, out=t)
-            mul(t, t, out=t)
-            mul(t, t, out=t)
-            mul(t, az, out=t)
-        else:
-            np.power(az, s["power"], out=t)
-        mul(t, z, out=w)
+        _velocity_into(z, az, t, w, k, power)
         # cb = Cb*z^2 with Cb = theta*C*beta1 (C = CL for z > 0, CS else)
         mul(cM, z, out=cb)
         mul(cD, az, out=dg)
