@@ -64,10 +64,8 @@ def script(path: Path, text: str) -> Path:
 def built(tmp_path_factory) -> dict:
     """A cache with one real build of the double library, and the launcher that built it."""
     root = tmp_path_factory.mktemp("cbuild")
-    tools = root / "dir with space"  # $CC is split as a shell would, quotes and all
-    tools.mkdir()
     store = root / "store.so"
-    fakecc = script(tools / "fakecc", FAKECC.replace("$STORE", shlex.quote(str(store))))
+    fakecc = script(root / "fakecc", FAKECC.replace("$STORE", shlex.quote(str(store))))
     cache = root / "cache"
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("PROPRIO_C_CACHE", str(cache))
@@ -75,7 +73,7 @@ def built(tmp_path_factory) -> dict:
         mp.setenv("FAKECC_LOG", str(root / "build.log"))
         cbuild.library_path("double")
     assert store.stat().st_size > 0
-    return {"cache": cache, "store": store, "fakecc": fakecc, "tools": tools}
+    return {"cache": cache, "store": store, "fakecc": fakecc}
 
 
 @pytest.fixture
@@ -177,9 +175,12 @@ def test_a_compiler_that_writes_nothing_or_junk_is_a_clear_error(built, env, mon
     assert len(compiles(env)) == 1
 
 
-def test_cc_with_arguments_is_honoured(built, env, monkeypatch):
-    # like CC="ccache gcc -m64", with a launcher in a directory whose name has a space
-    monkeypatch.setenv("CC", f"{shlex.quote(str(built['fakecc']))} gcc -m64")
+def test_cc_with_arguments_is_honoured(built, env, monkeypatch, tmp_path):
+    # like CC="ccache gcc -m64", with the launcher in a directory whose name has a space
+    launcher = tmp_path / "dir with space" / "fakecc"
+    launcher.parent.mkdir()
+    shutil.copy2(built["fakecc"], launcher)
+    monkeypatch.setenv("CC", f"{shlex.quote(str(launcher))} gcc -m64")
     assert cbuild.library_path("double").read_bytes() == built["store"].read_bytes()
     (call,) = compiles(env)
     assert call.startswith("gcc -m64 -std=c99 ")
