@@ -194,9 +194,12 @@ def _build(compiler: list[str], flags: list[str], srcs: list[Path], directory: P
                 f"{tmp.name} (command: {shlex.join(cmd)})")
         problem = _load_problem(tmp)
         if problem:
+            hint = (" (a sanitizer build loads only into a process started with the sanitizer "
+                    "runtime, e.g. LD_PRELOAD=$(cc -print-file-name=libasan.so))"
+                    if any(f.startswith("-fsanitize") for f in flags) else "")
             raise CBackendError(
                 f"the C compiler {shlex.join(compiler)} exited 0 but its output is not a "
-                f"loadable library with the port's symbols: {problem} "
+                f"loadable library with the port's symbols: {problem}{hint} "
                 f"(command: {shlex.join(cmd)})")
         sha256 = hashlib.sha256(data).hexdigest()
         # The name carries the content's hash, so a manifest always names a file whose
