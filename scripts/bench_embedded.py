@@ -160,7 +160,7 @@ def host_library(cfg: Config, build_dir: Path) -> ctypes.CDLL:
     """The same spindle.c and options, float32, as a host shared library."""
     out = build_dir / f"host_{key(cfg)}.so"
     if not out.exists():
-        cmd = [cbuild.find_compiler(), *cbuild.WARNING_FLAGS, "-O2", "-fPIC", "-shared",
+        cmd = [*cbuild.compiler_command(), *cbuild.WARNING_FLAGS, "-O2", "-fPIC", "-shared",
                "-DPS_FLOAT", *cfg.c_defines(), "-I", str(C_DIR), str(C_DIR / "spindle.c"),
                "-o", str(out), "-lm"]
         subprocess.run(cmd, check=True)

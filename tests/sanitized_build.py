@@ -21,12 +21,12 @@ def build(out: Path, sources: list[Path], variant: str, extra_flags: tuple[str, 
     """Compile ``sources`` into the executable ``out`` with the sanitizer flags of
     :func:`spindle.cbuild.compile_flags` (``variant``: "double" or "float")."""
     try:
-        compiler = cbuild.find_compiler()
+        compiler = cbuild.compiler_command()
     except cbuild.CBackendError as exc:
         pytest.skip(str(exc))
     flags = [f for f in cbuild.compile_flags(variant, sanitize=True)
              if f not in ("-fPIC", "-shared")]
-    cmd = [compiler, *flags, *extra_flags, "-I", str(cbuild.SOURCE_DIR), *map(str, sources),
+    cmd = [*compiler, *flags, *extra_flags, "-I", str(cbuild.SOURCE_DIR), *map(str, sources),
            "-o", str(out), "-lm"]
     result = subprocess.run(cmd, capture_output=True, text=True)
     if result.returncode != 0 and "sanitize" in result.stderr:
