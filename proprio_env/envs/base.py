@@ -109,7 +109,7 @@ class ElbowProprioEnv(gym.Env):
         distance_reward_weight: float = 1.0,
         control_cost_weight: float = 0.0,
         clip_actions: bool = False,
-        xml_file: str | None = None,
+        xml_file: str | Path | None = None,
         render_mode: str | None = None,
         width: int = 320,
         height: int = 320,
