@@ -5,11 +5,17 @@ each muscle's curve is fitted by a Chebyshev series (``numpy.polynomial``). The 
 smallest whose error on held-out angles (every other sample, the fit made on the rest) is
 within the tolerance; the final fit uses all samples. ``spindle.length_fits`` evaluates the
 result without MuJoCo. The user-facing command is ``python scripts/fit_lengths.py``.
+
+:func:`fits_for_model` is what the envs use: the committed fits for the bundled model (or a
+byte-identical copy), otherwise a fit of the given model made on the spot (about half a
+second) and cached in the process by the model file's sha256, so an edited ``elbow.xml``
+never runs with another model's fits.
 """
 
 from __future__ import annotations
 
 import json
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -23,7 +29,12 @@ from spindle.length_fits import (
     FITS_FILENAME,
     FORMAT,
     REGENERATE_COMMAND,
+    LengthFits,
+    LengthFitsError,
+    default_model_path,
     file_sha256,
+    length_fits_from_document,
+    load_length_fits,
 )
 
 if TYPE_CHECKING:
@@ -34,6 +45,7 @@ __all__ = [
     "choose_degree",
     "default_output",
     "fit_document",
+    "fits_for_model",
     "sweep_for_fit",
     "write_fits",
 ]
@@ -41,6 +53,8 @@ __all__ = [
 DEFAULT_STEP_DEG = 0.05
 DEFAULT_TOLERANCE_L0 = 5e-4  # half the 0.001 L0 target: margin for the final, all-sample fit
 DEFAULT_MAX_DEGREE = 20
+TARGET_L0 = 1e-3
+"""Largest accepted max error of a fit against the exact model (L0)."""
 
 
 @dataclass(frozen=True)
@@ -144,3 +158,61 @@ def write_fits(doc: dict, path: Path) -> None:
 def default_output(model_file: Path | None = None) -> Path:
     """Where the fits go: next to the model they were made from."""
     return (model_file or model_path()).parent / FITS_FILENAME
+
+
+_FITTED: dict[str, LengthFits] = {}
+_FITTED_LOCK = threading.Lock()
+
+
+def fits_for_model(model_file: str | Path | None = None,
+                   model: mujoco.MjModel | None = None) -> LengthFits:
+    """The length fits of the MJCF ``model_file`` (default: the bundled ``elbow.xml``).
+
+    A file with the sha256 recorded in the committed ``length_fits.json`` gets those fits
+    (loaded without fitting).
+    Any other model is swept and fitted here with the defaults of ``scripts/fit_lengths.py``
+    (about 0.6 s), once per process: the result is cached by the file's sha256. ``model`` is
+    the already compiled ``model_file`` (compiled here if ``None``).
+
+    Raises
+    ------
+    LengthFitsError
+        If a fit misses :data:`TARGET_L0` or a fitted length leaves the spindle's valid
+        range (:func:`spindle.length_fits.check_length_range`); the message names the model,
+        and the muscle, angle and length or the command that fits it with other settings.
+    """
+    path = Path(model_file) if model_file is not None else default_model_path()
+    try:
+        sha = file_sha256(path)
+    except OSError as err:
+        raise LengthFitsError(f"cannot read the model {path} to fit its lengths: {err}") from err
+    with _FITTED_LOCK:
+        cached = _FITTED.get(sha)
+    if cached is not None:
+        return cached
+    # Unverified: the question is only whether the committed fits were made for this file.
+    committed = load_length_fits(verify=False)
+    if committed.model_sha256 == sha:
+        fits = committed
+    else:
+        if model is None:
+            from proprio_env.model import load_model
+
+            model = load_model(path)
+        command = f"python scripts/fit_lengths.py --model {path} --fits <out.json>"
+        doc, _ = fit_document(model, path)
+        if doc["model_sha256"] != sha:
+            raise LengthFitsError(f"{path} changed while its lengths were being fitted")
+        for name, entry in doc["muscles"].items():
+            if entry["max_error_L0"] > TARGET_L0:
+                raise LengthFitsError(
+                    f"model {path}: the best fit of {name} (degree {entry['degree']}) is "
+                    f"{entry['max_error_L0']:.3g} L0 from the exact lengths, above the "
+                    f"{TARGET_L0:g} L0 target; try `{command} --max-degree 30` and pass the "
+                    "json as ChainConfig(fits_path=...)")
+        fits, _ = length_fits_from_document(
+            doc, f"model {path}",
+            remedy="the spindle model is undefined there; change the model's muscle path "
+                   "or joint range")
+    with _FITTED_LOCK:
+        return _FITTED.setdefault(sha, fits)

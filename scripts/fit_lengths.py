@@ -22,6 +22,7 @@ from proprio_env.length_fitting import (
     DEFAULT_MAX_DEGREE,
     DEFAULT_STEP_DEG,
     DEFAULT_TOLERANCE_L0,
+    TARGET_L0,
     default_output,
     fit_document,
     write_fits,
@@ -32,7 +33,6 @@ from spindle.length_fits import load_length_fits
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_ORACLE = REPO_ROOT / "tests" / "data" / "arm26_elbow_oracle.csv"
 DEFAULT_FIGURE = REPO_ROOT / "out" / "length_fits.png"
-TARGET_L0 = 1e-3
 
 
 def read_oracle(path: Path) -> dict[str, np.ndarray] | None:

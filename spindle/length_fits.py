@@ -12,6 +12,11 @@ Units: angles in rad, lengths in optimal fibre lengths (L0), velocities in L0/s.
 Angles are checked: NaN/inf is always an error; an angle outside the valid range is an error
 unless ``clip=True``, which clamps it to the range (the documented rule for, e.g., encoder
 noise a fraction of a degree past the end stops).
+
+Loading is checked too: every failure (missing, unreadable, not UTF-8, not JSON, a field of
+the wrong type, non-finite numbers, fitted lengths leaving the spindle's valid range
+:data:`spindle.core.LENGTH_RANGE_L0` anywhere in the angle range, a stale model hash) raises
+:class:`LengthFitsError` naming the file and the regenerating command.
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ from pathlib import Path
 import numpy as np
 from numpy.polynomial import chebyshev
 
+from spindle.core import LENGTH_RANGE_L0
+
 __all__ = [
     "FITS_FILENAME",
     "FORMAT",
@@ -35,9 +42,11 @@ __all__ = [
     "LengthFit",
     "LengthFits",
     "LengthFitsError",
+    "check_length_range",
     "default_fits_path",
     "default_model_path",
     "file_sha256",
+    "length_fits_from_document",
     "load_length_fits",
     "models_dir",
 ]
@@ -205,43 +214,128 @@ class LengthFits:
         return slope * omega[..., None]
 
 
-def _malformed(path: Path, why: str) -> LengthFitsError:
+def _malformed(path: Path | str, why: str) -> LengthFitsError:
     return LengthFitsError(
         f"{path} is malformed ({why}); regenerate it with `{REGENERATE_COMMAND}`"
     )
 
 
-def _parse(doc: object, path: Path) -> tuple[LengthFits, str]:
-    if not isinstance(doc, Mapping):
-        raise _malformed(path, "top level is not a JSON object")
-    if doc.get("format") != FORMAT:
-        raise _malformed(path, f"format is {doc.get('format')!r}, expected {FORMAT!r}")
+def _number(value: object, what: str) -> float:
+    """``value`` as a finite float if it is a JSON number (not a bool, string or list)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"{what} is {value!r}, not a number")
     try:
-        lo, hi = (float(v) for v in doc["valid_range_rad"])
-        sha = str(doc["model_sha256"])
-        model_file = str(doc.get("model", MODEL_FILENAME))
+        x = float(value)
+    except OverflowError as err:  # a JSON integer beyond the float range
+        raise ValueError(f"{what} {value!r} is too large for a float") from err
+    if not math.isfinite(x):
+        raise ValueError(f"{what} is {value!r}, not finite")
+    return x
+
+
+def _numbers(value: object, what: str) -> tuple[float, ...]:
+    """``value`` as a tuple of finite floats if it is a JSON array of numbers."""
+    if not isinstance(value, list):
+        raise ValueError(f"{what} is {value!r}, not a list of numbers")
+    return tuple(_number(v, f"{what}[{k}]") for k, v in enumerate(value))
+
+
+def _length_extremes(fit: LengthFit) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(angle_rad, length_L0) of the shortest and the longest fibre over the fit's range.
+
+    A polynomial's extremes on an interval lie at its ends or where its derivative vanishes;
+    a dense grid backs up the roots (ill-conditioned at high degree).
+    """
+    coef = np.asarray(fit.coefficients, dtype=float)
+    x = [np.array([-1.0, 1.0]), np.linspace(-1.0, 1.0, 1025)]
+    if coef.size > 2:
+        roots = chebyshev.chebroots(chebyshev.chebder(coef))
+        real = roots.real[(np.abs(roots.imag) < 1e-9) & (np.abs(roots.real) <= 1.0)]
+        x.append(real)
+    xs = np.concatenate(x)
+    length = chebyshev.chebval(xs, coef)
+    lo, hi = fit.valid_range_rad
+    angle = 0.5 * (lo + hi) + 0.5 * (hi - lo) * xs
+    i_min, i_max = int(np.argmin(length)), int(np.argmax(length))
+    return (float(angle[i_min]), float(length[i_min])), (float(angle[i_max]), float(length[i_max]))
+
+
+def check_length_range(fits: LengthFits, source: str, remedy: str) -> None:
+    """Raise :class:`LengthFitsError` if a fitted length leaves
+    :data:`spindle.core.LENGTH_RANGE_L0` anywhere in the valid angle range.
+
+    The message names ``source`` (the file or model), the muscle, the angle and the length,
+    then ``remedy``. Outside that range the spindle model is undefined, so such fits would
+    only fail later, mid-run (or, unchecked, give non-physiological rates).
+    """
+    low, high = LENGTH_RANGE_L0
+    for fit in fits.fits:
+        for angle, length in _length_extremes(fit):
+            if not low <= length <= high:
+                raise LengthFitsError(
+                    f"{source}: the fitted {fit.muscle} fibre length is {length:.4g} L0 at "
+                    f"{angle:.6g} rad ({math.degrees(angle):.4g} deg), outside the spindle's "
+                    f"valid range [{low:g}, {high:g}] L0; {remedy}"
+                )
+
+
+def length_fits_from_document(
+    doc: object, source: str | Path, *, remedy: str | None = None
+) -> tuple[LengthFits, str]:
+    """The fits in a parsed ``length_fits.json`` document and the model file name it records.
+
+    ``source`` names the document in errors; ``remedy`` ends the message of a length out of
+    range (default: regenerate the file). Every field must have its JSON type (numbers are
+    numbers, not strings or booleans; ``coefficients`` a list of them), every number must be
+    finite and every fitted length inside :data:`spindle.core.LENGTH_RANGE_L0`.
+
+    Raises
+    ------
+    LengthFitsError
+        Naming ``source``, the faulty field and the regenerating command.
+    """
+    if not isinstance(doc, Mapping):
+        raise _malformed(source, "top level is not a JSON object")
+    if doc.get("format") != FORMAT:
+        raise _malformed(source, f"format is {doc.get('format')!r}, expected {FORMAT!r}")
+    try:
+        bounds = _numbers(doc["valid_range_rad"], "valid_range_rad")
+        if len(bounds) != 2:
+            raise ValueError(f"valid_range_rad has {len(bounds)} numbers, not 2")
+        lo, hi = bounds
+        sha = doc["model_sha256"]
+        model_file = doc.get("model", MODEL_FILENAME)
+        if not isinstance(model_file, str):
+            raise ValueError(f"model is {model_file!r}, not a file name")
         muscles = doc["muscles"]
-        fits = tuple(
-            LengthFit(
+        if not isinstance(muscles, Mapping):
+            raise ValueError(f"muscles is {muscles!r}, not an object")
+        fits = []
+        for name, entry in muscles.items():
+            if not isinstance(entry, Mapping):
+                raise ValueError(f"muscles.{name} is {entry!r}, not an object")
+            fits.append(LengthFit(
                 muscle=str(name),
-                coefficients=tuple(float(c) for c in entry["coefficients"]),
+                coefficients=_numbers(entry["coefficients"], f"coefficients of {name}"),
                 valid_range_rad=(lo, hi),
-                max_error_L0=float(entry["max_error_L0"]),
-            )
-            for name, entry in muscles.items()
-        )
-    except (KeyError, TypeError, ValueError, AttributeError) as err:
-        raise _malformed(path, f"{type(err).__name__}: {err}") from err
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise _malformed(path, f"valid_range_rad [{lo}, {hi}] is not an increasing finite range")
+                max_error_L0=_number(entry["max_error_L0"], f"max_error_L0 of {name}"),
+            ))
+    except (KeyError, ValueError) as err:
+        raise _malformed(source, f"{type(err).__name__}: {err}") from err
+    if not lo < hi:
+        raise _malformed(source, f"valid_range_rad [{lo}, {hi}] is not an increasing range")
     if not fits:
-        raise _malformed(path, "no muscles")
+        raise _malformed(source, "no muscles")
     for fit in fits:
-        if not fit.coefficients or not all(math.isfinite(c) for c in fit.coefficients):
-            raise _malformed(path, f"coefficients of {fit.muscle} are empty or not finite")
-    if len(sha) != 64:
-        raise _malformed(path, "model_sha256 is not a sha256 hex digest")
-    return LengthFits(fits=fits, valid_range_rad=(lo, hi), model_sha256=sha), model_file
+        if not fit.coefficients:
+            raise _malformed(source, f"coefficients of {fit.muscle} are empty")
+    if not (isinstance(sha, str) and len(sha) == 64
+            and all(c in "0123456789abcdef" for c in sha.lower())):
+        raise _malformed(source, "model_sha256 is not a sha256 hex digest")
+    out = LengthFits(fits=tuple(fits), valid_range_rad=(lo, hi), model_sha256=sha)
+    check_length_range(out, str(source),
+                       remedy or f"regenerate it with `{REGENERATE_COMMAND}`")
+    return out, model_file
 
 
 def load_length_fits(
@@ -265,8 +359,10 @@ def load_length_fits(
     Raises
     ------
     LengthFitsError
-        If the file is missing, malformed or stale; the message names the regenerating
-        command.
+        If the file is missing, unreadable (a directory, no permission, not UTF-8),
+        malformed (see :func:`length_fits_from_document`; this includes fitted lengths
+        outside :data:`spindle.core.LENGTH_RANGE_L0`) or stale; the message names the file
+        and the regenerating command.
     """
     path = Path(path) if path is not None else default_fits_path()
     try:
@@ -275,11 +371,16 @@ def load_length_fits(
         raise LengthFitsError(
             f"{path} does not exist; generate it with `{REGENERATE_COMMAND}`"
         ) from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise LengthFitsError(
+            f"cannot read {path} as UTF-8 text ({type(err).__name__}: {err}); regenerate it "
+            f"with `{REGENERATE_COMMAND}`"
+        ) from err
     try:
         doc = json.loads(text)
-    except json.JSONDecodeError as err:
+    except (json.JSONDecodeError, RecursionError) as err:
         raise _malformed(path, f"not valid JSON: {err}") from err
-    fits, model_file = _parse(doc, path)
+    fits, model_file = length_fits_from_document(doc, path)
     if verify:
         xml = Path(model_xml) if model_xml is not None else path.parent / model_file
         if not xml.is_file():
@@ -287,7 +388,12 @@ def load_length_fits(
                 f"cannot check {path} for staleness: model {xml} not found "
                 "(pass model_xml=..., or verify=False on a device without the model)"
             )
-        actual = file_sha256(xml)
+        try:
+            actual = file_sha256(xml)
+        except OSError as err:
+            raise LengthFitsError(
+                f"cannot check {path} for staleness: cannot read model {xml} ({err})"
+            ) from err
         if actual != fits.model_sha256:
             raise LengthFitsError(
                 f"{path} is stale: it was fitted to an elbow.xml with sha256 "

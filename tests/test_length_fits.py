@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -219,3 +220,162 @@ def test_fit_script_regenerates_the_committed_fits(tmp_path):
         np.testing.assert_allclose(
             new["muscles"][name]["coefficients"], old["muscles"][name]["coefficients"], atol=1e-9
         )
+
+
+# -- fits whose lengths leave the spindle's range, field types, unreadable files -------------
+def _write_doc(js: Path, edit) -> None:
+    doc = json.loads(js.read_text())
+    edit(doc)
+    js.write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize(
+    ("muscle", "coefficients", "length", "deg"),
+    [
+        # the committed BRA curve lifted by 0.5 L0: its longest fibre, at 0 deg, is
+        # 1.0939 + 0.5 L0 (the exact model's BRA is longest when the elbow is straight)
+        ("BRA", lambda c: [c[0] + 0.5, *c[1:]], "1.594", "0 deg"),
+        # TRImed lowered by 0.2 L0: shortest at 0 deg, 0.5793 - 0.2 L0
+        ("TRImed", lambda c: [c[0] - 0.2, *c[1:]], "0.3793", "0 deg"),
+        # 1.55 - 0.55 x^2 = 1.275 - 0.275 T2(x): both ends at 1.0 L0 (in range), 1.55 L0 at
+        # mid-range (65 deg), where only an interior extremum reveals it
+        ("BRA", lambda c: [1.275, 0.0, -0.275], "1.55", "65 deg"),
+    ],
+)
+def test_fits_leaving_the_valid_length_range_are_refused(tmp_path, muscle, coefficients,
+                                                         length, deg):
+    _, js = _copy_fits(tmp_path)
+
+    def edit(doc):
+        entry = doc["muscles"][muscle]
+        entry["coefficients"] = coefficients(entry["coefficients"])
+
+    _write_doc(js, edit)
+    with pytest.raises(LengthFitsError, match="valid range") as err:
+        load_length_fits(js)
+    message = str(err.value)
+    assert muscle in message and f"{length} L0" in message and deg in message
+    assert str(js) in message and REGENERATE_COMMAND in message
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda doc: doc["muscles"]["BRA"].update(coefficients="123"),  # was read as (1, 2, 3)
+        lambda doc: doc["muscles"]["BRA"].update(coefficients=[True, 0.1]),
+        lambda doc: doc["muscles"]["BRA"].update(coefficients=[0.9, "0.1"]),
+        lambda doc: doc["muscles"]["BRA"].update(coefficients={"0": 0.9}),
+        lambda doc: doc["muscles"]["BRA"].update(coefficients=[10**400]),  # OverflowError
+        lambda doc: doc["muscles"]["BRA"].update(max_error_L0="0.0003"),
+        lambda doc: doc.update(valid_range_rad="02"),
+        lambda doc: doc.update(valid_range_rad=[0.0, 1.0, 2.0]),
+        lambda doc: doc.update(model_sha256=list(range(64))),
+        lambda doc: doc.update(muscles=[["BRA", {}]]),
+    ],
+)
+def test_fields_must_have_their_json_types(tmp_path, edit):
+    _, js = _copy_fits(tmp_path)
+    _write_doc(js, edit)
+    with pytest.raises(LengthFitsError, match="malformed") as err:
+        load_length_fits(js)
+    assert REGENERATE_COMMAND in str(err.value)
+
+
+@pytest.mark.parametrize("kind", ["directory", "not utf-8"])
+def test_unreadable_file_raises_length_fits_error(tmp_path, kind):
+    path = tmp_path / "length_fits.json"
+    if kind == "directory":
+        path.mkdir()
+    else:
+        path.write_bytes(b'{"format": "\xff\xfe proprio"}')
+    with pytest.raises(LengthFitsError, match="cannot read") as err:
+        load_length_fits(path)
+    assert str(path) in str(err.value) and REGENERATE_COMMAND in str(err.value)
+
+
+# -- an edited model gets its own fits (issue 13, item 7) -------------------------------------
+BRA_P1 = '<site name="BRA-P1" pos="0.0068 -0.1739 -0.0036"/>'
+ENV_IDS = ("proprio_env/ElbowReach-v0", "proprio_env/ProsthesisElbow-v0")
+ANGLES_DEG = (5.0, 40.0, 80.0, 125.0)
+
+
+def _edited_model(tmp_path: Path, dy_m: float) -> Path:
+    """elbow.xml with BRA's origin (BRA-P1, on the humerus) moved by ``dy_m`` along y."""
+    text = default_model_path().read_text()
+    assert text.count(BRA_P1) == 1
+    xml = tmp_path / f"elbow_bra_{dy_m:+.3f}.xml"
+    xml.write_text(text.replace(BRA_P1, f'<site name="BRA-P1" pos="0.0068 {-0.1739 + dy_m:.4f} '
+                                        '-0.0036"/>'))
+    return xml
+
+
+def _reset_lengths(env_id: str, angles_deg, **kwargs) -> np.ndarray:
+    import gymnasium as gym
+
+    import proprio_env  # noqa: F401  (registers the ids)
+
+    env = gym.make(env_id, **kwargs)
+    out = [env.reset(seed=0, options={"angle_deg": a})[1]["length_L0"] for a in angles_deg]
+    env.close()
+    return np.array(out)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+@pytest.mark.parametrize(("source", "backend"),
+                         [("reduced", "numpy"), ("encoder", "numpy"), ("reduced", "c")])
+def test_edited_model_gets_its_own_fits(tmp_path, env_id, source, backend):
+    from proprio_env.model import load_model
+    from proprio_env.muscle_length import sweep
+
+    xml = _edited_model(tmp_path, 0.025)  # BRA origin 2.5 cm further from the elbow
+    angles = np.radians(ANGLES_DEG)
+    exact = sweep(load_model(xml), angles).fibre_length_L0
+    # the bundled fits are far off for this model: the test can tell the two apart
+    assert np.max(np.abs(load_length_fits().length_L0(angles) - exact)) > 0.25
+    lengths = _reset_lengths(env_id, ANGLES_DEG, xml_file=str(xml), afferent_source=source,
+                             backend=backend)
+    np.testing.assert_allclose(lengths, exact, rtol=0, atol=1e-3)  # the fits' 0.001 L0 target
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_bundled_model_and_its_copy_use_the_committed_fits(tmp_path, env_id):
+    copy = tmp_path / "my_elbow.xml"
+    shutil.copy(default_model_path(), copy)
+    committed = load_length_fits().length_L0(np.radians(ANGLES_DEG))
+    for xml in (None, str(copy)):
+        lengths = _reset_lengths(env_id, ANGLES_DEG, xml_file=xml, afferent_source="reduced")
+        np.testing.assert_array_equal(lengths, committed)
+
+
+def test_edited_model_leaving_the_length_range_is_refused(tmp_path):
+    import gymnasium as gym
+
+    import proprio_env  # noqa: F401
+
+    xml = _edited_model(tmp_path, -0.025)  # BRA origin 2.5 cm closer: 0.33 L0 at 130 deg
+    with pytest.raises(LengthFitsError, match="valid range") as err:
+        gym.make("proprio_env/ElbowReach-v0", xml_file=str(xml), afferent_source="reduced")
+    message = str(err.value)
+    assert str(xml) in message and "BRA" in message and "130 deg" in message
+    named = float(re.search(r"length is ([0-9.]+) L0", message).group(1))
+    assert abs(named - 0.32864) <= 1e-3  # the exact model's BRA length at 130 deg
+
+
+def test_fits_path_is_checked_against_the_env_model(tmp_path):
+    from proprio_env.length_fitting import fit_document, write_fits
+    from proprio_env.model import load_model
+    from spindle.chain import ChainConfig
+
+    xml = _edited_model(tmp_path, 0.025)
+    # the committed fits, passed explicitly, are stale for the edited model
+    with pytest.raises(LengthFitsError, match="stale"):
+        _reset_lengths(ENV_IDS[0], [60.0], xml_file=str(xml), afferent_source="reduced",
+                       chain_config=ChainConfig(fits_path=default_fits_path()))
+    # fits made for it with the script's code are used as given
+    doc, _ = fit_document(load_model(xml), xml)
+    js = tmp_path / "edited_fits.json"
+    write_fits(doc, js)
+    lengths = _reset_lengths(ENV_IDS[0], ANGLES_DEG, xml_file=str(xml),
+                             afferent_source="reduced", chain_config=ChainConfig(fits_path=js))
+    np.testing.assert_array_equal(lengths, load_length_fits(js, model_xml=xml).length_L0(
+        np.radians(ANGLES_DEG)))

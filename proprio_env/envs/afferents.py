@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from spindle.chain import ArmChain, ArmSample, ChainConfig
+from spindle.length_fits import LengthFits
 from spindle.sensor import AX12, Encoder, EncoderParams
 
 SOURCES = ("exact", "reduced", "encoder")
@@ -27,7 +28,7 @@ SOURCES = ("exact", "reduced", "encoder")
 
 def check_source(source: str) -> str:
     """``source`` if it is one of :data:`SOURCES`, else ValueError naming the choices."""
-    if source not in SOURCES:
+    if not (isinstance(source, str) and source in SOURCES):
         raise ValueError(f"afferent_source={source!r} is not one of {SOURCES}")
     return source
 
@@ -39,12 +40,15 @@ class AfferentReadout:
         source: one of :data:`SOURCES`.
         chain_config: the chain's settings (:class:`~spindle.chain.ChainConfig`).
         encoder_params: the simulated encoder (only for ``"encoder"``).
+        fits: the length fits of the arm's model (``None``: loaded from
+            ``chain_config.fits_path``, by default the bundled ones).
     """
 
     def __init__(self, source: str, chain_config: ChainConfig,
-                 encoder_params: EncoderParams = AX12) -> None:
+                 encoder_params: EncoderParams = AX12,
+                 fits: LengthFits | None = None) -> None:
         self.source = check_source(source)
-        self.chain = ArmChain(chain_config)
+        self.chain = ArmChain(chain_config, fits)
         self.encoder_params = encoder_params
         self.encoder: Encoder | None = None
         self._next_read_s = 0.0

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -18,14 +19,29 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from proprio_env.envs.afferents import AfferentReadout, check_source
-from proprio_env.model import JOINT, MUSCLES, load_model
+from proprio_env.envs.afferents import SOURCES, AfferentReadout
+from proprio_env.envs.arguments import (
+    check_flag,
+    check_instance,
+    check_path,
+    check_positive_int,
+    check_real,
+    check_real_array,
+    check_str,
+)
+from proprio_env.length_fitting import fits_for_model
+from proprio_env.model import JOINT, MUSCLES, load_model, model_path
 from proprio_env.muscle_length import fibre_length_L0, muscle_geometry
-from spindle.chain import ArmSample, ChainConfig
+from spindle.chain import BACKENDS, ArmSample, ChainConfig
+from spindle.length_fits import LengthFits, load_length_fits
 from spindle.sensor import AX12, EncoderParams
 
 RATE_SCALE_PPS = 100.0
 """Afferent and fusimotor rates enter the observation divided by this (pps)."""
+
+MIN_CONTROL_HZ = 0.1
+"""Slowest control rate (Hz): an env step of at most 10 s bounds the work and the buffers of
+one step."""
 
 MUSCLE_GROUP_BIT = 1 << 1
 SERVO_GROUP_BIT = 1 << 2
@@ -34,17 +50,23 @@ SERVO_GROUP_BIT = 1 << 2
 
 def check_ranges_deg(name: str, ranges: Any, limits_deg: tuple[float, float]
                      ) -> tuple[tuple[float, float], ...]:
-    """``ranges`` as a tuple of (low, high) intervals (deg) inside ``limits_deg``."""
+    """``ranges`` as a tuple of (low, high) intervals (deg) inside ``limits_deg``; the bounds
+    must be real numbers (:func:`~proprio_env.envs.arguments.check_real`)."""
     try:
-        out = tuple((float(lo), float(hi)) for lo, hi in ranges)
-    except (TypeError, ValueError) as exc:
+        pairs = [tuple(pair) for pair in ranges]
+    except TypeError as exc:
         raise ValueError(f"{name}={ranges!r} must be a sequence of (low, high) pairs "
                          "in degrees") from exc
+    if isinstance(ranges, str | bytes) or any(len(pair) != 2 for pair in pairs):
+        raise ValueError(f"{name}={ranges!r} must be a sequence of (low, high) pairs "
+                         "in degrees")
+    out = tuple((check_real(f"{name} low", lo), check_real(f"{name} high", hi))
+                for lo, hi in pairs)
     if not out:
         raise ValueError(f"{name} must hold at least one (low, high) interval")
     lo_lim, hi_lim = limits_deg
     for lo, hi in out:
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo_lim <= lo <= hi <= hi_lim):
+        if not (lo_lim <= lo <= hi <= hi_lim):
             raise ValueError(f"{name} interval ({lo!r}, {hi!r}) must satisfy "
                              f"{lo_lim:g} <= low <= high <= {hi_lim:g} deg")
     return out
@@ -87,31 +109,50 @@ class ElbowProprioEnv(gym.Env):
         distance_reward_weight: float = 1.0,
         control_cost_weight: float = 0.0,
         clip_actions: bool = False,
-        xml_file: str | None = None,
+        xml_file: str | Path | None = None,
         render_mode: str | None = None,
         width: int = 320,
         height: int = 320,
     ) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode={render_mode!r} is not one of "
-                             f"{self.metadata['render_modes']}")
+        # Every argument is checked before anything is built (arguments.py: no bool as a
+        # number, no string as a bool, no complex; numpy scalars welcome).
+        if render_mode is not None:
+            check_str("render_mode", render_mode, tuple(self.metadata["render_modes"]))
         self.render_mode = render_mode
-        self.width, self.height = int(width), int(height)
+        control_hz = check_real("control_hz", control_hz, low=0.0, low_open=True)
+        source = check_str("afferent_source",
+                           self.default_source if afferent_source is None else afferent_source,
+                           SOURCES)
+        backend = check_str("backend", backend, BACKENDS)
+        if chain_config is not None:
+            check_instance("chain_config", chain_config, ChainConfig)
+        check_instance("encoder_params", encoder_params, EncoderParams)
+        self.include_fusimotor = check_flag("include_fusimotor", include_fusimotor)
+        self.clip_actions = check_flag("clip_actions", clip_actions)
+        self.distance_reward_weight = check_real("distance_reward_weight",
+                                                 distance_reward_weight, low=0.0)
+        self.control_cost_weight = check_real("control_cost_weight", control_cost_weight,
+                                              low=0.0)
+        model_file = model_path() if xml_file is None else check_path("xml_file", xml_file)
 
-        self.model = load_model(xml_file)
+        self.model = load_model(model_file)
+        self.width = check_positive_int("width", width,
+                                        high=int(self.model.vis.global_.offwidth))
+        self.height = check_positive_int("height", height,
+                                         high=int(self.model.vis.global_.offheight))
         self.model.opt.disableactuator = self.disabled_groups
         self.data = mujoco.MjData(self.model)
         timestep = float(self.model.opt.timestep)
-        if not (isinstance(control_hz, int | float) and math.isfinite(control_hz)
-                and control_hz > 0):
-            raise ValueError(f"control_hz={control_hz!r} must be a finite number > 0")
+        if not MIN_CONTROL_HZ <= control_hz <= 1.0 / timestep:
+            raise ValueError(f"control_hz={control_hz!r} must lie in [{MIN_CONTROL_HZ:g}, "
+                             f"{1.0 / timestep:g}] Hz (one physics step of {timestep:g} s)")
         frames = round(1.0 / (control_hz * timestep))
-        if frames < 1 or abs(frames * timestep * control_hz - 1.0) > 1e-9:
+        if abs(frames * timestep * control_hz - 1.0) > 1e-9:
             raise ValueError(
                 f"control_hz={control_hz!r}: the env step 1/control_hz must be a whole number "
                 f"of physics steps of {timestep:g} s (e.g. 50, 100, 125, 250, 500 Hz)")
         self.frame_skip = frames
-        self.control_hz = float(control_hz)
+        self.control_hz = control_hz
         self.metadata = {**self.metadata, "render_fps": self.control_hz}
 
         self._qadr = int(self.model.jnt_qposadr[self.model.joint(JOINT).id])
@@ -122,21 +163,12 @@ class ElbowProprioEnv(gym.Env):
                                                   self.joint_range_deg)
         self.initial_angle_ranges_deg = check_ranges_deg(
             "initial_angle_ranges_deg", initial_angle_ranges_deg, self.joint_range_deg)
-        for name, w in (("distance_reward_weight", distance_reward_weight),
-                        ("control_cost_weight", control_cost_weight)):
-            if not (math.isfinite(w) and w >= 0):
-                raise ValueError(f"{name}={w!r} must be finite and >= 0")
-        self.distance_reward_weight = float(distance_reward_weight)
-        self.control_cost_weight = float(control_cost_weight)
-        self.clip_actions = bool(clip_actions)
-        self.include_fusimotor = bool(include_fusimotor)
-
         self._geometries = tuple(muscle_geometry(self.model, m) for m in MUSCLES)
         self._tendon_ids = np.array([self.model.tendon(m).id for m in MUSCLES])
-        source = self.default_source if afferent_source is None else afferent_source
         config = replace(ChainConfig() if chain_config is None else chain_config,
                          backend=backend)
-        self.afferents = AfferentReadout(check_source(source), config, encoder_params)
+        self.length_fits = self._length_fits(model_file, config)
+        self.afferents = AfferentReadout(source, config, encoder_params, self.length_fits)
         self.afferent_source = source
         self.backend = backend
 
@@ -272,8 +304,8 @@ class ElbowProprioEnv(gym.Env):
 
     def _fixed_angle(self, name: str, value: Any) -> float:
         lo, hi = self.joint_range_deg
-        x = float(value)
-        if not (math.isfinite(x) and lo <= x <= hi):
+        x = check_real(name, value)
+        if not lo <= x <= hi:
             raise ValueError(f"{name}={value!r} must be finite and within the joint range "
                              f"[{lo:g}, {hi:g}] deg")
         return x
@@ -282,12 +314,16 @@ class ElbowProprioEnv(gym.Env):
         return np.stack([fibre_length_L0(mtu_m[:, j], g)
                          for j, g in enumerate(self._geometries)], axis=-1)
 
+    def _length_fits(self, model_file: Path, config: ChainConfig) -> LengthFits:
+        """The fits of this env's model: ``config.fits_path`` checked against the model's
+        sha256 if given, else :func:`~proprio_env.length_fitting.fits_for_model`."""
+        if config.fits_path is not None:
+            return load_length_fits(config.fits_path, model_xml=model_file)
+        return fits_for_model(model_file, self.model)
+
     def _check_action(self, action: Any) -> np.ndarray:
         space = self.action_space
-        try:
-            a = np.asarray(action, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"action {action!r} is not numeric") from exc
+        a = check_real_array("action", action)
         if a.shape != space.shape:
             raise ValueError(f"action has shape {a.shape}, expected {space.shape}")
         if not np.all(np.isfinite(a)):

@@ -33,8 +33,8 @@ class ElbowReachEnv(ElbowProprioEnv):
     | 0   | excitation of the brachialis    | 0           | 1           | BRA           | muscle   | excitation (unitless)|
     | 1   | excitation of the triceps medial| 0           | 1           | TRImed        | muscle   | excitation (unitless)|
 
-    An action holding NaN/inf, of the wrong shape or outside the box raises ``ValueError``
-    naming it; with ``clip_actions=True`` finite out-of-box actions are clipped instead.
+    An action holding NaN/inf or non-real values (complex, bool, strings), of the wrong
+    shape or outside the box raises ``ValueError`` naming it; with ``clip_actions=True`` finite out-of-box actions are clipped instead.
 
     ## Observation Space
     A `Box(low, high, (5,), float32)` (9 with ``include_fusimotor=True``); rates are divided
@@ -96,20 +96,26 @@ class ElbowReachEnv(ElbowProprioEnv):
 
     | Parameter                  | Type        | Default           | Description |
     |----------------------------|-------------|-------------------|-------------|
-    | `control_hz`               | float       | `50`              | env steps per second; 1/control_hz must be a multiple of the 2 ms physics step |
+    | `control_hz`               | float       | `50`              | env steps per second (0.1-500); 1/control_hz must be a multiple of the 2 ms physics step |
     | `afferent_source`          | str         | `"exact"`         | `"exact"` (MuJoCo fibre lengths), `"reduced"` (angle -> fitted lengths) or `"encoder"` (simulated AX-12 -> prosthesis chain) |
     | `backend`                  | str         | `"numpy"`         | spindle chain backend (`spindle.chain.BACKENDS`) |
-    | `chain_config`             | ChainConfig | `None`            | chain settings (its `backend` is replaced by `backend`) |
+    | `chain_config`             | ChainConfig | `None`            | chain settings (its `backend` is replaced by `backend`; its `fits_path`, if set, must be fits of `xml_file`) |
     | `encoder_params`           | EncoderParams | `AX12`          | the simulated encoder (source `"encoder"`) |
     | `include_fusimotor`        | bool        | `False`           | append gamma_s, gamma_d to the observation |
     | `target_ranges_deg`        | pairs       | `((15, 115),)`    | intervals the target is drawn from (e.g. leave bands out for held-out evaluation) |
     | `initial_angle_ranges_deg` | pairs       | `((10, 120),)`    | intervals the initial angle is drawn from |
-    | `distance_reward_weight`   | float       | `1`               | $w_{dist}$ |
-    | `control_cost_weight`      | float       | `0.05`            | $w_{ctrl}$ |
+    | `distance_reward_weight`   | float       | `1`               | $w_{dist}$ (>= 0) |
+    | `control_cost_weight`      | float       | `0.05`            | $w_{ctrl}$ (>= 0) |
     | `clip_actions`             | bool        | `False`           | clip out-of-box actions instead of raising |
-    | `xml_file`                 | str         | `None`            | another MJCF with the same names (default `models/elbow.xml`) |
+    | `xml_file`                 | str or path | `None`            | another MJCF with the same names (default `models/elbow.xml`); its length fits are made on load (about 0.6 s, cached by the file's sha256) unless it is the bundled model |
     | `render_mode`              | str         | `None`            | `"rgb_array"` (headless with `MUJOCO_GL=egl`) |
-    | `width`, `height`          | int         | `320`             | rendered image size (pixels) |
+    | `width`, `height`          | int         | `320`             | rendered image size (pixels, at most the model's offscreen buffer, 640 x 480) |
+
+    Every argument is checked at construction and a bad one raises ``ValueError`` naming
+    it: a float is any real number (numpy scalars included; not a bool, string or complex),
+    an int any integer (not a bool), a bool only ``True``/``False`` (numpy's included).
+    An edited model whose fibre lengths leave 0.5-1.5 L0 raises
+    ``spindle.LengthFitsError`` naming the muscle, the angle and the length.
 
     ## Version History
     * v0: initial release (Mileusnic 2006 spindles with human gains, seed-paper fusimotor

@@ -35,8 +35,8 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
     |-----|---------------------------------|-------------|-------------|----------------|----------|--------------------------|
     | 0   | commanded elbow flexion         | -1          | 1           | r_elbow_servo  | position | angle (65 deg per unit, 0 at 65 deg) |
 
-    An action holding NaN/inf, of the wrong shape or outside the box raises ``ValueError``
-    naming it; with ``clip_actions=True`` finite out-of-box actions are clipped instead.
+    An action holding NaN/inf or non-real values (complex, bool, strings), of the wrong
+    shape or outside the box raises ``ValueError`` naming it; with ``clip_actions=True`` finite out-of-box actions are clipped instead.
 
     ## Observation Space
     A `Box(low, high, (5,), float32)` (9 with ``include_fusimotor=True``); rates are divided
@@ -84,7 +84,8 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
     The same as ElbowReach-v0 (``control_hz``, ``afferent_source``, ``backend``,
     ``chain_config``, ``encoder_params``, ``include_fusimotor``, ``target_ranges_deg``,
     ``initial_angle_ranges_deg``, ``distance_reward_weight``, ``control_cost_weight``,
-    ``clip_actions``, ``xml_file``, ``render_mode``, ``width``, ``height``) with these defaults:
+    ``clip_actions``, ``xml_file``, ``render_mode``, ``width``, ``height``, checked the same
+    way; an edited ``xml_file`` gets its own length fits) with these defaults:
 
     | Parameter              | Type  | Default     | Description |
     |------------------------|-------|-------------|-------------|
