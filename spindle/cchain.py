@@ -208,6 +208,36 @@ def _float(value: object) -> float:
         return math.nan
 
 
+_C_SNAPSHOTS = "_c_struct_snapshots"
+"""The key of CArmChain's pickled state holding its structs' bytes."""
+
+
+def _rebuilt_by_init(value: object) -> bool:
+    """True for what ``CArmChain.__init__`` re-creates: the library, ctypes scalars, arrays,
+    pointers and types (scratch buffers and handles), and numpy views of C memory."""
+    if isinstance(value, ctypes.CDLL | ctypes._SimpleCData | ctypes.Array | ctypes._Pointer):
+        return True
+    if isinstance(value, type):
+        return True
+    if isinstance(value, dict) and value and all(isinstance(v, type) for v in value.values()):
+        return True  # the struct classes of the variant
+    if isinstance(value, np.ndarray):
+        base = value
+        while isinstance(base, np.ndarray):
+            base = base.base
+        return isinstance(base, ctypes.Structure | ctypes.Array)
+    return False
+
+
+@cache
+def _layout(cls: type) -> tuple:
+    """A ctypes struct's layout: (name, offset, size, nested layout) for every field."""
+    fields_ = tuple((name, getattr(cls, name).offset, getattr(cls, name).size,
+                     _layout(kind) if issubclass(kind, ctypes.Structure) else kind.__name__)
+                    for name, kind, *_ in cls._fields_)
+    return (ctypes.sizeof(cls), *fields_)
+
+
 class CArmChain(ArmChain):
     """:class:`~spindle.chain.ArmChain` computed by ``spindle/c/chain.c``.
 
@@ -251,6 +281,42 @@ class CArmChain(ArmChain):
         self._rows = np.frombuffer(self._sample, dtype=self._np_real, count=2 * len(PER_MUSCLE),
                                    offset=type(self._sample).length_L0.offset).reshape(-1, 2)
         self._last: ArmSample | None = None
+
+    # -- pickling and deep copies: the C structs travel as their bytes ---------------------
+    def __getstate__(self) -> dict[str, object]:
+        """The Python-side settings plus a byte snapshot of every C struct the chain owns.
+
+        The structs hold no pointers (caller-owned, fixed-size), so their bytes are the whole
+        C state: config, median window, predictor, spindles, counters, last output. The
+        library, the pointers to the structs and the numpy views of them are not pickled:
+        :meth:`__setstate__` rebuilds them through the normal loader and constructor.
+        """
+        state: dict[str, object] = {}
+        snapshots: dict[str, tuple[tuple, bytes]] = {}
+        for name, value in self.__dict__.items():
+            if isinstance(value, ctypes.Structure):
+                snapshots[name] = (_layout(type(value)), bytes(value))
+            elif not _rebuilt_by_init(value):
+                state[name] = value
+        state[_C_SNAPSHOTS] = snapshots
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        """Rebuild the ctypes objects for ``state``'s variant, then restore the structs' bytes
+        (the copy continues bit-identically); the pointers are the new objects' own."""
+        state = dict(state)
+        snapshots = state.pop(_C_SNAPSHOTS)
+        CArmChain.__init__(self, state["config"], state["fits"], state["variant"])
+        for name, (layout, raw) in snapshots.items():
+            target = getattr(self, name)
+            if _layout(type(target)) != layout:
+                raise ValueError(
+                    f"cannot unpickle CArmChain: its {name} struct was pickled with a "
+                    f"different C layout ({len(raw)} bytes) than this build's "
+                    f"({ctypes.sizeof(target)} bytes); unpickle with the version that "
+                    "pickled it")
+            ctypes.memmove(ctypes.addressof(target), raw, len(raw))
+        self.__dict__.update(state)
 
     # -- state ---------------------------------------------------------------------------
     def reset(self, angle_deg: float, t_s: float = 0.0,

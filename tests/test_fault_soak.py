@@ -1,0 +1,100 @@
+"""The fault-injection soak (spindle.fault_injection, scripts/fault_soak.py): its stream holds
+the faults it claims, its checks catch a broken backend, and both backends pass it."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from spindle import fault_injection as fi
+from spindle.chain import BACKENDS, COUNTERS, ArmChain, ChainConfig
+from spindle.length_fits import load_length_fits
+from spindle.sensor import is_valid_reading
+
+
+def _stream(seed: int, n: int, p: float = 0.5) -> list[fi.Segment]:
+    return list(fi.fault_stream(np.random.default_rng(seed), n, load_length_fits(), p))
+
+
+def test_stream_is_seeded_and_holds_the_documented_faults():
+    assert repr(_stream(2, 1_000)) == repr(_stream(2, 1_000))
+    assert repr(_stream(2, 1_000)) != repr(_stream(3, 1_000))
+    segs = _stream(2, 8_000, 0.8)
+    assert 8_000 <= sum(len(s.t_s) for s in segs) < 10_000
+    assert set(Counter(s.fault for s in segs)) == {"", *fi.FAULTS}
+    assert {s.entry for s in segs} == set(fi.ENTRIES)
+    assert {s.single for s in segs if s.fault} == {True, False}  # faults: single and in blocks
+    # Clean samples: finite increasing times ~2 ms apart except across dropouts, valid values.
+    t = np.array([t for s in segs for t, ok in zip(s.t_s, s.clean, strict=True) if ok])
+    assert np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)
+    assert np.median(np.diff(t)) == pytest.approx(2e-3, rel=0.05)
+    for s in segs:
+        for v, ok in zip(s.values, s.clean, strict=True):
+            if ok and s.entry == "counts":
+                assert is_valid_reading(v)
+    # Dropouts: one sample to minutes, moving ones during a movement.
+    gaps = {"dropout_moving": [], "dropout_rest": []}
+    angles = np.array([a for s in segs for a in s.true_angle_deg])
+    assert angles.min() > 0 and angles.max() < 130
+    for prev, s in itertools.pairwise(segs):
+        if s.fault in gaps:
+            times = [prev.true_t_s[-1], *s.true_t_s]
+            gaps[s.fault].append(max(np.diff(times)))
+    for name, g in gaps.items():
+        assert min(g) < 0.02 and 10.0 < max(g) <= fi.DROPOUT_RANGE_S[1] + 0.01, name
+
+
+class _Broken(ArmChain):
+    """The numpy chain with one bug: every 40th push reports an NaN Ia and counts nothing."""
+
+    pushes = 0
+
+    def _broken(self, out):
+        self.pushes += 1
+        if self.pushes % 40 == 0:
+            self.counters["accepted"] -= 1
+            out.ia_pps[0] = math.nan
+        return out
+
+    def push_counts(self, t_s, counts):
+        return self._broken(super().push_counts(t_s, counts))
+
+    def push_angle(self, t_s, angle_deg):
+        return self._broken(super().push_angle(t_s, angle_deg))
+
+    def push_lengths(self, t_s, length_L0, angle_deg=None):
+        return self._broken(super().push_lengths(t_s, length_L0, angle_deg))
+
+
+def test_checks_catch_a_broken_backend():
+    chains = {"numpy": _Broken(ChainConfig()), "c": ArmChain(ChainConfig(backend="c"))}
+    report = fi.run_soak(600, seed=3, fault_probability=0.0, chains=chains)
+    assert report.samples >= 600
+    assert not report.ok and not report.counters_equal
+    assert report.nonfinite["numpy"] > 0 and report.nonfinite["c"] == 0
+    assert report.counters["numpy"]["accepted"] < report.counters["c"]["accepted"]
+    assert "counters_equal=False" in report.last_line()
+
+
+def test_quick_soak_passes_on_both_backends():
+    """Both backends through a short faulty stream (every class above, half the runs start
+    with a fault): no push raises, counters agree, rates physiological, nothing stuck."""
+    report = fi.run_soak(1500, seed=0, fault_probability=0.5, max_call_s=1.0)
+    assert set(report.counters) == set(BACKENDS)
+    assert set(report.counters["c"]) <= set(COUNTERS)
+    assert report.counters["c"]["accepted"] > 1000
+    assert report.max_rate_pps["c"] > 10.0  # the spindles fire
+    assert report.failures == []
+    assert report.last_line().startswith(f"fault_soak samples={report.samples} "
+                                          "counters_equal=True")
+
+
+@pytest.mark.slow
+def test_soak_quick_mode():
+    """What ``python scripts/fault_soak.py --quick`` runs (10^4 samples)."""
+    report = fi.run_soak(10_000, seed=0)
+    assert report.failures == []
