@@ -78,9 +78,10 @@ COUNTERS = (
     "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped", "restarts",
 )
 """Names of :attr:`ArmChain.counters` (see the module docstring for each rule)."""
-MAX_BRIDGE_UPDATES = 1_000_000
-"""Most spindle sub-steps or predictor updates one bridged interval may take (the C chain's
-``PS_CHAIN_MAX_UPDATES``): ``ChainConfig`` refuses a ``max_bridge_s`` needing more."""
+MAX_BRIDGE_UPDATES = 100_000
+"""Most spindle sub-steps or predictor updates one bridged interval may take
+(``PS_CHAIN_MAX_BRIDGE_UPDATES`` in C, a tenth of the C chain's last-resort guard):
+``ChainConfig`` refuses a ``max_bridge_s`` needing more, so the work of a push is bounded."""
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,14 @@ import numpy as np
 import pytest
 
 from spindle import cbuild
-from spindle.chain import BACKENDS, ArmChain, ArmSample, ChainConfig, run_chain
+from spindle.chain import (
+    BACKENDS,
+    MAX_BRIDGE_UPDATES,
+    ArmChain,
+    ArmSample,
+    ChainConfig,
+    run_chain,
+)
 
 try:
     cbuild.find_compiler()
@@ -358,3 +365,13 @@ def test_a_failing_push_leaves_the_chain_as_if_it_never_came(backend, kind, monk
         b = clean.push_counts(t + k * DT, counts0 + 60 + k % 7)
         assert_same_outputs(a, b, 0.0, f"sample {k}")
     assert hurt.counters == clean.counters
+
+
+@pytest.mark.parametrize(("value", "match"), [(0.0, "must be finite and > 0"),
+                                              (math.inf, "must be finite and > 0"),
+                                              (1e3, "spindle sub-steps")])
+def test_max_bridge_s_is_checked(value, match):
+    with pytest.raises(ValueError, match=rf"max_bridge_s={value!r}.*{match}"):
+        ChainConfig(max_bridge_s=value)
+    header = cbuild.HEADER.read_text()
+    assert f"#define PS_CHAIN_MAX_BRIDGE_UPDATES {MAX_BRIDGE_UPDATES}L" in header
