@@ -6,10 +6,8 @@ round-off), with every push done in C and each block push in ONE C call. The lib
 compiled on first use (:mod:`spindle.cbuild`); without a C compiler the constructor raises
 :class:`~spindle.cbuild.CBackendError` saying so.
 
-Differences from the numpy chain, only where the numpy chain has no rule (see
-``docs/c_chain.md``): a push that fails (a spindle step that does not converge, or an
-interval needing more than ``PS_CHAIN_MAX_UPDATES`` sub-steps, i.e. a corrupt huge time)
-raises and leaves the chain exactly as it was.
+As in the numpy chain, a push that fails (a spindle step that does not converge) raises and
+leaves the chain exactly as it was (see ``docs/c_chain.md``).
 """
 
 from __future__ import annotations
@@ -22,7 +20,16 @@ from functools import cache
 import numpy as np
 
 from spindle import cbuild, core
-from spindle.chain import COUNTERS, MUSCLES, ArmChain, ArmSample, ChainConfig, _block
+from spindle.chain import (
+    COUNTERS,
+    MUSCLES,
+    ArmChain,
+    ArmSample,
+    ChainConfig,
+    _block,
+    _real,
+    _real_array,
+)
 from spindle.derivatives import natural_rad_s
 from spindle.length_fits import LengthFits, load_length_fits
 from spindle.methods import get_method
@@ -80,7 +87,8 @@ def structs(variant: str = "double") -> dict[str, type]:
             ("n_coefficients", ctypes.c_int * n_muscles),
             ("coefficients", (real * FIT_MAX_COEFFS) * n_muscles),
             ("fit_lo_rad", real), ("fit_hi_rad", real), ("lowpass_rad_s", real),
-            ("gap_s", ctypes.c_double), ("max_speed_deg_s", real), ("max_speed_L0_s", real),
+            ("gap_s", ctypes.c_double), ("max_bridge_s", ctypes.c_double),
+            ("max_speed_deg_s", real), ("max_speed_L0_s", real),
             ("gamma_static_min_pps", real), ("gamma_static_max_pps", real),
             ("gamma_dynamic_pps", real), ("delay_s", ctypes.c_double),
             ("shortening_threshold_L0", real), ("predictor_rate_hz", real),
@@ -181,6 +189,7 @@ def chain_config_struct(config: ChainConfig, fits: LengthFits,
     out.fit_lo_rad, out.fit_hi_rad = fits.valid_range_rad
     out.lowpass_rad_s = 0.0 if config.lowpass_hz is None else natural_rad_s(config.lowpass_hz)
     out.gap_s = config.gap_s
+    out.max_bridge_s = config.max_bridge_s
     out.max_speed_deg_s = config.max_speed_deg_s
     out.max_speed_L0_s = config.max_speed_L0_s
     out.gamma_static_min_pps = fm.gamma_static_min_pps
@@ -201,11 +210,7 @@ def chain_config_struct(config: ChainConfig, fits: LengthFits,
     return out
 
 
-def _float(value: object) -> float:
-    try:
-        return float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        return math.nan
+_float = _real  # NaN for anything that is not one real number: the C chain's bad-sample rules
 
 
 _C_SNAPSHOTS = "_c_struct_snapshots"
@@ -321,8 +326,9 @@ class CArmChain(ArmChain):
     # -- state ---------------------------------------------------------------------------
     def reset(self, angle_deg: float, t_s: float = 0.0,
               length_L0: np.ndarray | None = None) -> ArmSample:
-        if not np.isfinite(t_s):
-            raise ValueError(f"t_s={t_s!r} must be finite")
+        t = _real(t_s)
+        if not math.isfinite(t):
+            raise ValueError(f"t_s={t_s!r} must be a finite real number")
         angle = self._check_angle(angle_deg)
         lengths_p = None
         if length_L0 is not None:
@@ -332,7 +338,7 @@ class CArmChain(ArmChain):
                                  f"{core.LENGTH_RANGE_L0} L0")
             self._pair[:] = L
             lengths_p = self._pair_p
-        status = self._lib.ps_chain_reset(self._chain_p, angle, float(t_s), lengths_p,
+        status = self._lib.ps_chain_reset(self._chain_p, angle, t, lengths_p,
                                           self._sample_p)
         if status == 10:  # PS_ERR_ANGLE_RANGE: the fits' own error and message
             self.fits.length_L0(math.radians(angle))
@@ -383,7 +389,7 @@ class CArmChain(ArmChain):
 
     def push_lengths(self, t_s: float, length_L0: np.ndarray,
                      angle_deg: float | None = None) -> ArmSample:
-        L = np.asarray(length_L0, dtype=float)
+        L = _real_array(length_L0)
         self._pair[:] = L.tolist() if L.shape == (2,) else [math.nan, math.nan]
         angle_p = None
         if angle_deg is not None:

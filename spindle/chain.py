@@ -25,19 +25,35 @@ changes no state and the previous output is returned again with ``accepted=False
 - ``repeated_time``, ``time_backwards``, ``bad_time``: a sample whose time equals, precedes or
   is not a finite number after the last accepted one: rejected (time never runs backwards);
 - ``gaps``: an interval longer than ``max_gap_s`` (default: the filter window, 7 nominal
-  sample periods) since the last accepted sample (dropped samples): accepted and counted. The
-  median window keeps the last 7 accepted readings; the low-pass filter and the spindles are
-  advanced exactly across the gap, the length following a smooth (Hermite) curve;
+  sample periods) since the last accepted sample (dropped samples): accepted and counted. Up
+  to ``max_bridge_s`` (default 50 ms) the gap is bridged: the median window keeps the last 7
+  accepted readings, the low-pass filter is advanced exactly across the gap and the spindles
+  follow a smooth (Hermite) curve between its states before and after;
+- ``restarts``: an interval longer than ``max_bridge_s`` (a long dropout, or a clock that
+  jumped, e.g. to 1e9 s) is not bridged: the chain restarts at rest at the new sample, exactly
+  as :meth:`ArmChain.reset` at its angle (median window on its reading, low-pass at rest,
+  predictor at rest, spindles at equilibrium) but keeping the counters and the switch; counted
+  here and in ``gaps``. Every push therefore costs bounded work, whatever the times;
 - ``slew_limited``: the conditioned angle may change by at most ``max_speed_deg_s`` times the
   interval (default 1000 deg/s, above the servo's 684 deg/s no-load speed), lengths by at most
-  ``max_speed_L0_s`` times it; a faster change (a jump after a long gap, a spike the median
-  let through) is limited to that and counted;
-- ``angle_clamped``: an angle outside the length model's range (0-130 deg) is clamped to it.
+  ``max_speed_L0_s`` times it; a faster change (a jump after a gap, a spike the median let
+  through) is limited to that and counted;
+- ``angle_clamped``: an angle outside the length model's range (0-130 deg) is clamped to it,
+  the angle given to :meth:`ArmChain.reset` (so :func:`run_chain`'s first sample) included.
+
+Values that are not one real number (complex numbers, integers too large for a float,
+strings, ``None``) count as non-finite: a bad sample above, or ``ValueError`` from
+:meth:`ArmChain.reset`. The spindles' sub-step lengths (the Hermite curve across each
+interval) are kept within the spindle's range (0.5-1.5 L0), within ``max_speed_L0_s`` of the
+previous sub-step and able to reach the new length at that speed, so a bridge never leaves
+the valid range however the motion before it went. A push is atomic: if it raises (a spindle
+step that fails), the chain, its counters included, is left exactly as it was.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -59,9 +75,13 @@ BACKENDS = ("numpy", "c")
 
 COUNTERS = (
     "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
-    "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped",
+    "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped", "restarts",
 )
 """Names of :attr:`ArmChain.counters` (see the module docstring for each rule)."""
+MAX_BRIDGE_UPDATES = 100_000
+"""Most spindle sub-steps or predictor updates one bridged interval may take
+(``PS_CHAIN_MAX_BRIDGE_UPDATES`` in C, a tenth of the C chain's last-resort guard):
+``ChainConfig`` refuses a ``max_bridge_s`` needing more, so the work of a push is bounded."""
 
 
 @dataclass(frozen=True)
@@ -84,6 +104,17 @@ class ChainConfig:
             sub-steps no longer than it. ``None``: the method's default.
         max_gap_s: intervals longer than this are counted as gaps; ``None``: the median window
             times the nominal sample period (14 ms).
+        max_bridge_s: the longest interval bridged by the smooth curve; a longer one restarts
+            the chain at rest at the new sample (counter ``restarts``). The default, 50 ms
+            (25 periods of the seed paper's 500 Hz encoder), is where extrapolating the motion
+            before a gap stops meaning something: the velocity a bridge starts from predicts
+            the arm for a fraction of a movement's cycle, and voluntary elbow movement and
+            tremor stay below about 10 Hz (half a cycle: 50 ms); by then the 20 Hz low-pass
+            (1/w = 8 ms) has long forgotten its state before the gap (e^(-wT)(1 + wT) = 1.4 %),
+            and across 50 ms the Hermite curve between any two states the low-pass can reach
+            stays within the 8 L0/s slew limit (measured; it exceeds the spindle's 10 L0/s
+            from about 100 ms on, where the sub-step limits take over). It also bounds the
+            work of a push: at most ``max_bridge_s / step_s`` spindle sub-steps (50).
         max_speed_deg_s: slew limit of the conditioned angle (deg/s).
         max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
         fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
@@ -100,6 +131,7 @@ class ChainConfig:
     method: str = "trapezoidal"
     step_s: float | None = None
     max_gap_s: float | None = None
+    max_bridge_s: float = 0.05
     max_speed_deg_s: float = 1000.0
     max_speed_L0_s: float = 8.0
     fits_path: str | Path | None = None
@@ -117,6 +149,14 @@ class ChainConfig:
         if self.max_gap_s is not None and not (np.isfinite(self.max_gap_s)
                                                and self.max_gap_s > 0):
             raise ValueError(f"max_gap_s={self.max_gap_s!r} must be finite and > 0")
+        bridge = _real(self.max_bridge_s)
+        if not (math.isfinite(bridge) and bridge > 0):
+            raise ValueError(f"max_bridge_s={self.max_bridge_s!r} must be finite and > 0")
+        updates = max(bridge / self.spindle_step_s, bridge * self.fusimotor.predictor_rate_hz)
+        if updates > MAX_BRIDGE_UPDATES:
+            raise ValueError(
+                f"max_bridge_s={self.max_bridge_s!r} needs {updates:.3g} spindle sub-steps or "
+                f"predictor updates per push, above {MAX_BRIDGE_UPDATES}")
         if not (np.isfinite(self.max_speed_deg_s) and self.max_speed_deg_s > 0):
             raise ValueError(f"max_speed_deg_s={self.max_speed_deg_s!r} must be finite and > 0")
         if not (0 < self.max_speed_L0_s <= core.MAX_SPEED_L0_S):
@@ -217,38 +257,29 @@ class ArmChain:
         """The arm at rest at ``angle_deg`` (and, if given, exact ``length_L0``) at ``t_s``.
 
         Filters start on that angle, the template on those lengths, the spindles at
-        equilibrium with the resulting drive. Counters restart at zero.
+        equilibrium with the resulting drive. Counters restart at zero; without
+        ``length_L0``, an angle outside the length model's range is clamped to it and counted
+        (``angle_clamped``), as a pushed angle is. The switch returns to the measured motion.
         """
-        if not np.isfinite(t_s):
-            raise ValueError(f"t_s={t_s!r} must be finite")
+        t = _real(t_s)
+        if not math.isfinite(t):
+            raise ValueError(f"t_s={t_s!r} must be a finite real number")
         angle = self._check_angle(angle_deg)
+        clamped = False
         if length_L0 is None:
-            L = self.fits.length_L0(math.radians(angle))
+            clamped, recorded = self._clamp_angle(angle)
+            L = self.fits.length_L0(math.radians(recorded))
         else:
+            recorded = angle
             L = self._check_lengths(length_L0)
             if L is None:
                 raise ValueError(f"length_L0={length_L0!r} must be 2 finite lengths within "
                                  f"{core.LENGTH_RANGE_L0} L0")
-        # The filter starts on the reading at that angle, clamped to what an encoder can
-        # read: with exact lengths the angle is only recorded and may lie anywhere.
-        with np.errstate(over="ignore"):
-            counts = float(self.config.calibration.counts(angle))
-        counts = min(max(counts, 0.0), float(self.config.encoder.max_count))
-        self._median.reset(counts)
-        self._u = L.copy()
-        self._x = L.copy()
-        self._v = np.zeros(2)
-        self._a = np.zeros(2)
-        self._angle = angle
-        self._t = float(t_s)
         self._intended_L0 = None
-        template, gs, gd = self._fusimotor.reset(self._t, L)
-        self._state = core.equilibrium_state(L, gd, gs, self.config.params)
-        ia, ii = core.afferents(self._state, self.config.params)
+        out = self._rest(t, recorded, L, self._rest_reading(angle), -1.0, -1.0)
         self.counters = dict.fromkeys(COUNTERS, 0)
-        self._last = ArmSample(self._t, True, -1.0, -1.0, angle, L.copy(), self._v.copy(),
-                               self._a.copy(), template, gs, gd, ia, ii)
-        return self._last
+        self.counters["angle_clamped"] = int(clamped)
+        return out
 
     def set_intended_angle(self, angle_deg: float | None) -> None:
         """The switch: drive the fusimotor template from an intended elbow angle (deg).
@@ -278,42 +309,44 @@ class ArmChain:
     # -- pushes ----------------------------------------------------------------------------
     def push_counts(self, t_s: float, counts: float) -> ArmSample:
         """One encoder reading taken at ``t_s``."""
-        if not self._time_ok(t_s):
+        t = self._time(t_s)
+        if t is None:
             return self._rejected()
-        if not is_valid_reading(counts, self.config.encoder.max_count):
+        reading = _real(counts)
+        if not is_valid_reading(reading, self.config.encoder.max_count):
             self.counters["invalid_reading"] += 1
             return self._rejected()
-        filtered = self._median.push(float(counts))
-        angle = float(self.config.calibration.angle_deg(filtered))
-        return self._angle_stage(float(t_s), angle, float(counts), filtered)
+        return self._atomic(self._counts_stage, t, reading)
 
     def push_angle(self, t_s: float, angle_deg: float) -> ArmSample:
         """One clean elbow-angle sample (deg), skipping the sensor stage."""
-        if not self._time_ok(t_s):
+        t = self._time(t_s)
+        if t is None:
             return self._rejected()
-        try:
-            angle = float(angle_deg)
-        except (TypeError, ValueError):
-            angle = math.nan
+        angle = _real(angle_deg)
         if not math.isfinite(angle):
             self.counters["invalid_angle"] += 1
             return self._rejected()
-        return self._angle_stage(float(t_s), angle, -1.0, -1.0)
+        return self._atomic(self._angle_stage, t, angle, -1.0, -1.0)
 
     def push_lengths(self, t_s: float, length_L0: np.ndarray,
                      angle_deg: float | None = None) -> ArmSample:
         """One sample of the two fibre lengths (L0), skipping the sensor and length model.
 
-        ``angle_deg`` is only recorded in the output (the last known angle if None).
+        ``angle_deg`` is only recorded in the output (the last known angle if None or not a
+        finite real number).
         """
-        if not self._time_ok(t_s):
+        t = self._time(t_s)
+        if t is None:
             return self._rejected()
         L = self._check_lengths(length_L0)
         if L is None:
             self.counters["invalid_length"] += 1
             return self._rejected()
-        angle = self._angle if angle_deg is None or not np.isfinite(angle_deg) else angle_deg
-        return self._length_stage(float(t_s), L, float(angle), -1.0, -1.0)
+        angle = self._angle if angle_deg is None else _real(angle_deg)
+        if not math.isfinite(angle):
+            angle = self._angle
+        return self._atomic(self._length_stage, t, L, angle, -1.0, -1.0)
 
     # -- blocks: many samples per call (an env step, a sensor buffer) ---------------------
     def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray) -> ArmSample:
@@ -339,23 +372,57 @@ class ArmChain:
         return self.last
 
     # -- stages ----------------------------------------------------------------------------
+    def _atomic(self, stage: Callable[..., ArmSample], *args) -> ArmSample:
+        # A stage changes the median, the predictor, the spindles and the counters before its
+        # last spindle step; if anything raises, all of it goes back (the C chain works on a
+        # copy of its state for the same reason).
+        median, predictor = self._median.snapshot(), self._fusimotor.predictor.snapshot()
+        counters, state = dict(self.counters), self._state
+        arrays = [getattr(state, name).copy() for name in _SPINDLE_ARRAYS]
+        try:
+            return stage(*args)
+        except BaseException:
+            self._median.restore(median)
+            self._fusimotor.predictor.restore(predictor)
+            self.counters, self._state = counters, state
+            for name, saved in zip(_SPINDLE_ARRAYS, arrays, strict=True):
+                getattr(state, name)[...] = saved
+            raise
+
+    def _counts_stage(self, t: float, reading: float) -> ArmSample:
+        if self._restarts(t):
+            return self._angle_stage(t, float(self.config.calibration.angle_deg(reading)),
+                                     reading, reading)
+        filtered = self._median.push(reading)
+        angle = float(self.config.calibration.angle_deg(filtered))
+        return self._angle_stage(t, angle, reading, filtered)
+
     def _angle_stage(self, t: float, angle: float, counts: float, filtered: float) -> ArmSample:
-        limit = self.config.max_speed_deg_s * (t - self._t)
-        if abs(angle - self._angle) > limit:
-            self.counters["slew_limited"] += 1
-            angle = self._angle + math.copysign(limit, angle - self._angle)
-        lo, hi = self.angle_range_deg
-        if not lo <= angle <= hi:
+        given = angle
+        if not self._restarts(t):  # a restart starts afresh at the new angle
+            limit = self.config.max_speed_deg_s * (t - self._t)
+            if abs(angle - self._angle) > limit:
+                self.counters["slew_limited"] += 1
+                angle = self._angle + math.copysign(limit, angle - self._angle)
+        clamped, angle = self._clamp_angle(angle)
+        if clamped:
             self.counters["angle_clamped"] += 1
-            angle = min(max(angle, lo), hi)
         L = self.fits.length_L0(math.radians(angle))
-        return self._length_stage(t, L, angle, counts, filtered)
+        return self._length_stage(t, L, angle, counts, filtered, given)
 
     def _length_stage(self, t: float, L_in: np.ndarray, angle: float, counts: float,
-                      filtered: float) -> ArmSample:
+                      filtered: float, given_angle: float | None = None) -> ArmSample:
         dt = t - self._t
         if dt > self.config.gap_s:
             self.counters["gaps"] += 1
+        if self._restarts(t):
+            self.counters["restarts"] += 1
+            self.counters["accepted"] += 1
+            # the median restarts on the sample's own reading (an encoder's, or the one of
+            # the angle as given, as reset does)
+            reading = counts if counts >= 0 else self._rest_reading(
+                angle if given_angle is None else given_angle)
+            return self._rest(t, angle, L_in, reading, counts, filtered)
         limit = self.config.max_speed_L0_s * dt
         change = L_in - self._u
         if np.any(np.abs(change) > limit):
@@ -378,37 +445,81 @@ class ArmChain:
                                ia, ii)
         return self._last
 
+    def _rest(self, t: float, angle: float, L: np.ndarray, reading: float, counts: float,
+              filtered: float) -> ArmSample:
+        """At rest at ``angle`` / lengths ``L`` at ``t``: what reset and a restart share."""
+        template_in = L if self._intended_L0 is None else self._intended_L0
+        template, gs, gd = self._fusimotor.reset(t, template_in)
+        state = core.equilibrium_state(L, gd, gs, self.config.params)
+        ia, ii = core.afferents(state, self.config.params)
+        self._median.reset(reading)
+        self._state = state
+        self._u = L.copy()
+        self._x = L.copy()
+        self._v = np.zeros(2)
+        self._a = np.zeros(2)
+        self._angle = angle
+        self._t = t
+        self._last = ArmSample(t, True, counts, filtered, angle, L.copy(), self._v.copy(),
+                               self._a.copy(), template, gs, gd, ia, ii)
+        return self._last
+
     def _advance_spindles(self, x0, v0, x1, v1, gd, gs, dt):
         c, theta = self._columns, self._method.theta
         k = max(1, math.ceil(dt / self.config.spindle_step_s * (1 - 1e-12)))
         h = dt / k
+        lo, hi = core.LENGTH_RANGE_L0
+        reach = self.config.max_speed_L0_s * h
+        previous = x0
         for j in range(1, k):
             w = hermite_weights(j / k, 1)
             Ls = w[0] * x0 + w[1] * x1 + dt * (w[2] * v0 + w[3] * v1)
+            # Within the spindle's range, a slew-limited step from the previous sub-step, and
+            # still able to reach x1 at that speed (a bridge whose end velocities disagree
+            # would otherwise overshoot both).
+            left = reach * (k - j)
+            Ls = np.minimum(np.maximum(Ls, previous - reach), previous + reach)
+            Ls = np.minimum(np.maximum(Ls, x1 - left), x1 + left)
+            Ls = np.minimum(np.maximum(Ls, lo), hi)
             core.commit(self._state, core.advance(self._state, Ls, gd, gs, h, theta, c),
                         Ls, gd, gs)
+            previous = Ls
         new = core.advance(self._state, x1, gd, gs, h, theta, c)
         core.commit(self._state, new, x1, gd, gs)
         return core._afferents(new[0], x1, c)
 
     # -- checks ----------------------------------------------------------------------------
-    def _time_ok(self, t_s: float) -> bool:
+    def _time(self, t_s: float) -> float | None:
+        """The sample's time, or None (counted) if it may not be pushed."""
         if self._last is None:
             raise RuntimeError("call ArmChain.reset before pushing samples")
-        try:
-            t = float(t_s)
-        except (TypeError, ValueError):
-            t = math.nan
+        t = _real(t_s)
         if not math.isfinite(t):
             self.counters["bad_time"] += 1
-            return False
+            return None
         if t == self._t:
             self.counters["repeated_time"] += 1
-            return False
+            return None
         if t < self._t:
             self.counters["time_backwards"] += 1
-            return False
-        return True
+            return None
+        return t
+
+    def _restarts(self, t: float) -> bool:
+        return t - self._t > self.config.max_bridge_s
+
+    def _clamp_angle(self, angle: float) -> tuple[bool, float]:
+        lo, hi = self.angle_range_deg
+        if lo <= angle <= hi:
+            return False, angle
+        return True, min(max(angle, lo), hi)
+
+    def _rest_reading(self, angle: float) -> float:
+        # The reading at that angle, clamped to what an encoder can read: with exact lengths
+        # the angle is only recorded and may lie anywhere.
+        with np.errstate(over="ignore"):
+            counts = float(self.config.calibration.counts(angle))
+        return min(max(counts, 0.0), float(self.config.encoder.max_count))
 
     def _rejected(self) -> ArmSample:
         last = self.last
@@ -417,18 +528,50 @@ class ArmChain:
 
     @staticmethod
     def _check_angle(angle_deg: float) -> float:
-        angle = float(angle_deg)
+        angle = _real(angle_deg)
         if not math.isfinite(angle):
-            raise ValueError(f"angle_deg={angle_deg!r} must be finite")
+            raise ValueError(f"angle_deg={angle_deg!r} must be a finite real number")
         return angle
 
     @staticmethod
     def _check_lengths(length_L0: np.ndarray) -> np.ndarray | None:
-        L = np.asarray(length_L0, dtype=float)
+        L = _real_array(length_L0)
         lo, hi = core.LENGTH_RANGE_L0
         if L.shape != (2,) or not np.all(np.isfinite(L)) or L.min() < lo or L.max() > hi:
             return None
         return L.copy()
+
+
+_SPINDLE_ARRAYS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activation",
+                   "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
+
+
+def _real(value: object) -> float:
+    """``value`` as a float; NaN if it is not one real number (complex, an integer beyond
+    float's range, a string, None...), so the caller's rule for non-finite input applies."""
+    if isinstance(value, complex | np.complexfloating) or (
+            isinstance(value, np.ndarray) and np.iscomplexobj(value)):
+        return math.nan
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        return math.nan
+
+
+def _real_array(value: object) -> np.ndarray:
+    """``value`` as a float array; NaN in place of every element that is not a real number
+    (all of them if the array is complex)."""
+    if np.iscomplexobj(value):
+        return np.full(np.shape(value), math.nan)
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        try:
+            items = np.asarray(value, dtype=object)
+        except ValueError:  # ragged
+            return np.full(1, math.nan)
+        return np.vectorize(_real, otypes=[float])(items) if items.size else np.zeros(
+            items.shape)
 
 
 @dataclass(frozen=True)
@@ -480,18 +623,18 @@ def run_chain(
 
     Give the samples' times ``t_s`` (T,) and one of ``counts`` (T,) encoder readings,
     ``angle_deg`` (T,) elbow angles or ``length_L0`` (T, 2) fibre lengths. The arm starts at
-    rest at the first sample that is valid (its output is that rest state); the other samples
+    rest at the first sample that is valid (its output is that rest state, its angle clamped to
+    the length model's range and counted like any other sample's); the other samples
     are pushed in order (bad ones are handled by the documented rules). ``intended_angle_deg``
     (T,) switches the fusimotor template to the intended motion.
     """
     given = [x is not None for x in (counts, angle_deg, length_L0)]
     if sum(given) != 1:
         raise ValueError("give exactly one of counts, angle_deg or length_L0")
-    t = np.asarray(t_s, dtype=float)
+    t = _real_array(t_s)
     if t.ndim != 1 or t.size == 0:
         raise ValueError(f"t_s must be a non-empty 1-D array, got shape {t.shape}")
-    signal = np.asarray(next(x for x in (counts, angle_deg, length_L0) if x is not None),
-                        dtype=float)
+    signal = _real_array(next(x for x in (counts, angle_deg, length_L0) if x is not None))
     want = (t.size, 2) if length_L0 is not None else (t.size,)
     if signal.shape != want:
         raise ValueError(f"the signal has shape {signal.shape}, expected {want} for t_s "
@@ -553,8 +696,8 @@ def _first_valid(t, signal, is_counts, is_lengths, chain) -> int:
 
 def _block(name: str, t_s: np.ndarray, signal: np.ndarray,
            sample_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-    t = np.asarray(t_s, dtype=float)
-    x = np.asarray(signal, dtype=float)
+    t = _real_array(t_s)
+    x = _real_array(signal)
     if t.ndim != 1 or x.shape != (t.size, *sample_shape):
         raise ValueError(f"{name} has shape {x.shape} and t_s {t.shape}; expected "
                          f"{(t.size, *sample_shape)} for (k,) times")

@@ -159,13 +159,25 @@ class MotionPredictor:
         t_k, p, u = self._segments[-1]
         # The input between updates is the latest sample: a sample-and-hold at the PI rate.
         while t_s >= t_k + dt * (1.0 - 1e-9):
-            t_k = t_k + dt
+            # At a clock so large (beyond 2^48 s) that t_k + dt rounds to t_k, the next
+            # representable time: every update moves on, so the loop ends.
+            t_k = max(t_k + dt, math.nextafter(t_k, math.inf))
             p = p + dt * u
             error = length_L0 - p
             self._integral = self._integral + (ki * dt) * error
             u = kp * error + self._integral
             self._segments.append((t_k, p, u))
         return p + u * (t_s - t_k)
+
+    def snapshot(self) -> tuple:
+        """The predictor's state, for :meth:`restore` (a caller undoing a failed update)."""
+        return tuple(self._segments), self._integral
+
+    def restore(self, snapshot: tuple) -> None:
+        """Put back the state a :meth:`snapshot` of this predictor returned."""
+        segments, self._integral = snapshot
+        self._segments.clear()
+        self._segments.extend(segments)
 
     def template_at(self, t_s: float) -> np.ndarray:
         """The template at an earlier time ``t_s`` (clamped to the oldest kept update)."""

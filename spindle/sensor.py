@@ -239,6 +239,15 @@ class MedianFilter:
         self._buffer.append(float(value))
         return sorted(self._buffer)[self.window // 2]
 
+    def snapshot(self) -> tuple[float, ...]:
+        """The window's contents, for :meth:`restore` (a caller undoing a failed update)."""
+        return tuple(self._buffer)
+
+    def restore(self, snapshot: tuple[float, ...]) -> None:
+        """Put back the window a :meth:`snapshot` of this filter returned."""
+        self._buffer.clear()
+        self._buffer.extend(snapshot)
+
 
 def _check_window(window: int) -> None:
     if not (isinstance(window, int | np.integer) and window >= 1 and window % 2 == 1):

@@ -322,10 +322,14 @@ def test_bad_angles_and_lengths_are_rejected():
 
 def test_gaps_jumps_and_out_of_range_angles_follow_their_rules():
     chain = chain_at_rest()
-    # a 0.2 s dropout, then the arm is found 60 deg further: counted, slew-limited, finite
-    out = chain.push_counts(0.238, 495 + round(60 / AX12.deg_per_count))
-    assert out.accepted and chain.counters["gaps"] == 1
-    assert chain.counters["slew_limited"] == 0  # 60 deg in 0.2 s is 300 deg/s: allowed
+    # a 0.2 s dropout, then the arm is found 30 deg further: longer than max_bridge_s, so
+    # the chain restarts at rest there (counted, no slew limit)
+    reading = 495 + round(30 / AX12.deg_per_count)
+    out = chain.push_counts(0.238, reading)
+    assert out.accepted and chain.counters["gaps"] == 1 and chain.counters["restarts"] == 1
+    assert chain.counters["slew_limited"] == 0
+    assert out.counts_filtered == reading
+    assert out.angle_deg == pytest.approx(float(Calibration().angle_deg(reading)))
     # a single jump of 100 deg in 2 ms is not a motion: the median holds the first spike
     # back, and repeated jumps are slew-limited to 1000 deg/s
     t = 0.238

@@ -8,10 +8,10 @@
  * spindle/derivatives.py and spindle/fusimotor.py, in their order of operations, so the
  * double build agrees with the numpy chain to round-off. Sections follow those modules.
  *
- * Differences from the numpy chain, all at failures the numpy chain does not guard:
- * a push either completes or leaves the chain exactly as it was (it works on a copy of the
- * state), and an interval needing more than PS_CHAIN_MAX_UPDATES spindle sub-steps or
- * predictor updates is refused with PS_ERR_INTERVAL instead of running unbounded.
+ * Both chains are atomic: a push either completes or leaves the chain exactly as it was
+ * (here it works on a copy of the state). Intervals longer than max_bridge_s restart the
+ * chain at rest, so every push costs bounded work; PS_ERR_INTERVAL remains as a guard that a
+ * configuration ps_chain_init accepted never reaches.
  */
 #include "proprio.h"
 
@@ -213,10 +213,13 @@ static int predictor_update(ps_predictor *pr, const ps_arm_chain *c, ps_time t,
         u[k] = pr->u[newest][k];
     }
     while (t >= tk + dt * (1.0 - 1e-9)) {
+        ps_time next = tk + dt;
         if (++n > PS_CHAIN_MAX_UPDATES) {
             return PS_ERR_INTERVAL;
         }
-        tk = tk + dt;
+        /* At a clock so large (beyond 2^48 s) that tk + dt rounds to tk, the next
+         * representable time: every update moves on, so the loop ends. */
+        tk = next > tk ? next : nextafter(tk, HUGE_VAL);
         for (k = 0; k < PS_MUSCLES; ++k) {
             ps_real error;
             p[k] = p[k] + (ps_real)dt * u[k];
@@ -330,6 +333,7 @@ static int config_ok(const ps_chain_config *cfg)
     }
     if (!(cfg->lowpass_rad_s >= 0 && is_finite((double)cfg->lowpass_rad_s)
           && cfg->gap_s > 0 && is_finite(cfg->gap_s)
+          && cfg->max_bridge_s > 0 && is_finite(cfg->max_bridge_s)
           && cfg->max_speed_deg_s > 0 && is_finite((double)cfg->max_speed_deg_s)
           && cfg->max_speed_L0_s > 0 && cfg->max_speed_L0_s <= PS_MAX_SPEED_L0_S)) {
         return 0;
@@ -359,6 +363,12 @@ static int config_ok(const ps_chain_config *cfg)
         return 0;
     }
     if (!(cfg->theta >= 0 && cfg->theta <= 1 && cfg->step_s > 0 && cfg->step_s <= 1)) {
+        return 0;
+    }
+    /* ChainConfig's bound on the work of one bridged interval. */
+    if (!(cfg->max_bridge_s / cfg->step_s <= (double)PS_CHAIN_MAX_BRIDGE_UPDATES
+          && cfg->max_bridge_s * (double)cfg->predictor_rate_hz
+                 <= (double)PS_CHAIN_MAX_BRIDGE_UPDATES)) {
         return 0;
     }
     return 1;
@@ -432,13 +442,81 @@ static int lengths_ok(const ps_real *L)
     return 1;
 }
 
+/* The reading the median window restarts on at an angle, clamped to the encoder's range: with
+ * exact lengths the angle is only recorded and may lie anywhere, and a reading no encoder
+ * can give (or an infinite one) must not reach the median's output. */
+static ps_real rest_reading(const ps_chain_config *cfg, ps_real angle_deg)
+{
+    ps_real counts = cfg->zero_count + cfg->count_sign * angle_deg / cfg->deg_per_count;
+    if (!(counts >= 0)) {
+        counts = 0;
+    }
+    if (counts > cfg->max_count) {
+        counts = cfg->max_count;
+    }
+    return counts;
+}
+
+static ps_real clamp_angle(const ps_arm_chain *c, ps_real angle)
+{
+    return angle < c->angle_min_deg ? c->angle_min_deg
+                                    : (angle > c->angle_max_deg ? c->angle_max_deg : angle);
+}
+
+/* ArmChain._rest: at rest at `angle_deg` and lengths L at t, the median window on `reading`,
+ * the predictor on its input (the intended lengths when the switch is on); what reset and a
+ * restart share. Counters and the switch are left alone. */
+static int rest(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real angle_deg,
+                const ps_real *L, ps_real reading, ps_real counts, ps_real filtered)
+{
+    ps_real gs[PS_MUSCLES], gd[PS_MUSCLES], template_in[PS_MUSCLES];
+    int k, status;
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        template_in[k] = st->has_intended ? st->intended_L0[k] : L[k];
+    }
+    predictor_reset(&st->predictor, t, template_in);
+    fusimotor_rates(c, &st->predictor, t, template_in, gs, gd);
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        status = ps_spindle_init(&st->spindle[k], &c->config.params, L[k], gd[k], gs[k]);
+        if (status != PS_OK) {
+            return status;
+        }
+    }
+    status = ps_median_reset(&st->median, c->config.median_window, reading);
+    if (status != PS_OK) {
+        return status;
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        st->u[k] = L[k];
+        st->x[k] = L[k];
+        st->v[k] = 0;
+        st->a[k] = 0;
+        st->last.length_L0[k] = L[k];
+        st->last.velocity_L0_s[k] = 0;
+        st->last.acceleration_L0_s2[k] = 0;
+        st->last.template_L0[k] = template_in[k];
+        st->last.gamma_static_pps[k] = gs[k];
+        st->last.gamma_dynamic_pps[k] = gd[k];
+        ps_spindle_afferents(&st->spindle[k], &c->config.params, &st->last.ia_pps[k],
+                             &st->last.ii_pps[k]);
+    }
+    st->angle_deg = angle_deg;
+    st->t_s = t;
+    st->last.t_s = t;
+    st->last.accepted = 1;
+    st->last.counts = counts;
+    st->last.counts_filtered = filtered;
+    st->last.angle_deg = angle_deg;
+    return PS_OK;
+}
+
 int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_real *length_L0,
                    ps_arm_sample *out)
 {
     ps_chain_state st;
-    ps_real L[PS_MUSCLES], gs[PS_MUSCLES], gd[PS_MUSCLES], rest_counts;
-    ps_chain_counters zero = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-    int k, status;
+    ps_real L[PS_MUSCLES], recorded = angle_deg;
+    ps_chain_counters zero = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    int k, status, clamped = 0;
     if (c == NULL) {
         return PS_ERR_NULL;
     }
@@ -449,11 +527,11 @@ int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_rea
         return PS_ERR_NONFINITE;
     }
     if (length_L0 == NULL) {
-        ps_real angle_rad = (ps_real)((double)angle_deg * DEG_TO_RAD);
-        if (angle_rad < c->config.fit_lo_rad || angle_rad > c->config.fit_hi_rad) {
-            return PS_ERR_ANGLE_RANGE;
+        if (!(c->angle_min_deg <= angle_deg && angle_deg <= c->angle_max_deg)) {
+            clamped = 1;
+            recorded = clamp_angle(c, angle_deg);
         }
-        fit_lengths(&c->config, angle_rad, L);
+        fit_lengths(&c->config, (ps_real)((double)recorded * DEG_TO_RAD), L);
     } else {
         for (k = 0; k < PS_MUSCLES; ++k) {
             if (!is_finite((double)length_L0[k])) {
@@ -467,50 +545,16 @@ int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_rea
             L[k] = length_L0[k];
         }
     }
-    /* The filter starts on the reading at that angle. Clamped to the encoder's range: with
-     * exact lengths the angle is only recorded and may lie anywhere, and a reading no
-     * encoder can give (or an infinite one) must not reach the median's output. */
-    rest_counts = c->config.zero_count + c->config.count_sign * angle_deg / c->config.deg_per_count;
-    if (!(rest_counts >= 0)) {
-        rest_counts = 0;
+    st.has_intended = 0;
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        st.intended_L0[k] = 0;
     }
-    if (rest_counts > c->config.max_count) {
-        rest_counts = c->config.max_count;
-    }
-    status = ps_median_reset(&st.median, c->config.median_window, rest_counts);
+    status = rest(c, &st, t_s, recorded, L, rest_reading(&c->config, angle_deg), -1, -1);
     if (status != PS_OK) {
         return status;
     }
-    predictor_reset(&st.predictor, t_s, L);
-    fusimotor_rates(c, &st.predictor, t_s, L, gs, gd);
-    for (k = 0; k < PS_MUSCLES; ++k) {
-        status = ps_spindle_init(&st.spindle[k], &c->config.params, L[k], gd[k], gs[k]);
-        if (status != PS_OK) {
-            return status;
-        }
-        st.u[k] = L[k];
-        st.x[k] = L[k];
-        st.v[k] = 0;
-        st.a[k] = 0;
-        st.intended_L0[k] = 0;
-        st.last.length_L0[k] = L[k];
-        st.last.velocity_L0_s[k] = 0;
-        st.last.acceleration_L0_s2[k] = 0;
-        st.last.template_L0[k] = L[k];
-        st.last.gamma_static_pps[k] = gs[k];
-        st.last.gamma_dynamic_pps[k] = gd[k];
-        ps_spindle_afferents(&st.spindle[k], &c->config.params, &st.last.ia_pps[k],
-                             &st.last.ii_pps[k]);
-    }
-    st.angle_deg = angle_deg;
-    st.t_s = t_s;
-    st.has_intended = 0;
     st.counters = zero;
-    st.last.t_s = t_s;
-    st.last.accepted = 1;
-    st.last.counts = -1;
-    st.last.counts_filtered = -1;
-    st.last.angle_deg = angle_deg;
+    st.counters.angle_clamped = (unsigned long)clamped;
     c->state = st;
     c->stage = 2;
     if (out != NULL) {
@@ -582,7 +626,8 @@ static void hermite_weights(ps_real s, ps_real *w)
 }
 
 /* ArmChain._advance_spindles: equal sub-steps no longer than step_s, the length following
- * the cubic Hermite curve through (x0, v0) and (x1, v1); the drive held at (gd, gs). */
+ * the cubic Hermite curve through (x0, v0) and (x1, v1), kept within the slew limit and the
+ * spindle's range; the drive held at (gd, gs). */
 static int advance_spindles(const ps_arm_chain *c, ps_chain_state *st, const ps_real *x0,
                             const ps_real *v0, const ps_real *x1, const ps_real *v1,
                             const ps_real *gd, const ps_real *gs, ps_time dt, ps_real *ia,
@@ -591,24 +636,38 @@ static int advance_spindles(const ps_arm_chain *c, ps_chain_state *st, const ps_
     const ps_chain_config *cfg = &c->config;
     double steps = ceil(dt / cfg->step_s * (1 - 1e-12));
     long k, j;
-    ps_real h;
+    ps_real h, reach, previous[PS_MUSCLES];
     int m, status;
     if (!(steps <= (double)PS_CHAIN_MAX_UPDATES)) {
         return PS_ERR_INTERVAL;
     }
     k = steps < 1 ? 1 : (long)steps;
     h = (ps_real)(dt / (double)k);
+    reach = cfg->max_speed_L0_s * h;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        previous[m] = x0[m];
+    }
     for (j = 1; j < k; ++j) {
         ps_real w[4];
+        ps_real left = reach * (ps_real)(k - j);
         hermite_weights((ps_real)((double)j / (double)k), w);
         for (m = 0; m < PS_MUSCLES; ++m) {
             ps_real Ls = w[0] * x0[m] + w[1] * x1[m]
                          + (ps_real)dt * (w[2] * v0[m] + w[3] * v1[m]);
+            /* Within a slew-limited step of the previous sub-step, able to reach x1 at that
+             * speed, and within the spindle's range (ArmChain._advance_spindles). */
+            Ls = Ls < previous[m] - reach ? previous[m] - reach : Ls;
+            Ls = Ls > previous[m] + reach ? previous[m] + reach : Ls;
+            Ls = Ls < x1[m] - left ? x1[m] - left : Ls;
+            Ls = Ls > x1[m] + left ? x1[m] + left : Ls;
+            Ls = Ls < (ps_real)PS_LENGTH_MIN_L0 ? (ps_real)PS_LENGTH_MIN_L0 : Ls;
+            Ls = Ls > (ps_real)PS_LENGTH_MAX_L0 ? (ps_real)PS_LENGTH_MAX_L0 : Ls;
             status = ps_spindle_step(&st->spindle[m], &cfg->params, Ls, gd[m], gs[m], h,
                                      cfg->theta, NULL, NULL);
             if (status != PS_OK) {
                 return status;
             }
+            previous[m] = Ls;
         }
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
@@ -628,10 +687,17 @@ static int interval_ok(const ps_arm_chain *c, const ps_chain_state *st, ps_time 
     return (t - st->t_s) / c->config.step_s <= (double)PS_CHAIN_MAX_UPDATES;
 }
 
-/* ArmChain._length_stage on a working copy of the state. */
+/* ArmChain._restarts: an interval too long to bridge. */
+static int restarts(const ps_arm_chain *c, const ps_chain_state *st, ps_time t)
+{
+    return t - st->t_s > c->config.max_bridge_s;
+}
+
+/* ArmChain._length_stage on a working copy of the state. `given_angle` is the sample's angle
+ * before the slew limit and clamp (the median's reading after a restart). */
 static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
                         const ps_real *L_given, ps_real angle, ps_real counts,
-                        ps_real filtered)
+                        ps_real filtered, ps_real given_angle)
 {
     const ps_chain_config *cfg = &c->config;
     ps_time dt_time = t - st->t_s;
@@ -641,14 +707,20 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
         ii[PS_MUSCLES];
     const ps_real *template_in;
     int k, limited = 0, status;
+    if (dt_time > cfg->gap_s) {
+        st->counters.gaps += 1;
+    }
+    if (restarts(c, st, t)) {
+        st->counters.restarts += 1;
+        st->counters.accepted += 1;
+        return rest(c, st, t, angle, L_given,
+                    counts >= 0 ? counts : rest_reading(cfg, given_angle), counts, filtered);
+    }
     if (!interval_ok(c, st, t)) {
         return PS_ERR_INTERVAL;
     }
     dt = (ps_real)dt_time;
     limit = cfg->max_speed_L0_s * dt;
-    if (dt_time > cfg->gap_s) {
-        st->counters.gaps += 1;
-    }
     for (k = 0; k < PS_MUSCLES; ++k) {
         L_in[k] = L_given[k];
         change[k] = L_in[k] - st->u[k];
@@ -713,22 +785,23 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
 static int angle_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real angle,
                        ps_real counts, ps_real filtered)
 {
-    ps_real limit, L[PS_MUSCLES];
-    if (!interval_ok(c, st, t)) {
-        return PS_ERR_INTERVAL;
-    }
-    limit = c->config.max_speed_deg_s * (ps_real)(t - st->t_s);
-    if (fabs((double)(angle - st->angle_deg)) > (double)limit) {
-        st->counters.slew_limited += 1;
-        angle = st->angle_deg + (angle - st->angle_deg < 0 ? -limit : limit);
+    ps_real limit, L[PS_MUSCLES], given = angle;
+    if (!restarts(c, st, t)) { /* a restart starts afresh at the new angle */
+        if (!interval_ok(c, st, t)) {
+            return PS_ERR_INTERVAL;
+        }
+        limit = c->config.max_speed_deg_s * (ps_real)(t - st->t_s);
+        if (fabs((double)(angle - st->angle_deg)) > (double)limit) {
+            st->counters.slew_limited += 1;
+            angle = st->angle_deg + (angle - st->angle_deg < 0 ? -limit : limit);
+        }
     }
     if (!(c->angle_min_deg <= angle && angle <= c->angle_max_deg)) {
         st->counters.angle_clamped += 1;
-        angle = angle < c->angle_min_deg ? c->angle_min_deg
-                                         : (angle > c->angle_max_deg ? c->angle_max_deg : angle);
+        angle = clamp_angle(c, angle);
     }
     fit_lengths(&c->config, (ps_real)((double)angle * DEG_TO_RAD), L);
-    return length_stage(c, st, t, L, angle, counts, filtered);
+    return length_stage(c, st, t, L, angle, counts, filtered, given);
 }
 
 enum push_kind { PUSH_COUNTS, PUSH_ANGLE, PUSH_LENGTHS };
@@ -752,7 +825,8 @@ static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
             if (!ps_is_valid_reading(value, c->config.max_count)) {
                 st.counters.invalid_reading += 1;
             } else {
-                ps_real filtered = ps_median_push(&st.median, value);
+                /* a restart refills the window with this reading instead */
+                ps_real filtered = restarts(c, &st, t) ? value : ps_median_push(&st.median, value);
                 status = angle_stage(c, &st, t, calibration_angle_deg(&c->config, filtered),
                                      value, filtered);
                 accepted = 1;
@@ -770,7 +844,7 @@ static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
             } else {
                 ps_real angle = (angle_deg == NULL || !is_finite((double)*angle_deg))
                                     ? st.angle_deg : *angle_deg;
-                status = length_stage(c, &st, t, lengths, angle, -1, -1);
+                status = length_stage(c, &st, t, lengths, angle, -1, -1, angle);
                 accepted = 1;
             }
         }

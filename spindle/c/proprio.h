@@ -233,16 +233,20 @@ void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_
 /* ---- chain section: declarations go below this line (chain.c owner) ---- */
 
 /* Chain-specific status codes (beside enum ps_status). */
-#define PS_ERR_ANGLE_RANGE 10 /* ps_chain_reset: an angle outside the fitted range */
+#define PS_ERR_ANGLE_RANGE 10 /* reserved (ps_chain_reset now clamps the angle) */
 #define PS_ERR_NOT_RESET 11   /* a chain used before ps_chain_init and ps_chain_reset */
 #define PS_ERR_INTERVAL 12    /* an interval needing more than PS_CHAIN_MAX_UPDATES spindle
-                                 sub-steps or predictor updates (a corrupt, huge time) */
+                                 sub-steps or predictor updates: a guard, not reached with a
+                                 config ps_chain_init accepted (longer intervals restart) */
 
 #define PS_MUSCLES 2                 /* BRA, TRImed: the order of every per-muscle array */
 #define PS_MEDIAN_MAX_WINDOW 15      /* largest median window (odd) */
 #define PS_FIT_MAX_COEFFS 16         /* largest Chebyshev series of a length fit */
 #define PS_PREDICTOR_MAX_SEGMENTS 16 /* ceil(delay_s * predictor_rate_hz) + 2 must fit */
 #define PS_CHAIN_MAX_UPDATES 1000000L
+/* ps_chain_init refuses a max_bridge_s needing more spindle sub-steps or predictor updates
+ * than this (chain.MAX_BRIDGE_UPDATES): a push's work is bounded by it. */
+#define PS_CHAIN_MAX_BRIDGE_UPDATES 100000L
 
 /* Times are double in both builds: a float clock cannot resolve 2 ms after a few hours. */
 typedef double ps_time;
@@ -294,6 +298,7 @@ typedef struct ps_chain_config {
     /* conditioning */
     ps_real lowpass_rad_s;   /* natural frequency of the tracking low-pass; 0: none */
     ps_time gap_s;           /* intervals longer than this count as gaps */
+    ps_time max_bridge_s;    /* longer intervals restart the chain at rest (restarts) */
     ps_real max_speed_deg_s; /* slew limit of the angle */
     ps_real max_speed_L0_s;  /* slew limit of the lengths, <= PS_MAX_SPEED_L0_S */
     /* fusimotor (FusimotorParams) */
@@ -320,7 +325,7 @@ typedef struct ps_predictor {
 /* chain.COUNTERS, in that order (see docs/c_chain.md for each rule). */
 typedef struct ps_chain_counters {
     unsigned long accepted, invalid_reading, invalid_angle, invalid_length, repeated_time,
-        time_backwards, bad_time, gaps, slew_limited, angle_clamped;
+        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts;
 } ps_chain_counters;
 
 /* chain.ArmSample: the output after one sample; per-muscle arrays are BRA, TRImed. */
@@ -369,9 +374,9 @@ int ps_chain_init(ps_arm_chain *c, const ps_chain_config *config);
 int ps_chain_length_L0(const ps_arm_chain *c, ps_real angle_rad, ps_real length_L0[PS_MUSCLES]);
 
 /* The arm at rest at `angle_deg` (and, if not NULL, exact lengths `length_L0`) at `t_s`
- * (ArmChain.reset); counters restart at zero; writes the rest output to `out` if not NULL.
- * PS_ERR_NONFINITE, PS_ERR_ANGLE_RANGE (without length_L0 the angle must lie in the fitted
- * range), PS_ERR_LENGTH_RANGE. */
+ * (ArmChain.reset); counters restart at zero and the switch is off; without length_L0 an
+ * angle outside the fitted range is clamped to it and counted (angle_clamped = 1); writes
+ * the rest output to `out` if not NULL. PS_ERR_NONFINITE, PS_ERR_LENGTH_RANGE. */
 int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s,
                    const ps_real *length_L0, ps_arm_sample *out);
 
@@ -380,7 +385,9 @@ int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s,
 int ps_chain_set_intended_angle(ps_arm_chain *c, const ps_real *angle_deg);
 
 /* One sample (ArmChain.push_counts / push_angle / push_lengths). A bad sample is handled by
- * its documented rule (counted, out->accepted = 0) and returns PS_OK. Errors: PS_ERR_NULL,
+ * its documented rule (counted, out->accepted = 0) and returns PS_OK. An interval longer
+ * than max_bridge_s restarts the chain at rest at the sample (counted in restarts), so a
+ * push costs at most max_bridge_s / step_s spindle sub-steps, whatever the times. Errors: PS_ERR_NULL,
  * PS_ERR_NOT_RESET, PS_ERR_INTERVAL, or a spindle step's failure; on an error the chain is
  * left exactly as it was and `out` is not written. `angle_deg` of push_lengths is only
  * recorded (NULL or non-finite: the last angle). */

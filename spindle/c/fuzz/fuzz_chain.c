@@ -3,8 +3,9 @@
  *
  * Built with -fsanitize=address,undefined (tests/test_c_chain_fuzz.py): any memory error
  * or undefined behaviour aborts it. It also checks the contract itself and exits non-zero
- * when it is broken: every call returns a documented status; an accepted output is finite;
- * a failing call changes nothing.
+ * when it is broken: every call returns a documented status; an accepted output is finite
+ * with lengths in the spindle's range; a failing call changes nothing; no call returns
+ * PS_ERR_ANGLE_RANGE or PS_ERR_INTERVAL (angles are clamped, long intervals restart).
  *
  * Usage: fuzz_chain CONFIG_FILE ITERATIONS SEED
  * CONFIG_FILE holds the bytes of a valid ps_chain_config (written by the test from
@@ -74,7 +75,9 @@ static int sample_finite(const ps_arm_sample *s)
              && finite_real(s->acceleration_L0_s2[k]) && finite_real(s->template_L0[k])
              && finite_real(s->gamma_static_pps[k]) && finite_real(s->gamma_dynamic_pps[k])
              && finite_real(s->ia_pps[k]) && finite_real(s->ii_pps[k])
-             && s->ia_pps[k] >= 0 && s->ii_pps[k] >= 0;
+             && s->ia_pps[k] >= 0 && s->ii_pps[k] >= 0
+             && s->length_L0[k] >= (ps_real)PS_LENGTH_MIN_L0
+             && s->length_L0[k] <= (ps_real)PS_LENGTH_MAX_L0;
     }
     return ok;
 }
@@ -90,7 +93,9 @@ static ps_time next_time(ps_time t)
     case 2: return t + 0.01 + uniform() * 0.2; /* a gap */
     case 3: return nan("");
     case 4: return below(2) ? HUGE_VAL : -HUGE_VAL;
-    case 5: return below(2) ? 1e300 : t + 1e4; /* corrupt clocks */
+    case 5: /* corrupt clocks: a jump restarts the chain there; after 1e300 every later
+             * time repeats it (t + 0.002 == t) until a reset */
+        return below(8) ? t + 1e4 * uniform() : 1e300;
     case 6: return t + 1e-12;
     default: return t + 0.002 * (0.6 + 0.8 * uniform());
     }
@@ -139,7 +144,13 @@ static void corrupt(ps_chain_config *cfg)
     switch (below(6)) {
     case 0: cfg->median_window = below(40) - 5; break;
     case 1: cfg->n_coefficients[below(2)] = below(40) - 5; break;
-    case 2: cfg->gap_s = (ps_time)extreme(); break;
+    case 2:
+        if (below(2)) {
+            cfg->gap_s = (ps_time)extreme();
+        } else {
+            cfg->max_bridge_s = below(2) ? (ps_time)extreme() : uniform() * 1e3;
+        }
+        break;
     case 3: cfg->delay_s = below(2) ? (ps_time)extreme() : uniform(); break;
     case 4: cfg->step_s = below(2) ? (ps_time)extreme() : uniform() * 0.02; break;
     default: *reals[below(n)] = extreme(); break;
@@ -155,7 +166,7 @@ int main(int argc, char **argv)
     ps_real counts = 512, values[48], intended[24], L[PS_MUSCLES], angle;
     ps_arm_sample table[24];
     long it, iterations, n_done, statuses[PS_ERR_INTERVAL + 1] = {0};
-    unsigned long accepted_total = 0;
+    unsigned long accepted_total = 0, restarts_total = 0;
     int status, i, n;
     FILE *f;
 
@@ -303,6 +314,9 @@ int main(int argc, char **argv)
             fail("undocumented status", it);
             status = 0;
         }
+        if (status == PS_ERR_ANGLE_RANGE || status == PS_ERR_INTERVAL) {
+            fail("an angle refused or an interval too long (they are clamped / restart)", it);
+        }
         statuses[status] += 1;
         if (status != PS_OK && op >= 9 && op < 85
             && memcmp(&before.state, &chain.state, sizeof chain.state) != 0) {
@@ -310,6 +324,7 @@ int main(int argc, char **argv)
         }
         if (op >= 9 && chain.stage == 2 && before.stage == 2) {
             accepted_total += chain.state.counters.accepted - before.state.counters.accepted;
+            restarts_total += chain.state.counters.restarts - before.state.counters.restarts;
         }
         if (chain.stage == 2) {
             t = chain.state.t_s;
@@ -322,6 +337,6 @@ int main(int argc, char **argv)
     for (i = 0; i <= PS_ERR_INTERVAL; ++i) {
         printf(" %d:%ld", i, statuses[i]);
     }
-    printf(", accepted samples %lu\n", accepted_total);
+    printf(", accepted samples %lu, restarts %lu\n", accepted_total, restarts_total);
     return failures == 0 ? 0 : 1;
 }
