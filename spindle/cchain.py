@@ -88,6 +88,7 @@ def structs(variant: str = "double") -> dict[str, type]:
             ("coefficients", (real * FIT_MAX_COEFFS) * n_muscles),
             ("fit_lo_rad", real), ("fit_hi_rad", real), ("lowpass_rad_s", real),
             ("gap_s", ctypes.c_double), ("max_bridge_s", ctypes.c_double),
+            ("resync_after_samples", ctypes.c_long),
             ("max_speed_deg_s", real), ("max_speed_L0_s", real),
             ("gamma_static_min_pps", real), ("gamma_static_max_pps", real),
             ("gamma_dynamic_pps", real), ("delay_s", ctypes.c_double),
@@ -100,7 +101,8 @@ def structs(variant: str = "double") -> dict[str, type]:
         _fields_ = [
             ("median", PsMedian), ("predictor", PsPredictor), ("spindle", PsSpindle * n_muscles),
             ("u", pair), ("x", pair), ("v", pair), ("a", pair), ("angle_deg", real),
-            ("t_s", ctypes.c_double), ("has_intended", ctypes.c_int), ("intended_L0", pair),
+            ("t_s", ctypes.c_double), ("behind", ctypes.c_long), ("has_intended", ctypes.c_int),
+            ("intended_L0", pair),
             ("counters", PsCounters), ("last", PsArmSample),
         ]
 
@@ -190,6 +192,7 @@ def chain_config_struct(config: ChainConfig, fits: LengthFits,
     out.lowpass_rad_s = 0.0 if config.lowpass_hz is None else natural_rad_s(config.lowpass_hz)
     out.gap_s = config.gap_s
     out.max_bridge_s = config.max_bridge_s
+    out.resync_after_samples = config.resync_after_samples
     out.max_speed_deg_s = config.max_speed_deg_s
     out.max_speed_L0_s = config.max_speed_L0_s
     out.gamma_static_min_pps = fm.gamma_static_min_pps

@@ -24,6 +24,11 @@ changes no state and the previous output is returned again with ``accepted=False
   of the wrong shape or outside the spindle's range: rejected;
 - ``repeated_time``, ``time_backwards``, ``bad_time``: a sample whose time equals, precedes or
   is not a finite number after the last accepted one: rejected (time never runs backwards);
+- ``clock_resyncs``: the ``resync_after_samples``-th sample (default 7) since the last
+  accepted one to come with an earlier time is not rejected: the chain takes the new clock as
+  the true one and restarts at rest at that sample (also counted in ``restarts``). A single
+  corrupt time far ahead, accepted as a long gap, would otherwise lock out every true sample
+  after it;
 - ``gaps``: an interval longer than ``max_gap_s`` (default: the filter window, 7 nominal
   sample periods) since the last accepted sample (dropped samples): accepted and counted. Up
   to ``max_bridge_s`` (default 50 ms) the gap is bridged: the median window keeps the last 7
@@ -76,8 +81,12 @@ BACKENDS = ("numpy", "c")
 COUNTERS = (
     "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
     "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped", "restarts",
+    "clock_resyncs",
 )
 """Names of :attr:`ArmChain.counters` (see the module docstring for each rule)."""
+MAX_RESYNC_AFTER_SAMPLES = 1_000_000
+"""Largest ``ChainConfig.resync_after_samples`` (``PS_CHAIN_MAX_RESYNC`` in C: an int there)."""
+
 MAX_BRIDGE_UPDATES = 100_000
 """Most spindle sub-steps or predictor updates one bridged interval may take
 (``PS_CHAIN_MAX_BRIDGE_UPDATES`` in C, a tenth of the C chain's last-resort guard):
@@ -115,6 +124,14 @@ class ChainConfig:
             stays within the 8 L0/s slew limit (measured; it exceeds the spindle's 10 L0/s
             from about 100 ms on, where the sub-step limits take over). It also bounds the
             work of a push: at most ``max_bridge_s / step_s`` spindle sub-steps (50).
+        resync_after_samples: a sample older than the last accepted one is rejected
+            (``time_backwards``), unless it is the ``resync_after_samples``-th such sample
+            since the last accepted one: then the chain trusts the new clock and restarts at
+            rest at that sample (counters ``restarts`` and ``clock_resyncs``). Without it, a
+            single corrupt time far in the future, once accepted as a long gap, would make
+            every later true sample "backwards" and the chain would never accept one again.
+            The default, 7, is the median window: as many readings as the filter needs before
+            it follows a change.
         max_speed_deg_s: slew limit of the conditioned angle (deg/s).
         max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
         fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
@@ -132,39 +149,41 @@ class ChainConfig:
     step_s: float | None = None
     max_gap_s: float | None = None
     max_bridge_s: float = 0.05
+    resync_after_samples: int = 7
     max_speed_deg_s: float = 1000.0
     max_speed_L0_s: float = 8.0
     fits_path: str | Path | None = None
     backend: str = "numpy"
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.median_window, int) and self.median_window >= 1
-                and self.median_window % 2 == 1):
+        # bool is an int and a float to Python; here it is always a mistake
+        _check_positive_int("median_window", self.median_window)
+        _check_positive_int("resync_after_samples", self.resync_after_samples,
+                            MAX_RESYNC_AFTER_SAMPLES)
+        if self.median_window % 2 == 0:
             raise ValueError(f"median_window={self.median_window!r} must be an odd integer >= 1")
+        for name in ("lowpass_hz", "step_s", "max_gap_s"):
+            if getattr(self, name) is not None:
+                _check_positive_real(name, getattr(self, name))
+        for name in ("max_bridge_s", "max_speed_deg_s", "max_speed_L0_s"):
+            _check_positive_real(name, getattr(self, name))
         if self.lowpass_hz is not None:
             natural_rad_s(self.lowpass_hz)
         method = get_method(self.method)
         if self.step_s is not None:
             core.check_step(float(self.step_s), method)
-        if self.max_gap_s is not None and not (np.isfinite(self.max_gap_s)
-                                               and self.max_gap_s > 0):
-            raise ValueError(f"max_gap_s={self.max_gap_s!r} must be finite and > 0")
-        bridge = _real(self.max_bridge_s)
-        if not (math.isfinite(bridge) and bridge > 0):
-            raise ValueError(f"max_bridge_s={self.max_bridge_s!r} must be finite and > 0")
+        bridge = float(self.max_bridge_s)
         updates = max(bridge / self.spindle_step_s, bridge * self.fusimotor.predictor_rate_hz)
         if updates > MAX_BRIDGE_UPDATES:
             raise ValueError(
                 f"max_bridge_s={self.max_bridge_s!r} needs {updates:.3g} spindle sub-steps or "
                 f"predictor updates per push, above {MAX_BRIDGE_UPDATES}")
-        if not (np.isfinite(self.max_speed_deg_s) and self.max_speed_deg_s > 0):
-            raise ValueError(f"max_speed_deg_s={self.max_speed_deg_s!r} must be finite and > 0")
-        if not (0 < self.max_speed_L0_s <= core.MAX_SPEED_L0_S):
+        if not float(self.max_speed_L0_s) <= core.MAX_SPEED_L0_S:
             raise ValueError(
                 f"max_speed_L0_s={self.max_speed_L0_s!r} must lie in (0, "
                 f"{core.MAX_SPEED_L0_S}] (the spindle's speed limit)"
             )
-        if self.backend not in BACKENDS:
+        if not isinstance(self.backend, str) or self.backend not in BACKENDS:
             raise ValueError(f"backend={self.backend!r} is not one of {BACKENDS}")
 
     @property
@@ -249,6 +268,7 @@ class ArmChain:
         self._fusimotor = Fusimotor(self.length_min_L0, self.length_max_L0, self.config.fusimotor)
         self._intended_L0: np.ndarray | None = None
         self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._behind = 0  # samples older than the last accepted one, since it
         self._last: ArmSample | None = None
 
     # -- state ---------------------------------------------------------------------------
@@ -377,14 +397,14 @@ class ArmChain:
         # last spindle step; if anything raises, all of it goes back (the C chain works on a
         # copy of its state for the same reason).
         median, predictor = self._median.snapshot(), self._fusimotor.predictor.snapshot()
-        counters, state = dict(self.counters), self._state
+        counters, state, behind = dict(self.counters), self._state, self._behind
         arrays = [getattr(state, name).copy() for name in _SPINDLE_ARRAYS]
         try:
             return stage(*args)
         except BaseException:
             self._median.restore(median)
             self._fusimotor.predictor.restore(predictor)
-            self.counters, self._state = counters, state
+            self.counters, self._state, self._behind = counters, state, behind
             for name, saved in zip(_SPINDLE_ARRAYS, arrays, strict=True):
                 getattr(state, name)[...] = saved
             raise
@@ -417,6 +437,7 @@ class ArmChain:
             self.counters["gaps"] += 1
         if self._restarts(t):
             self.counters["restarts"] += 1
+            self.counters["clock_resyncs"] += int(t < self._t)
             self.counters["accepted"] += 1
             # the median restarts on the sample's own reading (an encoder's, or the one of
             # the angle as given, as reset does)
@@ -440,6 +461,7 @@ class ArmChain:
         ia, ii = self._advance_spindles(x0, v0, x1, v1, gd, gs, dt)
         self._u, self._x, self._v, self._a = L_in, x1, v1, a1
         self._angle, self._t = angle, t
+        self._behind = 0
         self.counters["accepted"] += 1
         self._last = ArmSample(t, True, counts, filtered, angle, x1, v1, a1, template, gs, gd,
                                ia, ii)
@@ -460,6 +482,7 @@ class ArmChain:
         self._a = np.zeros(2)
         self._angle = angle
         self._t = t
+        self._behind = 0
         self._last = ArmSample(t, True, counts, filtered, angle, L.copy(), self._v.copy(),
                                self._a.copy(), template, gs, gd, ia, ii)
         return self._last
@@ -501,12 +524,15 @@ class ArmChain:
             self.counters["repeated_time"] += 1
             return None
         if t < self._t:
-            self.counters["time_backwards"] += 1
-            return None
+            self._behind += 1
+            if self._behind < self.config.resync_after_samples:
+                self.counters["time_backwards"] += 1
+                return None
         return t
 
     def _restarts(self, t: float) -> bool:
-        return t - self._t > self.config.max_bridge_s
+        # an earlier time that _time let through is a clock resync
+        return t < self._t or t - self._t > self.config.max_bridge_s
 
     def _clamp_angle(self, angle: float) -> tuple[bool, float]:
         lo, hi = self.angle_range_deg
@@ -544,6 +570,19 @@ class ArmChain:
 
 _SPINDLE_ARRAYS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activation",
                    "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
+
+
+def _check_positive_int(name: str, value: object, most: int | None = None) -> None:
+    if (isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer)
+            or value < 1 or (most is not None and value > most)):
+        limit = "" if most is None else f" and <= {most}"
+        raise ValueError(f"{name}={value!r} must be an integer >= 1{limit}")
+
+
+def _check_positive_real(name: str, value: object) -> None:
+    if isinstance(value, bool | np.bool_) or not (math.isfinite(_real(value))
+                                                  and _real(value) > 0):
+        raise ValueError(f"{name}={value!r} must be a finite real number > 0")
 
 
 def _real(value: object) -> float:

@@ -26,9 +26,11 @@ Checks (:class:`SoakReport`): every counter delta equal between the backends aft
 call; every returned output finite, with Ia and II in [0, :data:`RATE_BOUND_PPS`] and
 lengths in :data:`spindle.core.LENGTH_RANGE_L0`; the max |numpy - C| of the rates below
 :data:`RATE_DIFF_LIMIT_PPS`; no push raises; no single call runs longer than
-``max_call_s``; never stuck: after each fault, the clean samples that follow (valid time and
-value, which every rule accepts) are accepted (fraction >= :data:`RECOVERY_MIN`); resident
-memory flat (growth from 10 % to 100 % of the run below :data:`RSS_GROWTH_LIMIT_MB`).
+``max_call_s``; never stuck: after each fault, of the clean samples that follow (valid time
+and value, which every rule accepts) until the next fault or :data:`RECOVERY_WINDOW` of them,
+at most ``resync_after_samples - 1`` are rejected (the clock-resync rule's cost after a
+corrupt time far ahead; every other fault costs none); resident memory flat (growth from
+10 % to 100 % of the run below :data:`RSS_GROWTH_LIMIT_MB`).
 
 A backend that raises is left as it is for the next calls (so a chain that stays broken
 shows as ``stuck``); after :data:`STUCK_AFTER` failing calls in a row, or a call stopped by
@@ -64,10 +66,9 @@ RATE_DIFF_LIMIT_PPS = 1e-6
 """Largest accepted |numpy - C| of a rate (pps); the backends agree to ~1e-12 pps."""
 RSS_GROWTH_LIMIT_MB = 20.0
 """Largest accepted growth of resident memory between 10 % and 100 % of the run (MB)."""
-RECOVERY_MIN = 0.9
-"""Smallest accepted fraction of clean samples accepted after a fault (over a window)."""
 RECOVERY_WINDOW = 50
-"""Clean samples after a fault over which recovery is measured."""
+"""Clean samples after a fault over which recovery is measured (fewer if the next fault comes
+first)."""
 STUCK_AFTER = 3
 """Failing calls in a row after which a backend counts as stuck and both are reset."""
 DROPOUT_RANGE_S = (AX12.period_s, 300.0)
@@ -379,7 +380,10 @@ class SoakReport:
     stuck: Counter = field(default_factory=Counter)
     resyncs: int = 0
     timeouts: Counter = field(default_factory=Counter)
-    recovery: dict[str, list[float]] = field(default_factory=dict)
+    recovery: dict[str, list[int]] = field(default_factory=dict)
+    """Per fault, the clean samples rejected after each occurrence."""
+    allowed_rejections: int = 0
+    """Most clean samples a fault may cost (``resync_after_samples - 1``)."""
     wall_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(BACKENDS, 0.0))
     max_call_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(BACKENDS, 0.0))
     rss_10_MB: float = math.nan
@@ -397,8 +401,9 @@ class SoakReport:
 
     @property
     def not_recovered(self) -> Counter:
-        return Counter({f: sum(x < RECOVERY_MIN for x in v) for f, v in self.recovery.items()
-                        if any(x < RECOVERY_MIN for x in v)})
+        return Counter({f: sum(x > self.allowed_rejections for x in v)
+                        for f, v in self.recovery.items()
+                        if any(x > self.allowed_rejections for x in v)})
 
     @property
     def failures(self) -> list[str]:
@@ -421,8 +426,9 @@ class SoakReport:
         if sum(self.stuck.values()):
             out.append(f"stuck (failing {STUCK_AFTER} calls in a row): {dict(self.stuck)}")
         if self.not_recovered:
-            out.append(f"not recovered after faults (< {RECOVERY_MIN:.0%} of the next "
-                       f"{RECOVERY_WINDOW} clean samples accepted): {dict(self.not_recovered)}")
+            out.append(f"not recovered after faults (more than {self.allowed_rejections} of "
+                       f"the next {RECOVERY_WINDOW} clean samples rejected): "
+                       f"{dict(self.not_recovered)}")
         if not self.rss_growth_MB < RSS_GROWTH_LIMIT_MB:
             out.append(f"RSS grew {self.rss_growth_MB:.1f} MB from 10 % to 100 % of the run "
                        f"(limit {RSS_GROWTH_LIMIT_MB:g} MB)")
@@ -456,8 +462,8 @@ class SoakReport:
                       f"pps, resyncs {self.resyncs}",
                   f"RSS at 10 % {self.rss_10_MB:.1f} MB, at 100 % {self.rss_end_MB:.1f} MB, "
                   f"peak {self.peak_rss_MB:.1f} MB",
-                  "faults (count, worst recovery): " + ", ".join(
-                      f"{f} {self.faults[f]} ({min(self.recovery.get(f, [1.0])):.0%})"
+                  "faults (count, most clean samples rejected after one): " + ", ".join(
+                      f"{f} {self.faults[f]} ({max(self.recovery.get(f, [0]))})"
                       for f in FAULTS if self.faults[f])]
         for key, message in self.error_examples.items():
             lines.append(f"raised: {key[0]} on {key[1]}: {key[2]}: {message}")
@@ -517,7 +523,7 @@ def run_soak(n_samples: int, seed: int = 0, config: ChainConfig | None = None,
         chains = {b: ArmChain(replace(config, backend=b)) for b in BACKENDS}
     fits = chains["numpy"].fits
     rng = np.random.default_rng(seed)
-    report = SoakReport()
+    report = SoakReport(allowed_rejections=config.resync_after_samples - 1)
     for c in chains.values():
         c.reset(65.0, 0.0)
     failing = dict.fromkeys(BACKENDS, 0)
@@ -586,17 +592,20 @@ def run_soak(n_samples: int, seed: int = 0, config: ChainConfig | None = None,
                     report.max_rate_diff_pps = max(report.max_rate_diff_pps,
                                                    diff if math.isfinite(diff) else math.inf)
                     report.compared_outputs += 1
-            # Recovery: clean samples after a fault, judged on the C chain and the numpy one.
+            # Recovery: clean samples rejected after a fault (on either chain), until the next
+            # fault, which would otherwise be blamed on this one.
             if seg.fault:
-                watching.append([seg.fault, 0, 0])
+                for w in watching:
+                    report.recovery.setdefault(w[0], []).append(w[2])
+                watching = [[seg.fault, 0, 0]]
             else:
                 n_clean = sum(seg.clean)
                 accepted = min(deltas[b].get("accepted", 0) for b in BACKENDS)
                 for w in watching:
                     w[1] += n_clean
-                    w[2] += min(accepted, n_clean)
+                    w[2] += max(0, n_clean - accepted)
                 for w in [w for w in watching if w[1] >= RECOVERY_WINDOW]:
-                    report.recovery.setdefault(w[0], []).append(w[2] / w[1])
+                    report.recovery.setdefault(w[0], []).append(w[2])
                     watching.remove(w)
             before_n = report.samples
             report.samples += len(seg.t_s)
@@ -605,8 +614,7 @@ def run_soak(n_samples: int, seed: int = 0, config: ChainConfig | None = None,
             if progress is not None:
                 progress(len(seg.t_s))
     for w in watching:
-        if w[1]:
-            report.recovery.setdefault(w[0], []).append(w[2] / w[1])
+        report.recovery.setdefault(w[0], []).append(w[2])
     report.rss_end_MB = rss_mb()
     report.peak_rss_MB = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if math.isnan(report.rss_10_MB):

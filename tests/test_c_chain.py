@@ -184,6 +184,8 @@ def angle_events():
             ai = ai + 60.0  # a jump: slew-limited
         if 500 <= i < 560:
             ai = 200.0  # out of range: slew-limited towards it, then clamped
+        if i == 600:  # a corrupt time 100 s ahead: a restart there, then a clock resync
+            events.append(("push_angle", (ti + 100.0, ai)))
         events.append(("push_angle", (ti, ai)))
     return angle[0], events
 

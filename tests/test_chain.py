@@ -364,7 +364,7 @@ def test_random_garbage_never_produces_nan():
     ("kwargs", "match"),
     [
         ({"median_window": 6}, "median_window=6"),
-        ({"lowpass_hz": 0.0}, "natural_hz=0.0"),
+        ({"lowpass_hz": 0.0}, "lowpass_hz=0.0"),
         ({"method": "rk4"}, "method='rk4'"),
         ({"step_s": 0.5}, "step=0.5"),
         ({"max_speed_L0_s": 20.0}, "max_speed_L0_s=20.0"),

@@ -209,6 +209,52 @@ def test_huge_timestamps_return_promptly_and_restart(backend):
     assert chain.counters["restarts"] == 0
 
 
+@pytest.mark.parametrize("backend", BACKEND_PARAMS)
+@pytest.mark.parametrize("corrupt_s", [1e3, 1e9, 1e300])
+def test_a_corrupt_future_time_is_left_behind_by_a_clock_resync(backend, corrupt_s):
+    """One corrupt time far ahead is accepted (a long gap: a restart); the true clock's samples
+    are then all "earlier". Before the resync rule, every one of them was rejected for good."""
+    chain = chain_for(backend)
+    chain.reset(110.0, 0.0)
+    t = moving(chain, 0.0, 0.3, flexion(0.0))
+    assert chain.push_angle(corrupt_s, 60.0).accepted
+    n = chain.config.resync_after_samples
+    angle = after_gap(t)
+    for k in range(1, n):  # rejected as backwards, until the n-th
+        assert not chain.push_angle(t + k * DT, angle(t + k * DT)).accepted
+    t_resync = t + n * DT
+    out = chain.push_angle(t_resync, angle(t_resync))
+    assert out.accepted and out.t_s == t_resync
+    assert chain.counters["time_backwards"] == n - 1
+    assert chain.counters["clock_resyncs"] == 1 and chain.counters["restarts"] == 2
+    # from there on it is a chain reset at rest at that sample
+    reference = chain_for(backend)
+    assert_same_outputs(out, reference.reset(angle(t_resync), t_resync), 0.0, "at the resync")
+    moving(chain, t_resync, 0.5, angle)
+    moving(reference, t_resync, 0.5, angle)
+    assert_same_outputs(chain.last, reference.last, 0.0, "0.5 s later")
+
+
+@pytest.mark.parametrize("backend", BACKEND_PARAMS)
+def test_scattered_earlier_times_never_resync_the_clock(backend):
+    """Single backwards glitches between true samples are rejected one by one: the count of
+    earlier times starts again at every accepted sample."""
+    chain = chain_for(backend)
+    chain.reset(60.0, 0.0)
+    t = 0.0
+    for k in range(1, 200):
+        t = k * DT
+        assert chain.push_angle(t, 60.0 + 10.0 * t).accepted
+        assert not chain.push_angle(t - 0.5, 60.0).accepted
+    assert chain.counters["time_backwards"] == 199 and chain.counters["clock_resyncs"] == 0
+
+
+@pytest.mark.parametrize("value", [0, -1, 2.5, True, "7", 10**7])
+def test_resync_after_samples_is_checked(value):
+    with pytest.raises(ValueError, match=rf"resync_after_samples={value!r} must be an integer"):
+        ChainConfig(resync_after_samples=value)
+
+
 def test_work_per_push_is_bounded_by_max_bridge_s(monkeypatch):
     """Spindle steps per push (numpy, counted): at most max_bridge_s / step_s, any interval."""
     from spindle import chain as chain_module
@@ -367,8 +413,8 @@ def test_a_failing_push_leaves_the_chain_as_if_it_never_came(backend, kind, monk
     assert hurt.counters == clean.counters
 
 
-@pytest.mark.parametrize(("value", "match"), [(0.0, "must be finite and > 0"),
-                                              (math.inf, "must be finite and > 0"),
+@pytest.mark.parametrize(("value", "match"), [(0.0, "must be a finite real number > 0"),
+                                              (math.inf, "must be a finite real number > 0"),
                                               (1e3, "spindle sub-steps")])
 def test_max_bridge_s_is_checked(value, match):
     with pytest.raises(ValueError, match=rf"max_bridge_s={value!r}.*{match}"):

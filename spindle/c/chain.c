@@ -334,6 +334,7 @@ static int config_ok(const ps_chain_config *cfg)
     if (!(cfg->lowpass_rad_s >= 0 && is_finite((double)cfg->lowpass_rad_s)
           && cfg->gap_s > 0 && is_finite(cfg->gap_s)
           && cfg->max_bridge_s > 0 && is_finite(cfg->max_bridge_s)
+          && cfg->resync_after_samples >= 1 && cfg->resync_after_samples <= PS_CHAIN_MAX_RESYNC
           && cfg->max_speed_deg_s > 0 && is_finite((double)cfg->max_speed_deg_s)
           && cfg->max_speed_L0_s > 0 && cfg->max_speed_L0_s <= PS_MAX_SPEED_L0_S)) {
         return 0;
@@ -502,6 +503,7 @@ static int rest(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real an
     }
     st->angle_deg = angle_deg;
     st->t_s = t;
+    st->behind = 0;
     st->last.t_s = t;
     st->last.accepted = 1;
     st->last.counts = counts;
@@ -515,7 +517,7 @@ int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_rea
 {
     ps_chain_state st;
     ps_real L[PS_MUSCLES], recorded = angle_deg;
-    ps_chain_counters zero = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    ps_chain_counters zero = {0}; /* the universal zero initializer: every counter */
     int k, status, clamped = 0;
     if (c == NULL) {
         return PS_ERR_NULL;
@@ -591,8 +593,10 @@ int ps_chain_set_intended_angle(ps_arm_chain *c, const ps_real *angle_deg)
     return PS_OK;
 }
 
-/* ArmChain._time_ok: 1 if t may be pushed, else counts the reason and returns 0. */
-static int time_ok(ps_chain_state *st, ps_time t)
+/* ArmChain._time: 1 if t may be pushed, else counts the reason and returns 0. An earlier
+ * time passes as a clock resync when it is the resync_after_samples-th since the last
+ * accepted sample. */
+static int time_ok(const ps_chain_config *cfg, ps_chain_state *st, ps_time t)
 {
     if (!is_finite(t)) {
         st->counters.bad_time += 1;
@@ -603,8 +607,12 @@ static int time_ok(ps_chain_state *st, ps_time t)
         return 0;
     }
     if (t < st->t_s) {
-        st->counters.time_backwards += 1;
-        return 0;
+        st->behind += 1;
+        if (st->behind < cfg->resync_after_samples) {
+            st->counters.time_backwards += 1;
+            return 0;
+        }
+        return 1;
     }
 #ifdef PS_FLOAT
     /* An interval below float's normal range would become a zero or denormal step. */
@@ -687,10 +695,11 @@ static int interval_ok(const ps_arm_chain *c, const ps_chain_state *st, ps_time 
     return (t - st->t_s) / c->config.step_s <= (double)PS_CHAIN_MAX_UPDATES;
 }
 
-/* ArmChain._restarts: an interval too long to bridge. */
+/* ArmChain._restarts: an interval too long to bridge, or a clock resync (an earlier time that
+ * time_ok let through). */
 static int restarts(const ps_arm_chain *c, const ps_chain_state *st, ps_time t)
 {
-    return t - st->t_s > c->config.max_bridge_s;
+    return t < st->t_s || t - st->t_s > c->config.max_bridge_s;
 }
 
 /* ArmChain._length_stage on a working copy of the state. `given_angle` is the sample's angle
@@ -712,6 +721,7 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
     }
     if (restarts(c, st, t)) {
         st->counters.restarts += 1;
+        st->counters.clock_resyncs += t < st->t_s;
         st->counters.accepted += 1;
         return rest(c, st, t, angle, L_given,
                     counts >= 0 ? counts : rest_reading(cfg, given_angle), counts, filtered);
@@ -772,6 +782,7 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
     }
     st->angle_deg = angle;
     st->t_s = t;
+    st->behind = 0;
     st->counters.accepted += 1;
     st->last.t_s = t;
     st->last.accepted = 1;
@@ -820,7 +831,7 @@ static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
         return PS_ERR_NOT_RESET;
     }
     st = c->state;
-    if (time_ok(&st, t)) {
+    if (time_ok(&c->config, &st, t)) {
         if (kind == PUSH_COUNTS) {
             if (!ps_is_valid_reading(value, c->config.max_count)) {
                 st.counters.invalid_reading += 1;

@@ -247,6 +247,8 @@ void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_
 /* ps_chain_init refuses a max_bridge_s needing more spindle sub-steps or predictor updates
  * than this (chain.MAX_BRIDGE_UPDATES): a push's work is bounded by it. */
 #define PS_CHAIN_MAX_BRIDGE_UPDATES 100000L
+/* Largest resync_after_samples (chain.MAX_RESYNC_AFTER_SAMPLES). */
+#define PS_CHAIN_MAX_RESYNC 1000000L
 
 /* Times are double in both builds: a float clock cannot resolve 2 ms after a few hours. */
 typedef double ps_time;
@@ -299,6 +301,8 @@ typedef struct ps_chain_config {
     ps_real lowpass_rad_s;   /* natural frequency of the tracking low-pass; 0: none */
     ps_time gap_s;           /* intervals longer than this count as gaps */
     ps_time max_bridge_s;    /* longer intervals restart the chain at rest (restarts) */
+    long resync_after_samples; /* the n-th earlier time since the last accepted sample
+                                  resyncs the clock (clock_resyncs) */
     ps_real max_speed_deg_s; /* slew limit of the angle */
     ps_real max_speed_L0_s;  /* slew limit of the lengths, <= PS_MAX_SPEED_L0_S */
     /* fusimotor (FusimotorParams) */
@@ -325,7 +329,7 @@ typedef struct ps_predictor {
 /* chain.COUNTERS, in that order (see docs/c_chain.md for each rule). */
 typedef struct ps_chain_counters {
     unsigned long accepted, invalid_reading, invalid_angle, invalid_length, repeated_time,
-        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts;
+        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs;
 } ps_chain_counters;
 
 /* chain.ArmSample: the output after one sample; per-muscle arrays are BRA, TRImed. */
@@ -349,6 +353,7 @@ typedef struct ps_chain_state {
     ps_real x[PS_MUSCLES], v[PS_MUSCLES], a[PS_MUSCLES]; /* low-passed length, derivatives */
     ps_real angle_deg;
     ps_time t_s;
+    long behind; /* samples with an earlier time than t_s since the last accepted one */
     int has_intended;
     ps_real intended_L0[PS_MUSCLES];
     ps_chain_counters counters;

@@ -15,6 +15,7 @@
 #include "proprio.h"
 
 #include <float.h>
+#include <limits.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -93,8 +94,8 @@ static ps_time next_time(ps_time t)
     case 2: return t + 0.01 + uniform() * 0.2; /* a gap */
     case 3: return nan("");
     case 4: return below(2) ? HUGE_VAL : -HUGE_VAL;
-    case 5: /* corrupt clocks: a jump restarts the chain there; after 1e300 every later
-             * time repeats it (t + 0.002 == t) until a reset */
+    case 5: /* corrupt clocks: a jump restarts the chain there; true times after it are
+             * earlier and resync the clock after resync_after_samples of them */
         return below(8) ? t + 1e4 * uniform() : 1e300;
     case 6: return t + 1e-12;
     default: return t + 0.002 * (0.6 + 0.8 * uniform());
@@ -142,7 +143,13 @@ static void corrupt(ps_chain_config *cfg)
                         &cfg->coefficients[1][3]};
     int n = (int)(sizeof(reals) / sizeof(reals[0]));
     switch (below(6)) {
-    case 0: cfg->median_window = below(40) - 5; break;
+    case 0:
+        if (below(2)) {
+            cfg->median_window = below(40) - 5;
+        } else {
+            cfg->resync_after_samples = below(2) ? (long)below(40) - 5 : LONG_MAX - below(4);
+        }
+        break;
     case 1: cfg->n_coefficients[below(2)] = below(40) - 5; break;
     case 2:
         if (below(2)) {
