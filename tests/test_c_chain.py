@@ -120,7 +120,7 @@ def test_struct_layouts_and_constants_match_the_header(tmp_path):
                        f"int main(void) {{\n{lines}return 0;\n}}\n")
         exe = tmp_path / f"layout_{variant}"
         flags = ["-DPS_FLOAT"] if variant == "float" else []
-        subprocess.run([cbuild.find_compiler(), *cbuild.WARNING_FLAGS, *flags, "-I",
+        subprocess.run([*cbuild.compiler_command(), *cbuild.WARNING_FLAGS, *flags, "-I",
                         str(cbuild.SOURCE_DIR), str(src), "-o", str(exe)], check=True)
         out = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout
         for (_, py, field), line in zip(checks, out.split("\n"), strict=False):
@@ -134,7 +134,7 @@ def test_chain_compiles_warning_free_for_the_host_and_cortex_m0plus(tmp_path, va
     flags = [*cbuild.WARNING_FLAGS, "-O2", *([variant] if variant else []), "-I",
              str(cbuild.SOURCE_DIR), "-c"]
     for src in cbuild.sources():
-        subprocess.run([cbuild.find_compiler(), *flags, str(src), "-o",
+        subprocess.run([*cbuild.compiler_command(), *flags, str(src), "-o",
                         str(tmp_path / (src.stem + ".o"))], check=True)
     cross = shutil.which("arm-none-eabi-gcc")
     if cross is None:
@@ -390,7 +390,7 @@ def test_generated_config_source_runs_the_chain_in_plain_c(tmp_path, variant):
     (tmp_path / "main.c").write_text(DEVICE_MAIN)
     exe = tmp_path / "device"
     flags = ["-DPS_FLOAT"] if variant == "float" else []
-    subprocess.run([cbuild.find_compiler(), *cbuild.WARNING_FLAGS, "-O2", *flags, "-I",
+    subprocess.run([*cbuild.compiler_command(), *cbuild.WARNING_FLAGS, "-O2", *flags, "-I",
                     str(cbuild.SOURCE_DIR), *map(str, cbuild.sources()),
                     str(tmp_path / "config.c"), str(tmp_path / "main.c"), "-o", str(exe), "-lm"],
                    check=True)
