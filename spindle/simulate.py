@@ -98,8 +98,8 @@ def prepare_inputs(length, dt, velocity, acceleration, gamma_dyn, gamma_stat, me
     k = substeps(dt, h_max)
     if k > MAX_SUBSTEPS:
         raise ValueError(
-            f"dt={dt!r} s needs {k} internal steps of at most {h_max!r} s per sample interval, "
-            f"above the limit MAX_SUBSTEPS = {MAX_SUBSTEPS}; resample the "
+            f"dt={dt!r} s needs {float(k):.6g} internal steps of at most {h_max!r} s per "
+            f"sample interval, above the limit MAX_SUBSTEPS = {MAX_SUBSTEPS}; resample the "
             "input or check its sample interval"
         )
     h = dt / k
