@@ -15,6 +15,13 @@ them (a sampled velocity would add an O(h) error at every ramp corner). ``C`` is
 polar region lengthens (v > 0) and CS otherwise; the choice follows the sign of v, the
 spec's formulation (not the sign of dL).
 
+The damping's length factor, the polar length beyond R, is clipped at 0: R is the length
+below which the polar region produces no force (Mileusnic 2006, Table 1), so a polar region
+shorter than R is undamped rather than pushed (the published product turns into a negative
+damping there). That happens only near the short end of the length range, e.g. at rest at
+0.5 L0 with static drive >= ~100 pps, where the unclipped step equation had spurious roots
+and a guess of 0/0 (the first step failed); everywhere else the model is the published one.
+
 The implicit settings solve, per fibre and step, one scalar equation that is monotone in the
 new v. It is solved for z = sgn(v)|v|^(a/3) instead of v: the damping sgn(v)|v|^a is z^3 and
 v is z^10 (a = 0.3), so Newton's method meets no infinite slope (as it would at v = 0) and
@@ -52,8 +59,9 @@ from spindle.params import CAT, FibreParams, SpindleParams
 
 LENGTH_RANGE_L0 = (0.5, 1.5)
 """Accepted normalised fascicle lengths. Below ~0.5 L0 the polar region becomes shorter than
-the damping's reference length R and the model's damping changes sign (it is then no longer a
-damper); above 1.5 L0 the model was never fitted."""
+the damping's reference length R even without drive (the damping is clipped there, see the
+module docstring, and the model stops describing a spindle); above 1.5 L0 the model was never
+fitted."""
 
 MAX_SPEED_L0_S = 10.0
 """Largest accepted |dL/dt|: about the maximum shortening velocity of fast muscle fibres."""

@@ -46,7 +46,7 @@ MAX_SUBSTEPS = 100_000
 corrupted sample interval, say 1e9 s) is refused with ``ValueError`` before anything is
 allocated, whatever the number of samples: the work per sample stays bounded."""
 
-CHUNK_ELEMENTS = 1 << 18
+CHUNK_ELEMENTS = 1 << 16
 """Internal steps x spindles per chunk of a long input (the default of ``chunk_samples``)."""
 
 
