@@ -127,37 +127,58 @@ def run_spindle(
     FloatingPointError if a step fails (no convergence, non-finite result), ValueError for
     inputs the C code refuses.
     """
-    lib = library(variant, sanitize)
     dtype = _np_real(variant)
     L, gd, gs = (np.ascontiguousarray(x, dtype=dtype) for x in
                  (lengths_L0, gamma_dyn_pps, gamma_stat_pps))
-    n_steps = L.shape[0] - 1
-    n_out = n_steps // every
-    p = cbuild.params_struct(params, variant)
-    _, PsSpindle = cbuild.structs(variant)
-    s = PsSpindle()
-    code = lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), L[0], gd[0], gs[0])
-    if code != PS_OK:
-        raise ValueError(f"ps_spindle_init refused the first sample: {status_name(code)}")
+    n_out = (L.shape[0] - 1) // every
     ia = np.empty(n_out + 1, dtype=dtype)
     ii = np.empty(n_out + 1, dtype=dtype)
-    real = cbuild.real_type(variant)
-    r_ia, r_ii = real(), real()
-    lib.ps_spindle_afferents(ctypes.byref(s), ctypes.byref(p), ctypes.byref(r_ia),
-                             ctypes.byref(r_ii))
-    ia[0], ii[0] = r_ia.value, r_ii.value
-    done = ctypes.c_long()
-    code = lib.ps_spindle_run(
-        ctypes.byref(s), ctypes.byref(p), _pointer(L[1:], variant), _pointer(gd[1:], variant),
-        _pointer(gs[1:], variant), n_steps, h_s, theta, every, _pointer(ia[1:], variant),
-        _pointer(ii[1:], variant), ctypes.byref(done))
-    if code != PS_OK:
-        message = (f"C spindle step {done.value + 1} of {n_steps} failed with "
-                   f"{status_name(code)} (step {h_s!r} s, theta {theta!r})")
-        if code in (2, 7):
-            raise FloatingPointError(message)
-        raise ValueError(message)
+    spindle = _CSpindle(L[0], gd[0], gs[0], params, variant, sanitize)
+    ia[0], ii[0] = spindle.afferents()
+    spindle.run(L[1:], gd[1:], gs[1:], h_s, theta, every, ia[1:], ii[1:])
     return ia, ii
+
+
+class _CSpindle:
+    """One C spindle (``ps_spindle``) at rest at (L, gd, gs), advanced run by run."""
+
+    def __init__(self, L, gd, gs, params, variant, sanitize):
+        self.lib = library(variant, sanitize)
+        self.variant = variant
+        self.dtype = _np_real(variant)
+        self.p = cbuild.params_struct(params, variant)
+        _, PsSpindle = cbuild.structs(variant)
+        self.s = PsSpindle()
+        self.steps_done = 0
+        code = self.lib.ps_spindle_init(ctypes.byref(self.s), ctypes.byref(self.p), L, gd, gs)
+        if code != PS_OK:
+            raise ValueError(f"ps_spindle_init refused the first sample: {status_name(code)}")
+
+    def afferents(self) -> tuple[float, float]:
+        real = cbuild.real_type(self.variant)
+        r_ia, r_ii = real(), real()
+        self.lib.ps_spindle_afferents(ctypes.byref(self.s), ctypes.byref(self.p),
+                                      ctypes.byref(r_ia), ctypes.byref(r_ii))
+        return r_ia.value, r_ii.value
+
+    def run(self, L, gd, gs, h_s, theta, every, ia, ii) -> None:
+        """``ps_spindle_run`` through the contiguous arrays ``L``, ``gd``, ``gs`` (values at
+        the end of each step), rates after every ``every``-th step into ``ia``, ``ii``."""
+        variant = self.variant
+        L, gd, gs = (np.ascontiguousarray(x, dtype=self.dtype) for x in (L, gd, gs))
+        n_steps = L.shape[0]
+        done = ctypes.c_long()
+        code = self.lib.ps_spindle_run(
+            ctypes.byref(self.s), ctypes.byref(self.p), _pointer(L, variant),
+            _pointer(gd, variant), _pointer(gs, variant), n_steps, h_s, theta, every,
+            _pointer(ia, variant), _pointer(ii, variant), ctypes.byref(done))
+        if code != PS_OK:
+            message = (f"C spindle step {self.steps_done + done.value + 1} failed with "
+                       f"{status_name(code)} (step {h_s!r} s, theta {theta!r})")
+            if code in (2, 7):
+                raise FloatingPointError(message)
+            raise ValueError(message)
+        self.steps_done += n_steps
 
 
 def simulate(
@@ -173,45 +194,34 @@ def simulate(
     step: float | None = None,
     variant: str = "double",
     sanitize: bool = False,
+    chunk_samples: int | None = None,
 ):
-    """:func:`spindle.simulate` in C; ``variant="float"`` runs the float32 build."""
-    from spindle.simulate import SpindleResult, hermite_weights, prepare_inputs
+    """:func:`spindle.simulate` in C; ``variant="float"`` runs the float32 build. The same
+    chunks and sub-step lengths as the numpy path (:func:`spindle.simulate.substep_lengths`),
+    then one ``ps_spindle_run`` call per spindle and chunk."""
+    from spindle.simulate import SpindleResult, chunk_bounds, prepare_inputs, substep_lengths
 
     m, L, gd, gs, derivatives, k, h = prepare_inputs(
         length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method, step)
     shape = np.shape(length)
-    L_steps = substep_lengths(L, derivatives if k > 1 else [], k, dt, hermite_weights)
     n = L.shape[1]
     ia = np.empty_like(L)
     ii = np.empty_like(L)
-    for col in range(n):
-        ia[:, col], ii[:, col] = run_spindle(
-            np.concatenate(([L[0, col]], L_steps[:, col])),
-            np.concatenate(([gd[0, col]], np.repeat(gd[1:, col], k))),
-            np.concatenate(([gs[0, col]], np.repeat(gs[1:, col], k))),
-            h, m.theta, k, params, variant, sanitize,
-        )
+    spindles = [_CSpindle(L[0, col], gd[0, col], gs[0, col], params, variant, sanitize)
+                for col in range(n)]
+    for col, spindle in enumerate(spindles):
+        ia[0, col], ii[0, col] = spindle.afferents()
+    limited = 0
+    dtype = _np_real(variant)
+    for i0, i1 in chunk_bounds(L.shape, k, chunk_samples):
+        lengths, changed = substep_lengths(L, derivatives, k, dt, i0, i1)
+        limited += changed
+        out_ia = np.empty(i1 - i0, dtype=dtype)
+        out_ii = np.empty(i1 - i0, dtype=dtype)
+        for col, spindle in enumerate(spindles):
+            spindle.run(lengths[:, col], np.repeat(gd[i0:i1, col], k),
+                        np.repeat(gs[i0:i1, col], k), h, m.theta, k, out_ia, out_ii)
+            ia[i0:i1, col] = out_ia
+            ii[i0:i1, col] = out_ii
     t = np.arange(shape[0]) * dt
-    return SpindleResult(t, ia.reshape(shape), ii.reshape(shape), m.name, h)
-
-
-def substep_lengths(L: np.ndarray, derivatives: list[np.ndarray], k: int, dt: float,
-                    hermite_weights) -> np.ndarray:
-    """The length at the end of every internal step, shape ((T-1)*k, n).
-
-    Sub-step j of interval i is the numpy path's Hermite curve at fraction j/k, evaluated with
-    the same operations (so the C path sees bit-identical lengths); step k ends on L[i].
-    """
-    T, n = L.shape
-    out = np.empty((T - 1, k, n))
-    order = len(derivatives)
-    for j in range(1, k):
-        w = hermite_weights(j / k, order)
-        val = w[0] * L[:-1] + w[1] * L[1:]
-        scale = dt
-        for q, d in enumerate(derivatives):
-            val = val + scale * (w[2 + 2 * q] * d[:-1] + w[3 + 2 * q] * d[1:])
-            scale *= dt
-        out[:, j - 1] = val
-    out[:, k - 1] = L[1:]
-    return out.reshape((T - 1) * k, n)
+    return SpindleResult(t, ia.reshape(shape), ii.reshape(shape), m.name, h, limited)

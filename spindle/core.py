@@ -15,6 +15,13 @@ them (a sampled velocity would add an O(h) error at every ramp corner). ``C`` is
 polar region lengthens (v > 0) and CS otherwise; the choice follows the sign of v, the
 spec's formulation (not the sign of dL).
 
+The damping's length factor, the polar length beyond R, is clipped at 0: R is the length
+below which the polar region produces no force (Mileusnic 2006, Table 1), so a polar region
+shorter than R is undamped rather than pushed (the published product turns into a negative
+damping there). That happens only near the short end of the length range, e.g. at rest at
+0.5 L0 with static drive >= ~100 pps, where the unclipped step equation had spurious roots
+and a guess of 0/0 (the first step failed); everywhere else the model is the published one.
+
 The implicit settings solve, per fibre and step, one scalar equation that is monotone in the
 new v. It is solved for z = sgn(v)|v|^(a/3) instead of v: the damping sgn(v)|v|^a is z^3 and
 v is z^10 (a = 0.3), so Newton's method meets no infinite slope (as it would at v = 0) and
@@ -52,8 +59,9 @@ from spindle.params import CAT, FibreParams, SpindleParams
 
 LENGTH_RANGE_L0 = (0.5, 1.5)
 """Accepted normalised fascicle lengths. Below ~0.5 L0 the polar region becomes shorter than
-the damping's reference length R and the model's damping changes sign (it is then no longer a
-damper); above 1.5 L0 the model was never fitted."""
+the damping's reference length R even without drive (the damping is clipped there, see the
+module docstring, and the model stops describing a spindle); above 1.5 L0 the model was never
+fitted."""
 
 MAX_SPEED_L0_S = 10.0
 """Largest accepted |dL/dt|: about the maximum shortening velocity of fast muscle fibres."""
@@ -169,12 +177,20 @@ def check_step(step_s: float, method: Method) -> None:
         )
 
 
+MAX_DRIVE_POWER = float(np.finfo(float).max)
+"""g^p is capped here: a drive so large that g^p overflows (g > 1.3e154 pps for p = 2) has
+activation exactly 1 (g^p / (g^p + freq^p) rounds to 1 long before), as in the C port,
+instead of inf/inf = NaN."""
+
+
 def activation_target(drive_pps: np.ndarray, freq_pps: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Steady-state fusimotor activation g^p / (g^p + freq^p) (dimensionless)."""
-    if np.all(p == 2.0):
-        gp = drive_pps * drive_pps
-        return gp / (gp + freq_pps * freq_pps)
-    gp = drive_pps**p
+    """Steady-state fusimotor activation g^p / (g^p + freq^p) (dimensionless), saturating at
+    1 for any finite drive (see :data:`MAX_DRIVE_POWER`)."""
+    with np.errstate(over="ignore"):
+        if np.all(p == 2.0):
+            gp = np.minimum(drive_pps * drive_pps, MAX_DRIVE_POWER)
+            return gp / (gp + freq_pps * freq_pps)
+        gp = np.minimum(drive_pps**p, MAX_DRIVE_POWER)
     return gp / (gp + freq_pps**p)
 
 
@@ -257,10 +273,11 @@ def _z_from_velocity(v: np.ndarray, c: _Columns) -> np.ndarray:
 
 
 def _force(T, z, L, beta, Gamma, c):
-    """M dv/dt of each fibre (FU); the damping C*beta*sgn(v)|v|^a is C*beta*z^3."""
+    """M dv/dt of each fibre (FU); the damping C*beta*sgn(v)|v|^a is C*beta*z^3, times the
+    polar length beyond R clipped at 0 (see the module docstring)."""
     polar = L - c.LSR0 - T / c.KSR
     damping = np.where(z > 0, c.CL, c.CS) * beta * (z * z * z)
-    return T - Gamma - c.KPR * (polar - c.LPR0) - damping * (polar - c.R)
+    return T - Gamma - c.KPR * (polar - c.LPR0) - damping * np.maximum(polar - c.R, 0.0)
 
 
 def equilibrium_state(
@@ -415,7 +432,11 @@ def advance(state, L1, gd1, gs1, h, theta, c):
         return _advance_explicit(state, L1, gd1, gs1, h, c)
     if state.n <= SMALL_N:
         return _advance_small(state, L1, gd1, gs1, h, theta, c)
-    return _workspace(state, _step_constants(c, h, theta)).advance(state, L1, gd1, gs1)
+    # a fibre at rest with its polar region no longer than R has no frozen-factor slope: its
+    # guess divides by 0 and is then replaced (_bound_guess); non-finite results are caught
+    # by the finite check at the end of the step
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return _workspace(state, _step_constants(c, h, theta)).advance(state, L1, gd1, gs1)
 
 
 def _advance_explicit(state, L1, gd1, gs1, h, c):
@@ -693,7 +714,10 @@ class _Workspace:
                 np.subtract(z0[:, cols], prior[0][:, cols], out=tmp)
                 np.multiply(tmp, 3.0, out=tmp)
                 np.add(tmp, prior[1][:, cols], out=z)
-            left, iterations = _newton_block(b, k)
+            clip = _needs_clip(b.flat, k)
+            if clip:
+                _bound_guess(b.flat, k)
+            left, iterations = _newton_block(b, k, clip)
             evals += iterations
             if left is not None:
                 rows, idx = np.divmod(left, b.w)
@@ -797,6 +821,8 @@ class _Workspace:
                 mul(cb, sq, out=cb)
                 add(cb, KPR, out=cb)
                 mul(cb, q0, out=cb)
+                if q0.min() <= 0.0:  # no damping where the polar region is not longer than R
+                    np.copyto(cb, q0 * KPR, where=q0 <= 0.0)
             else:
                 p0[...] = q0
                 mul(q0, KPR, out=cb)
@@ -838,7 +864,11 @@ class _Workspace:
         s["z"] = z
         if exponents:
             s["power"], s["three_over_a"], s["w_coef"] = exponents
-        _newton_loop(z, p0, rhs, cM, cD, k, s, first=0)
+        s["p0"], s["rhs"] = p0, rhs
+        clip = _needs_clip(s, k)
+        if clip:
+            _bound_guess(s, k)
+        _newton_loop(z, p0, rhs, cM, cD, k, s, first=0, clip=clip)
         v = _velocity_into(z, s["az"], s["t9"], s["w"], k, s.get("power"))
         self.z1.reshape(-1)[idx] = z
         self.v1.reshape(-1)[idx] = v
@@ -890,10 +920,12 @@ def _drive_powers(gd, gs, k, out, all_rows=False):
     every row with ``all_rows``)."""
     for row, (g, p) in enumerate(zip((gd, gs, gs), k.p, strict=True)):
         if row in k.drive_row:
-            if p == 2.0:
-                np.multiply(g, g, out=out[row])
-            else:
-                np.power(g, p, out=out[row])
+            with np.errstate(over="ignore"):
+                if p == 2.0:
+                    np.multiply(g, g, out=out[row])
+                else:
+                    np.power(g, p, out=out[row])
+            np.minimum(out[row], MAX_DRIVE_POWER, out=out[row])
         elif all_rows:
             out[row] = out[k.drive_row[row]]
     return out
@@ -914,15 +946,35 @@ def _velocity_into(z, az, t, w, k, power=None):
     return w
 
 
-def _newton_block(b, k):
+def _needs_clip(s, k) -> bool:
+    """Whether the new polar region of any fibre in ``s`` (flat arrays "p0", "rhs") may end
+    no longer than R, where the damping's clip at 0 enters the step equation. At the root
+    |w| <= |rhs| (the damping term has the sign of w), so q = p0 + theta*h*w >= 0 wherever
+    p0 > theta*h*|rhs|: everywhere but near the short end of the length range (three
+    reductions per block)."""
+    rhs = s["rhs"]
+    return bool(s["p0"].min() <= k.th_h * max(rhs.max(), -rhs.min()))
+
+
+def _bound_guess(s, k) -> None:
+    """Replace guesses beyond the root's bound |z| <= |rhs|^(a/3) (and NaN ones: with v = 0
+    and p0 <= 0 the frozen-factor guess has no slope) by the bound, in ``s["z"]``."""
+    z, rhs = s["z"], s["rhs"]
+    exponent = 0.1 if k.a_is_03 else 1.0 / s["three_over_a"]
+    bound = np.abs(rhs) ** exponent
+    far = ~(np.abs(z) <= bound)
+    z[far] = np.copysign(bound, rhs)[far]
+
+
+def _newton_block(b, k, clip=False):
     """Newton on one block; returns (the flat indices handed to the tail or None, the number
     of iterations)."""
     f = b.flat
     return _newton_loop(f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], k, f,
-                        first=NEWTON_FULL_ITER - 1, moving=b.moving)
+                        first=NEWTON_FULL_ITER - 1, moving=b.moving, clip=clip)
 
 
-def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
+def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
     """Newton's method on the step equation for z, in place, until every |dz| <= 1e-9.
 
     The unknown is z = sgn(v)|v|^(a/3): the damping sgn(v)|v|^a is z^3 and v = sgn(z)|z|^(3/a)
@@ -936,6 +988,11 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
     polar length minus R at w = 0. g rises monotonically (convex for z > 0, concave below)
     wherever the polar region is longer than R, so Newton converges after at most one
     overshoot; steps are capped at NEWTON_MAX_DZ, which also covers g' = 0 at z = 0.
+
+    With ``clip`` the damping's factor q (the new polar length minus R) is clipped at 0, the
+    model's rule (see the module docstring): where q <= 0, g = w - rhs. g then rises
+    monotonically everywhere; without ``clip`` the caller has made sure q > 0 at the root
+    (:func:`_needs_clip`), where both equations agree.
 
     ``s`` holds scratch arrays shaped like z. From iteration ``first`` on, if at most
     1/TAIL_FRACTION of the fibres still move (|dz| > tolerance), their flat indices are
@@ -964,6 +1021,9 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
         # g = w + cb*z*q - rhs with q = p0 + theta*h*w
         mul(w, th_h, out=dz)
         add(dz, p0, out=dz)
+        if clip:
+            undamped = dz <= 0.0
+            np.maximum(dz, 0.0, out=dz)
         mul(dz, cb, out=dz)
         mul(dz, z, out=dz)
         add(dz, w, out=dz)
@@ -973,6 +1033,8 @@ def _newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None):
         add(dg, p3, out=dg)
         mul(dg, cb, out=dg)
         add(dg, t, out=dg)
+        if clip:
+            np.copyto(dg, t, where=undamped)
         np.maximum(dg, 1e-300, out=dg)
         np.divide(dz, dg, out=dz)
         hi = dz.max()
@@ -1032,7 +1094,15 @@ def _advance_small(state, L1, gd1, gs1, h, theta, c):
 
 
 def _drive_powers_floats(gd: float, gs: float, k: _StepConstants) -> list[float]:
-    return [g * g if p == 2.0 else g**p for g, p in zip((gd, gs, gs), k.p, strict=True)]
+    return [min(g * g if p == 2.0 else _float_power(g, p), MAX_DRIVE_POWER)
+            for g, p in zip((gd, gs, gs), k.p, strict=True)]
+
+
+def _float_power(g: float, p: float) -> float:
+    try:
+        return g**p
+    except OverflowError:  # Python floats raise where numpy gives inf
+        return math.inf
 
 
 def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
@@ -1073,7 +1143,11 @@ def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
             A = A - v * A_v0
             p0 = v * p0_v0 + q0
             rhs = rhs + f * rhs_f0
-            cb = ((z * c_mid + az * c_half) * (f * beta_drive_old + beta0_old) * sq + KPR) * q0
+            if q0 > 0.0:
+                cb = ((z * c_mid + az * c_half) * (f * beta_drive_old + beta0_old) * sq
+                      + KPR) * q0
+            else:  # no damping where the polar region is not longer than R
+                cb = q0 * KPR
         else:
             p0 = q0
             cb = q0 * KPR
@@ -1087,7 +1161,14 @@ def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
             z = zg + (z - zg) * blend if z * zg > 0.0 else zg
         else:
             z = math.nan
-        z = _newton_float(z, p0, rhs, cM, cD, k, three_over_a)
+        # Where the new polar region may end up no longer than R, the damping's clip at 0 is
+        # part of the equation; |w| <= |rhs| at its root (the damping has the sign of w).
+        clip = p0 <= k.th_h * abs(rhs)
+        if clip:
+            bound = abs(rhs) ** (1.0 / three_over_a)
+            if not abs(z) <= bound:  # also a NaN guess (no slope at v = 0, p0 <= 0)
+                z = math.copysign(bound, rhs)
+        z = _newton_float(z, p0, rhs, cM, cD, k, three_over_a, clip)
         az = abs(z)
         if k.a_is_03:
             sq = z * z
@@ -1108,7 +1189,9 @@ def _step_floats(k, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
     return T1, v1, z1, f1
 
 
-def _newton_float(z, p0, rhs, cM, cD, k, three_over_a):
+def _newton_float(z, p0, rhs, cM, cD, k, three_over_a, clip=False):
+    """Newton on the step equation of :func:`_newton_loop` for one fibre; with ``clip`` the
+    damping's polar-length factor q is clipped at 0 (where q <= 0, g = w - rhs)."""
     th_h = k.th_h
     th_h_10 = 10.0 * th_h
     a_is_03 = k.a_is_03
@@ -1127,11 +1210,15 @@ def _newton_float(z, p0, rhs, cM, cD, k, three_over_a):
         cb = (cM * z + cD * az) * z
         phi = cb * z
         q = w * th_h + p0
-        g = phi * q + w - rhs
-        dg = phi * th_h_10 + 10.0
-        if not a_is_03:
-            dg = dg * dv_scale
-        dg = dg * t + cb * q * 3.0
+        if clip and q <= 0.0:
+            g = w - rhs
+            dg = 10.0 * t if a_is_03 else three_over_a * t
+        else:
+            g = phi * q + w - rhs
+            dg = phi * th_h_10 + 10.0
+            if not a_is_03:
+                dg = dg * dv_scale
+            dg = dg * t + cb * q * 3.0
         dz = g / max(dg, 1e-300)  # a NaN dg stays NaN (max keeps its first argument)
         if dz > NEWTON_MAX_DZ:
             dz = NEWTON_MAX_DZ

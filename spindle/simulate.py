@@ -1,8 +1,14 @@
-"""Batch simulation of spindles driven by sampled fascicle-length traces."""
+"""Batch simulation of spindles driven by sampled fascicle-length traces.
+
+Long inputs are streamed: the internal steps are built and run a chunk of sample intervals at
+a time (:data:`CHUNK_ELEMENTS`), so memory stays a small multiple of the input and output;
+the results do not depend on the chunk size (bit for bit).
+"""
 
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -22,6 +28,9 @@ class SpindleResult:
         ia: primary (Ia) rate in pps, same shape as the input length.
         ii: secondary (II) rate in pps, same shape as the input length.
         method: the integration setting used; step_s: the internal step actually taken.
+        substeps_limited: the number of internal-step lengths between samples that the
+            interpolation rule moved back into the valid range or the speed limit (see
+            :func:`substep_lengths`); 0 without sub-stepping.
     """
 
     t_s: np.ndarray
@@ -29,6 +38,16 @@ class SpindleResult:
     ii: np.ndarray
     method: str
     step_s: float
+    substeps_limited: int = 0
+
+
+MAX_SUBSTEPS = 100_000
+"""Largest number of internal steps per sample interval (``dt`` / step). A larger ``dt`` (a
+corrupted sample interval, say 1e9 s) is refused with ``ValueError`` before anything is
+allocated, whatever the number of samples: the work per sample stays bounded."""
+
+CHUNK_ELEMENTS = 1 << 16
+"""Internal steps x spindles per chunk of a long input (the default of ``chunk_samples``)."""
 
 
 def _broadcast_trace(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -77,6 +96,12 @@ def prepare_inputs(length, dt, velocity, acceleration, gamma_dyn, gamma_stat, me
     h_max = m.default_step_s if step is None else float(step)
     core.check_step(h_max, m)
     k = substeps(dt, h_max)
+    if k > MAX_SUBSTEPS:
+        raise ValueError(
+            f"dt={dt!r} s needs {float(k):.6g} internal steps of at most {h_max!r} s per "
+            f"sample interval, above the limit MAX_SUBSTEPS = {MAX_SUBSTEPS}; resample the "
+            "input or check its sample interval"
+        )
     h = dt / k
 
     shape = length.shape
@@ -120,6 +145,7 @@ def simulate(
     method: str | Method | None = None,
     step: float | None = None,
     backend: str = "numpy",
+    chunk_samples: int | None = None,
 ) -> SpindleResult:
     """Ia and II rates of spindles whose host fascicles follow ``length``.
 
@@ -140,24 +166,30 @@ def simulate(
             on first use; :class:`spindle.cbuild.CBackendError` if no C compiler is found).
             Both take the same inputs, raise the same ValueErrors and agree to 1e-6 pps
             (``docs/c_port.md``).
+        chunk_samples: sample intervals per chunk of the stream (default: about
+            :data:`CHUNK_ELEMENTS` internal steps x spindles); only memory depends on it.
 
     The integrator consumes lengths only (the (T, v) form integrates the dL/dt input exactly
     over a step, see :mod:`spindle.core`); the derivatives shape the length *between* samples
     when sub-stepping: a cubic Hermite curve through the samples and their velocities, or a
-    quintic one when the acceleration is given too. The spindles start at rest at the first
-    sample's length and drive (:func:`spindle.core.equilibrium_state`).
+    quintic one when the acceleration is given too, held inside the valid range and the
+    speed limit (:func:`substep_lengths`; the count is ``substeps_limited``). The spindles
+    start at rest at the first sample's length and drive
+    (:func:`spindle.core.equilibrium_state`).
 
     Raises:
         ValueError: non-finite inputs, lengths outside :data:`spindle.core.LENGTH_RANGE_L0`,
             length changes faster than :data:`spindle.core.MAX_SPEED_L0_S`, negative drive,
-            ``dt`` or ``step`` <= 0 or above the method's limit, shapes that do not match.
+            ``dt`` or ``step`` <= 0 or above the method's limit, more than
+            :data:`MAX_SUBSTEPS` internal steps per sample interval, shapes that do not
+            match.
     """
     if backend == "c":
         from spindle import cbackend
 
         return cbackend.simulate(length, dt, velocity=velocity, acceleration=acceleration,
                                  gamma_dyn=gamma_dyn, gamma_stat=gamma_stat, params=params,
-                                 method=method, step=step)
+                                 method=method, step=step, chunk_samples=chunk_samples)
     if backend != "numpy":
         raise ValueError(f"backend={backend!r} is not one of ['c', 'numpy']")
     m, L, gd, gs, derivatives, k, h = prepare_inputs(
@@ -168,51 +200,108 @@ def simulate(
     ia = np.empty_like(L)
     ii = np.empty_like(L)
     ia[0], ii[0] = core._afferents(state.tension_FU.T, state.length_L0, c)
-    weights = [hermite_weights(j / k, len(derivatives) if k > 1 else 0) for j in range(1, k)]
-    if L.shape[1] == 1 and m.implicit:
-        _run_one_spindle(state, L, gd, gs, derivatives, weights, dt, h, m.theta, c, ia, ii)
-    else:
-        for i in range(1, L.shape[0]):
-            for wts in weights:
-                Ls = _interpolate(L, derivatives, i, wts, dt)
-                core.commit(state, core.advance(state, Ls, gd[i], gs[i], h, m.theta, c),
-                            Ls, gd[i], gs[i])
-            new = core.advance(state, L[i], gd[i], gs[i], h, m.theta, c)
-            core.commit(state, new, L[i], gd[i], gs[i])
+    one_spindle = L.shape[1] == 1 and m.implicit
+    carry = _float_state(state) if one_spindle else None
+    limited = 0
+    for i0, i1 in chunk_bounds(L.shape, k, chunk_samples):
+        lengths, changed = substep_lengths(L, derivatives, k, dt, i0, i1)
+        limited += changed
+        if one_spindle:
+            carry = _run_one_spindle(carry, lengths, gd[i0:i1], gs[i0:i1], k, h, m.theta, c,
+                                     ia[i0:i1], ii[i0:i1])
+            continue
+        for i in range(i0, i1):
+            for j in range((i - i0) * k, (i - i0 + 1) * k):
+                new = core.advance(state, lengths[j], gd[i], gs[i], h, m.theta, c)
+                core.commit(state, new, lengths[j], gd[i], gs[i])
             ia[i], ii[i] = core._afferents(new[0], L[i], c)
     t = np.arange(shape[0]) * dt
-    return SpindleResult(t, ia.reshape(shape), ii.reshape(shape), m.name, h)
+    return SpindleResult(t, ia.reshape(shape), ii.reshape(shape), m.name, h, limited)
 
 
-def _run_one_spindle(state, L, gd, gs, derivatives, weights, dt, h, theta, c, ia, ii):
-    """The per-sample loop for one spindle on Python floats (numpy's per-call overhead would
-    dominate): the same interpolation and the same step as the vectorised loop."""
-    k = core._step_constants(c, h, theta)
-    lengths, dyn, stat = (x[:, 0].tolist() for x in (L, gd, gs))
-    derivs = [np.reshape(d, L.shape)[:, 0].tolist() for d in derivatives] if weights else []
-    weights = [w.tolist() for w in weights]
-    T, v, z, f = (a[0].tolist() for a in (state.tension_FU, state.polar_velocity_L0_s,
-                                          state.velocity_root, state.activation))
-    L0, gd0, gs0 = lengths[0], dyn[0], stat[0]
+def chunk_bounds(shape: tuple[int, int], k: int, chunk_samples: int | None):
+    """(i0, i1) of each chunk of sample intervals 1 .. T-1 (interval i ends on sample i)."""
+    if chunk_samples is None:
+        size = max(1, CHUNK_ELEMENTS // (k * max(shape[1], 1)))
+    else:
+        size = operator.index(chunk_samples)
+        if size < 1:
+            raise ValueError(f"chunk_samples={chunk_samples!r} must be >= 1")
+    return [(i0, min(shape[0], i0 + size)) for i0 in range(1, shape[0], size)]
+
+
+def _float_state(state: core.SpindleState) -> tuple:
+    """One spindle's state as Python floats: (T, v, z, f) lists over fibres, L, gd, gs."""
+    return (*(a[0].tolist() for a in (state.tension_FU, state.polar_velocity_L0_s,
+                                      state.velocity_root, state.activation)),
+            float(state.length_L0[0]), float(state.gamma_dyn_pps[0]),
+            float(state.gamma_stat_pps[0]))
+
+
+def _run_one_spindle(carry, lengths, gd, gs, k, h, theta, c, ia, ii):
+    """The per-sample loop of one chunk for one spindle on Python floats (numpy's per-call
+    overhead would dominate): the same step as the vectorised loop. ``carry`` is the state
+    of :func:`_float_state`; returns the state after the chunk."""
+    constants = core._step_constants(c, h, theta)
+    steps = lengths[:, 0].tolist()
+    T, v, z, f, L0, gd0, gs0 = carry
     rates_ia, rates_ii = [], []
-    for i in range(1, len(lengths)):
-        gd1, gs1 = dyn[i], stat[i]
-        for wts in weights:
-            Ls = wts[0] * lengths[i - 1] + wts[1] * lengths[i]
-            scale = dt
-            for j, d in enumerate(derivs):
-                Ls = Ls + scale * (wts[2 + 2 * j] * d[i - 1] + wts[3 + 2 * j] * d[i])
-                scale *= dt
-            T, v, z, f = core._step_floats(k, T, v, z, f, L0, gd0, gs0, Ls, gd1, gs1)
-            L0, gd0, gs0 = Ls, gd1, gs1
-        L1 = lengths[i]
-        T, v, z, f = core._step_floats(k, T, v, z, f, L0, gd0, gs0, L1, gd1, gs1)
-        L0, gd0, gs0 = L1, gd1, gs1
-        a, b = core._afferents_one(T, L1, c)
+    j = 0
+    for gd1, gs1 in zip(gd[:, 0].tolist(), gs[:, 0].tolist(), strict=True):
+        for L1 in steps[j:j + k]:
+            T, v, z, f = core._step_floats(constants, T, v, z, f, L0, gd0, gs0, L1, gd1, gs1)
+            L0, gd0, gs0 = L1, gd1, gs1
+        j += k
+        a, b = core._afferents_one(T, L0, c)
         rates_ia.append(a)
         rates_ii.append(b)
-    ia[1:, 0] = rates_ia
-    ii[1:, 0] = rates_ii
+    ia[:, 0] = rates_ia
+    ii[:, 0] = rates_ii
+    return T, v, z, f, L0, gd0, gs0
+
+
+def substep_lengths(L: np.ndarray, derivatives: list[np.ndarray], k: int, dt: float,
+                    i0: int = 1, i1: int | None = None) -> tuple[np.ndarray, int]:
+    """The length at the end of every internal step of sample intervals i0 .. i1-1 (interval
+    i ends on sample i), shape ((i1 - i0)*k, n), and how many of them the limits changed.
+
+    Sub-step j of an interval is the Hermite curve at fraction j/k (linear without
+    ``derivatives``); step k ends on the sample itself. The curve can overshoot where valid
+    samples lie near a range end or move near the speed limit, so each sub-step length is
+    clipped to the valid range and to where it stays within MAX_SPEED_L0_S (less 1e-9, so
+    that rounding never crosses the limit) both of the previous sub-step and of the sample
+    that ends the interval: the clipped path is never faster than the limit and always lands
+    on that sample. Inside those limits the curve is untouched (bit for bit). Both backends
+    use these lengths.
+    """
+    i1 = L.shape[0] if i1 is None else i1
+    start, end = L[i0 - 1:i1 - 1], L[i0:i1]
+    out = np.empty((i1 - i0, k, L.shape[1]))
+    out[:, k - 1] = end
+    if k == 1:
+        return out.reshape(-1, L.shape[1]), 0
+    pairs = [(d[i0 - 1:i1 - 1], d[i0:i1]) for d in derivatives]
+    lo_range, hi_range = core.LENGTH_RANGE_L0
+    # each sub-step moves at most `reach`; samples that already move at the limit (within
+    # the margin) keep their own pace, so that the band below never closes
+    reach = np.maximum(core.MAX_SPEED_L0_S * (1.0 - 1e-9) * dt / k, np.abs(end - start) / k)
+    previous = start
+    changed = 0
+    for j in range(1, k):
+        w = hermite_weights(j / k, len(pairs))
+        value = w[0] * start + w[1] * end
+        scale = dt
+        for q, (d0, d1) in enumerate(pairs):
+            value = value + scale * (w[2 + 2 * q] * d0 + w[3 + 2 * q] * d1)
+            scale *= dt
+        left = reach * (k - j)  # what the remaining sub-steps can still cover
+        lo = np.maximum(np.maximum(previous - reach, end - left), lo_range)
+        hi = np.minimum(np.minimum(previous + reach, end + left), hi_range)
+        clipped = np.minimum(np.maximum(value, lo), hi)
+        changed += int(np.count_nonzero(clipped != value))
+        out[:, j - 1] = clipped
+        previous = clipped
+    return out.reshape(-1, L.shape[1]), changed
 
 
 def hermite_weights(s: float, order: int) -> np.ndarray:
@@ -236,11 +325,3 @@ def hermite_weights(s: float, order: int) -> np.ndarray:
         0.5 * (s3 - 2 * s4 + s5),
     ])
 
-
-def _interpolate(L, derivatives, i, weights, dt):
-    out = weights[0] * L[i - 1] + weights[1] * L[i]
-    scale = dt
-    for j, d in enumerate(derivatives):
-        out = out + scale * (weights[2 + 2 * j] * d[i - 1] + weights[3 + 2 * j] * d[i])
-        scale *= dt
-    return out

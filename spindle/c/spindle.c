@@ -214,13 +214,30 @@ static void velocity_from_z(ps_real z, ps_real a, int a_is_03, ps_real *w, ps_re
     }
 }
 
-/* M dv/dt of fibre i (spindle.core._force); the damping C*beta*sgn(v)|v|^a is C*beta*z^3. */
+/* M dv/dt of fibre i (spindle.core._force); the damping C*beta*sgn(v)|v|^a is C*beta*z^3,
+ * times the polar length beyond R clipped at 0 (no damping, never a negative one, where the
+ * polar region is not longer than R). */
 static ps_real force(const ps_params *p, int i, ps_real T, ps_real z, ps_real L, ps_real beta,
                      ps_real Gamma)
 {
     ps_real polar = L - p->LSR0[i] - T / p->KSR[i];
     ps_real damping = (z > R_(0) ? p->CL[i] : p->CS[i]) * beta * (z * z * z);
-    return T - Gamma - p->KPR[i] * (polar - p->LPR0[i]) - damping * (polar - p->R[i]);
+    return T - Gamma - p->KPR[i] * (polar - p->LPR0[i])
+           - damping * max_r(polar - p->R[i], R_(0));
+}
+
+/* Where the new polar region may end no longer than R (p0 <= theta*h*|w| with |w| <= |rhs|/a2
+ * at the root, spindle.core._needs_clip), the guess is limited to the root's bound
+ * |z| <= (|rhs|/a2)^(a/3); this also replaces the NaN guess of a fibre at rest with p0 <= 0
+ * (no slope). */
+static ps_real bound_guess(ps_real z, ps_real p0, ps_real rhs, ps_real a2, ps_real th_h,
+                           ps_real a)
+{
+    ps_real bound;
+    if (!(p0 * a2 <= th_h * ps_fabs(rhs))) return z;
+    bound = ps_pow(ps_fabs(rhs) / a2, a / R_(3));
+    if (!(ps_fabs(z) <= bound)) z = rhs < R_(0) ? -bound : bound;
+    return z;
 }
 
 /* One Newton iteration on g(z) (spindle.core._implicit_solve); returns the step taken. */
@@ -235,8 +252,13 @@ static ps_real newton_update(ps_real *z_io, ps_real a2, ps_real p0, ps_real rhs,
     phi = cS * (z2 * z) + dC * (zp * z2);
     dphi = R_(3) * (cS * z2 + dC * (zp * z));
     q = p0 + th_h * w;
-    g = a2 * w + phi * q - rhs;
-    dg = a2 * dw + dphi * q + th_h * phi * dw;
+    if (q > R_(0)) {
+        g = a2 * w + phi * q - rhs;
+        dg = a2 * dw + dphi * q + th_h * phi * dw;
+    } else { /* the damping's polar-length factor clipped at 0 */
+        g = a2 * w - rhs;
+        dg = a2 * dw;
+    }
     /* NaN propagates through both clamps, as np.maximum/np.minimum do. */
     dz = g / (dg < R_(PS_TINY) ? R_(PS_TINY) : dg);
     if (dz > R_(PS_NEWTON_MAX_DZ)) dz = R_(PS_NEWTON_MAX_DZ);
@@ -332,6 +354,7 @@ int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, 
                             : ps_pow(ps_fabs(z0), R_(3) / p->a[i] - R_(3));
             slope = a2 * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
             z = cube_root(rhs / slope);
+            z = bound_guess(z, p0, rhs, a2, th_h, p->a[i]);
             status = newton(&z, a2, p0, rhs, cS, dC, th_h, p->a[i], a_is_03);
             if (status != PS_OK) return status;
             velocity_from_z(z, p->a[i], a_is_03, &v1[i], NULL);
@@ -525,8 +548,13 @@ static int solve_03(ps_real *z_io, ps_real *v, ps_real a2, ps_real inv_a2, ps_re
         y9 = y4 * y4 * y;
         y10 = y9 * y;
         qy = p0 + s_th_h * y10;
-        g = a2 * y10 + c * y3 * qy - r;
-        dg = y9 * (ten_a2 + ten_c_th_h * y3) + three_c * y2 * qy;
+        if (qy > R_(0)) {
+            g = a2 * y10 + c * y3 * qy - r;
+            dg = y9 * (ten_a2 + ten_c_th_h * y3) + three_c * y2 * qy;
+        } else { /* the damping's polar-length factor clipped at 0 */
+            g = a2 * y10 - r;
+            dg = y9 * ten_a2;
+        }
         dy = g / (dg < R_(PS_TINY) ? R_(PS_TINY) : dg);
         if (dy > R_(PS_NEWTON_MAX_DZ)) dy = R_(PS_NEWTON_MAX_DZ);
         if (dy < R_(-PS_NEWTON_MAX_DZ)) dy = R_(-PS_NEWTON_MAX_DZ);
@@ -594,7 +622,7 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
             ps_real beta0 = q->beta0[i] + q->beta_drive[i] * f0;
             ps_real damping = (z0 > R_(0) ? q->CL[i] : q->CS[i]) * beta0 * z03;
             F0 = T0 - q->Gamma_drive[i] * f0 - q->KPR[i] * (polar - q->LPR0[i])
-                 - damping * (polar - q->R[i]);
+                 - damping * max_r(polar - q->R[i], R_(0));
         }
         if (q->explicit_step) {
             T1[i] = A - q->h_KSR[i] * v0;
@@ -617,6 +645,7 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
                                   rhs > R_(0) ? cS + dC : cS, q->th_h);
                 if (status != PS_OK) return status;
             } else {
+                z = bound_guess(z, p0, rhs, q->a2[i], q->th_h, q->a[i]);
                 status = newton(&z, q->a2[i], p0, rhs, cS, dC, q->th_h, q->a[i], 0);
                 if (status != PS_OK) return status;
                 velocity_from_z(z, q->a[i], 0, &v1[i], NULL);
@@ -1018,8 +1047,13 @@ static int fx_solve_03(int32_t *z_io, int32_t *v, const ps_plan_fx *q, int i, in
         y9 = fx_mul(y8, y);
         y10 = fx_mul(y8, y2);
         qy = p0 + fx_mul(s_th_h, y10);
-        g = fx_mul(q->a2[i], y10) + fx_mul(fx_mul(c, y3), qy) - r;
-        dg = fx_mul(y9, ten_a2 + fx_mul(ten_c_th_h, y3)) + fx_mul(fx_mul(three_c, y2), qy);
+        if (qy > 0) {
+            g = fx_mul(q->a2[i], y10) + fx_mul(fx_mul(c, y3), qy) - r;
+            dg = fx_mul(y9, ten_a2 + fx_mul(ten_c_th_h, y3)) + fx_mul(fx_mul(three_c, y2), qy);
+        } else { /* the damping's polar-length factor clipped at 0 */
+            g = fx_mul(q->a2[i], y10) - r;
+            dg = fx_mul(y9, ten_a2);
+        }
         if (dg < 1) dg = 1;
         ag = fx_abs(g);
         if (ag <= FX_G_TOL) {
@@ -1081,7 +1115,7 @@ int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_
             int32_t z03 = fx_mul(fx_mul(z0, z0), z0);
             int32_t damping = fx_mul(fx_mul(z0 > 0 ? q->CL[i] : q->CS[i], beta0), z03);
             F0 = T0 - fx_mul(q->Gamma_drive[i], f0) - fx_mul(q->KPR[i], polar - q->LPR0[i])
-                 - fx_mul(damping, polar - q->R[i]);
+                 - fx_mul(damping, fx_max(polar - q->R[i], 0));
         }
         A -= fx_mul(q->c_Av[i], v0);
         p0 = L1 - q->LSR0_R[i] - fx_mul(A, q->inv_KSR[i]);
