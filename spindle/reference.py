@@ -5,10 +5,20 @@ the bag1 and bag2 activations, with the M * d2L/dt2 input term -- with scipy's R
 rtol = 1e-10, independently of the (T, v) form and theta-method of :mod:`spindle.core`.
 
 The one change to the equations: sgn(v)|v|^a, whose slope is infinite at v = 0, is replaced by
-v * (v^2 + eps^2)^((a-1)/2) with eps = 1e-7 L0/s by default; the tests show that changing eps
-by two orders of magnitude moves the rates by less than 1e-3 pps. The stimulus is integrated
-piecewise between its breakpoints (ramp corners); at each one dT/dt jumps by KSR times the
-jump in dL/dt, the integral of the M * d2L/dt2 impulse.
+v * (v^2 + eps^2)^((a-1)/2) with eps = 1e-7 L0/s by default. Its effect on the rates falls as
+eps^2 (x100 per decade): on four 3.3 s Fig. 3 runs (onsets 1.0-1.0053 s, gamma_dyn up to 300
+pps) eps = 1e-7 differs from eps = 1e-9 by at most 7e-6 pps (1e-6: 7e-4, 1e-5: 0.06 pps), far
+below the 0.32 pps worst-run error of the trapezoidal rule at 1 ms and the ~3e-3 pps it reaches
+at 0.1 ms. The stimulus is integrated piecewise between its breakpoints (ramp corners); at
+each one dT/dt jumps by KSR times the jump in dL/dt, the integral of the M * d2L/dt2 impulse.
+
+Within a segment [t0, t1] the stimulus' velocity and acceleration are read strictly inside it
+(at t clamped to [t0 + d, t1 - d], d = 1e-12 s x max(1, t)), i.e. as the segment's one-sided
+limits at its ends. Radau's last stage sits exactly on t1, where a piecewise velocity such as
+``v if on <= t < off else 0`` already takes the next piece's value. Read there, the last stage
+of a rest hold saw the ramp's full speed; depending on the step that reached t1 (so on the
+hold's length) the step was then rejected again and again until it fell below the float
+spacing ("Required step size is less than spacing between numbers"), whatever eps.
 
 scipy is imported only when a reference solution is asked for (extra ``reference``).
 """
@@ -32,6 +42,8 @@ class Stimulus:
         length_L0, velocity_L0_s, acceleration_L0_s2: callables of time (s) -> float.
         duration_s: end time; the trajectory starts at t = 0.
         breakpoints_s: times where velocity or acceleration jump (integration restarts there).
+            At a breakpoint the callables may return either one-sided value: each segment
+            reads them strictly inside itself.
         gamma_dyn_pps, gamma_stat_pps: drive held constant over the whole run.
     """
 
@@ -98,10 +110,11 @@ def solve_reference(
     tau = (fib[0].tau_s, fib[1].tau_s)
     eps2 = eps_L0_s * eps_L0_s
 
-    def rhs(t, y):
+    def rhs(t, y, t_lo, t_hi):
         L = stimulus.length_L0(t)
-        dL = stimulus.velocity_L0_s(t)
-        ddL = stimulus.acceleration_L0_s2(t)
+        t_in = min(max(t, t_lo), t_hi)
+        dL = stimulus.velocity_L0_s(t_in)
+        ddL = stimulus.acceleration_L0_s2(t_in)
         f = (y[6], y[7], target[2])
         out = np.empty(8)
         for i, (KSR, KPR, M, b0, bd, Gd, CL, CS, R, a, LSR0, LPR0) in enumerate(consts):
@@ -116,9 +129,9 @@ def solve_reference(
         out[7] = (target[1] - y[7]) / tau[1]
         return out
 
-    def jac(t, y):
+    def jac(t, y, t_lo, t_hi):
         L = stimulus.length_L0(t)
-        dL = stimulus.velocity_L0_s(t)
+        dL = stimulus.velocity_L0_s(min(max(t, t_lo), t_hi))
         f = (y[6], y[7], target[2])
         J = np.zeros((8, 8))
         for i, (KSR, KPR, M, b0, bd, Gd, CL, CS, R, a, LSR0, _LPR0) in enumerate(consts):
@@ -156,17 +169,20 @@ def solve_reference(
     for t0, t1 in itertools.pairwise(edges):
         if t0 > 0:
             # dT/dt jumps with dL/dt at a breakpoint (v, the polar velocity, is continuous).
-            jump = stimulus.velocity_L0_s(t0 + 1e-12 * max(1.0, t0)) - stimulus.velocity_L0_s(
-                t0 - 1e-12 * max(1.0, t0))
+            jump = (stimulus.velocity_L0_s(t0 + _one_side_s(t0))
+                    - stimulus.velocity_L0_s(t0 - _one_side_s(t0)))
             y = y.copy()
             y[3:6] += np.array([c[0] for c in consts]) * jump
+        # The segment's inputs are its one-sided limits at t0 and t1 (see the module docstring).
+        inside = (t0 + min(_one_side_s(t0), (t1 - t0) / 4),
+                  t1 - min(_one_side_s(t1), (t1 - t0) / 4))
         last = t1 == edges[-1]
         mask = (t_eval_s >= t0) & (last | (t_eval_s < t1))
         # t1 is appended so that the segment's end state is exact for the next restart.
         t_seg = np.append(np.minimum(t_eval_s[mask], t1), t1)
         t_seg = t_seg[np.r_[np.diff(t_seg) > 0, True]]
         sol = solve_ivp(rhs, (t0, t1), y, method="Radau", rtol=rtol, atol=atol, t_eval=t_seg,
-                        jac=jac)
+                        jac=jac, args=inside)
         if not sol.success:
             raise RuntimeError(f"reference solver failed on [{t0}, {t1}] s: {sol.message}")
         nfev += sol.nfev
@@ -179,6 +195,13 @@ def solve_reference(
     L = np.array([stimulus.length_L0(ti) for ti in t])
     ia, ii = _afferents_from_tension(T, L, params)
     return ReferenceSolution(t, ia, ii, T, nfev)
+
+
+def _one_side_s(t_s: float) -> float:
+    """How far from a breakpoint at t_s the stimulus is read to get a one-sided value: ~2000
+    float spacings at 3 s, so rounding in the stimulus' own comparison cannot put it on the
+    wrong side, and small enough that a smooth input moves by a negligible amount."""
+    return 1e-12 * max(1.0, abs(t_s))
 
 
 def _repeat_last(rows: np.ndarray, n: int) -> np.ndarray:
