@@ -680,7 +680,7 @@ def run_chain(
                          f"{t.shape}")
     intended = None
     if intended_angle_deg is not None:
-        intended = np.asarray(intended_angle_deg, dtype=float)
+        intended = _intended_angles(intended_angle_deg)
         if intended.shape != t.shape:
             raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected {t.shape}")
 
@@ -716,6 +716,20 @@ def run_chain(
         }
     stacked["accepted"][:start] = False
     return ChainTrace(**stacked, counters=dict(chain.counters))
+
+
+def _intended_angles(value: object) -> np.ndarray:
+    """``run_chain``'s intended angles as floats: real numbers, NaN for the measured motion."""
+    why = "must hold real angles in deg (NaN: the measured motion)"
+    if np.iscomplexobj(value):
+        raise ValueError(f"intended_angle_deg {why}, got complex values")
+    try:
+        intended = np.asarray(value, dtype=float)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"intended_angle_deg {why}: {exc}") from None
+    if np.isinf(intended).any():
+        raise ValueError(f"intended_angle_deg {why}, got an infinite one")
+    return intended
 
 
 def _first_valid(t, signal, is_counts, is_lengths, chain) -> int:

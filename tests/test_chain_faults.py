@@ -421,3 +421,14 @@ def test_max_bridge_s_is_checked(value, match):
         ChainConfig(max_bridge_s=value)
     header = cbuild.HEADER.read_text()
     assert f"#define PS_CHAIN_MAX_BRIDGE_UPDATES {MAX_BRIDGE_UPDATES}L" in header
+
+
+@pytest.mark.parametrize("backend", BACKEND_PARAMS)
+@pytest.mark.parametrize("bad", [[60.0 + 1j, 60.0, 60.0], [10**400, 60.0, 60.0],
+                                 [math.inf, 60.0, 60.0], ["sixty", 60.0, 60.0]])
+def test_run_chain_refuses_intended_angles_that_are_not_real(backend, bad):
+    """Complex intended angles lost their imaginary part, 10**400 raised OverflowError."""
+    t = np.arange(3) * DT
+    with pytest.raises(ValueError, match="intended_angle_deg must hold real angles"):
+        run_chain(t, angle_deg=np.full(3, 60.0), intended_angle_deg=bad,
+                  config=ChainConfig(backend=backend))
