@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from spindle.fault_injection import run_soak
+from proprio_env.fault_injection import run_soak
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from spindle.chain import ArmChain, ArmSample, ChainConfig
-from spindle.length_fits import LengthFits
-from spindle.sensor import AX12, Encoder, EncoderParams
+from proprio_env.encoder import Encoder
+from spindle.chain import ArmSample, ChainConfig, make_chain
+from spindle.chain.length_model import LengthFits
+from spindle.chain.sensor import AX12, EncoderParams
 
 SOURCES = ("exact", "reduced", "encoder")
 """Names of the afferent sources (see the module docstring)."""
@@ -48,7 +49,7 @@ class AfferentReadout:
                  encoder_params: EncoderParams = AX12,
                  fits: LengthFits | None = None) -> None:
         self.source = check_source(source)
-        self.chain = ArmChain(chain_config, fits)
+        self.chain = make_chain(chain_config, fits)
         self.encoder_params = encoder_params
         self.encoder: Encoder | None = None
         self._next_read_s = 0.0

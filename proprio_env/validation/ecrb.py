@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 import spindle
-from spindle.fusimotor import Fusimotor
-from spindle.length_fits import models_dir
+from proprio_env.model import models_dir
+from spindle.chain.fusimotor import Fusimotor
 
 TABLE_FILENAME = "wrist_ecrb.csv"
 SHARED_REFERENCE = (Path(__file__).resolve().parents[3] / "shared" / "reference" / "opensim"
