@@ -6,7 +6,7 @@ pushed through the numpy and the C backend side by side, and the checks of the s
 The stream (:func:`fault_stream`) is what an encoder on a moving servo delivers: minimum-jerk
 moves between random elbow angles at 40-450 deg/s peak (the servo's no-load speed is 684
 deg/s) separated by holds, read at ~500 Hz with jitter, noise and the encoder's own rare
-invalid readings (:class:`spindle.sensor.Encoder`). Mostly encoder counts
+invalid readings (:class:`proprio_env.encoder.Encoder`). Mostly encoder counts
 (``push_counts``), with runs of clean angles (``push_angle``) and fitted lengths
 (``push_lengths``). Between runs it injects one fault (:data:`FAULTS`):
 

@@ -1,6 +1,6 @@
 """Cost of the C spindle on a Cortex-M0+: instructions per step, MIPS, flash and RAM.
 
-Cross-compiles spindle/c/spindle.c with the firmware spindle/c/m0plus/firmware.c (two
+Cross-compiles spindle/native/c/spindle.c with the firmware spindle/native/c/m0plus/firmware.c (two
 muscles, HUMAN constants in flash) for -mcpu=cortex-m0plus -mthumb, soft float, newlib-nano,
 and runs the step in an instruction-set emulator (unicorn >= 2.1) on the Mileusnic Fig. 3
 protocol (ramps 0.95 -> 1.08 L0 at 0.11, 0.66, 1.55 L0/s, drive (0,0), (70,0), (0,70) pps,
@@ -75,7 +75,7 @@ from spindle.native import abi, build
 from spindle.native import spindle as native_spindle
 
 REPO = Path(__file__).resolve().parents[1]
-C_DIR = REPO / "spindle" / "c"
+C_DIR = build.SOURCE_DIR
 FW_DIR = C_DIR / "m0plus"
 TOOL_PREFIX = "arm-none-eabi-"
 ARM_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wdouble-promotion",
@@ -233,7 +233,7 @@ def fixed_rates(lib: ctypes.CDLL, plan, L: np.ndarray, gd: np.ndarray,
     ii = np.full(len(L), np.nan)
     code = lib.ps_spindle_fx_init(ctypes.byref(s), ctypes.byref(plan), int(q24[0]),
                                   int(dgd[0]), int(dgs[0]))
-    if code != 0:
+    if code != abi.Status.PS_OK:
         return ia, ii, code
     a, b = ctypes.c_int32(), ctypes.c_int32()
     lib.ps_spindle_fx_afferents(ctypes.byref(s), ctypes.byref(plan), ctypes.byref(a),
@@ -243,7 +243,7 @@ def fixed_rates(lib: ctypes.CDLL, plan, L: np.ndarray, gd: np.ndarray,
         code = lib.ps_spindle_step_fx(ctypes.byref(s), ctypes.byref(plan), int(q24[j]),
                                       int(dgd[j]), int(dgs[j]), ctypes.byref(a),
                                       ctypes.byref(b))
-        if code != 0:
+        if code != abi.Status.PS_OK:
             return ia, ii, code
         ia[j], ii[j] = a.value / FX_RATE, b.value / FX_RATE
     return ia, ii, 0
@@ -256,7 +256,7 @@ def plan_header(cfg: Config, build_dir: Path) -> Path:
     plan = PsPlan()
     params = abi.params_struct(PARAMS, "float")
     code = lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(params), cfg.step_s, cfg.theta)
-    if code != 0:
+    if code != abi.Status.PS_OK:
         raise RuntimeError(f"ps_plan_init: {abi.status_name(code)}")
 
     def literal(x: float) -> str:
@@ -285,7 +285,7 @@ def fixed_plan(lib: ctypes.CDLL, cfg: Config):
     plan = PsPlanFx()
     params = abi.params_struct(PARAMS, "float")
     code = lib.ps_plan_fx_init(ctypes.byref(plan), ctypes.byref(params), cfg.step_s, cfg.theta)
-    if code != 0:
+    if code != abi.Status.PS_OK:
         raise RuntimeError(f"ps_plan_fx_init: {abi.status_name(code)}")
     return plan
 
@@ -564,14 +564,15 @@ def host_rates(lib, cfg: Config, run) -> tuple[np.ndarray, np.ndarray]:
         L = protocol(speed, cfg.step_s)
         ia, ii, code = fixed_rates(lib, fixed_plan(lib, cfg), L, np.full(L.shape, gd),
                                    np.full(L.shape, gs))
-        if code != 0:
+        if code != abi.Status.PS_OK:
             raise RuntimeError(f"host fixed-point step: {abi.status_name(code)}")
         return ia, ii
     L = protocol(speed, cfg.step_s).astype(np.float32)
     _, PsSpindle = abi.structs("float")
     params = abi.params_struct(PARAMS, "float")
     s = PsSpindle()
-    if lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(params), L[0], gd, gs) != 0:
+    code = lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(params), L[0], gd, gs)
+    if code != abi.Status.PS_OK:
         raise RuntimeError("init failed")
     ia = np.empty(len(L))
     ii = np.empty(len(L))
@@ -589,7 +590,7 @@ def host_rates(lib, cfg: Config, run) -> tuple[np.ndarray, np.ndarray]:
         else:
             code = lib.ps_spindle_step(ctypes.byref(s), ctypes.byref(params), L[j], gd, gs,
                                        cfg.step_s, cfg.theta, ctypes.byref(a), ctypes.byref(b))
-        if code != 0:
+        if code != abi.Status.PS_OK:
             raise RuntimeError(f"host step {j}: {abi.status_name(code)}")
         ia[j], ii[j] = a.value, b.value
     return ia, ii
@@ -644,14 +645,14 @@ def measure(cfg: Config, runs, refs, build_dir: Path) -> Measured:
         gss = [gs for _, _, gs in pair]
         emu.write_io([x[0] for x in lengths], gds, gss, cfg.fixed)
         status, _ = emu.call("fw_init")
-        if status != 0:
+        if status != abi.Status.PS_OK:
             raise RuntimeError(f"fw_init: {abi.status_name(status)}")
         host = [host_rates(lib, cfg, run) for run in pair]
         for j in range(1, len(lengths[0])):
             emu.write_io([x[j] for x in lengths], gds, gss, cfg.fixed)
             for k in range(2):
                 status, n = emu.call("fw_step_muscle", k)
-                if status != 0:
+                if status != abi.Status.PS_OK:
                     raise RuntimeError(f"fw_step_muscle: {abi.status_name(status)}")
                 counts.append(n)
             ia, ii, _ = emu.read_rates(cfg.fixed)
@@ -714,7 +715,7 @@ def emulate_demo(emu: M0Plus, L: np.ndarray, gd: np.ndarray, gs: np.ndarray):
     """Both muscles through the sequence in the firmware: (instructions (T-1, 2), Ia, II)."""
     emu.write_io(L[0], gd[0], gs[0], True)
     status, _ = emu.call("fw_init")
-    if status != 0:
+    if status != abi.Status.PS_OK:
         raise RuntimeError(f"fw_init: {abi.status_name(status)}")
     counts = np.empty((len(L) - 1, 2), dtype=np.int64)
     ia = np.empty((len(L) - 1, 2))
@@ -723,7 +724,7 @@ def emulate_demo(emu: M0Plus, L: np.ndarray, gd: np.ndarray, gs: np.ndarray):
         emu.write_io(L[j], gd[j], gs[j], True)
         for k in range(2):
             status, counts[j - 1, k] = emu.call("fw_step_muscle", k)
-            if status != 0:
+            if status != abi.Status.PS_OK:
                 raise RuntimeError(f"fw_step_muscle({k}) at step {j}: "
                                    f"{abi.status_name(status)}")
         ia[j - 1], ii[j - 1], _ = emu.read_rates(True)
@@ -746,7 +747,7 @@ def measure_demo(cfg: Config, build_dir: Path) -> DemoMeasured:
     rms_double, rms_chain, max_diff = {}, {}, 0.0
     for k, muscle in enumerate(MUSCLES):
         fx_ia, fx_ii, code = fixed_rates(lib, plan, L[:, k], gd[:, k], gs[:, k])
-        if code != 0:
+        if code != abi.Status.PS_OK:
             raise RuntimeError(f"host fixed-point step ({muscle}): {abi.status_name(code)}")
         max_diff = max(max_diff, float(np.max(np.abs(emu_ia[:, k] - fx_ia[1:]))),
                        float(np.max(np.abs(emu_ii[:, k] - fx_ii[1:]))))

@@ -69,11 +69,12 @@ def c_loop_seconds(length: np.ndarray, repeats: int) -> float:
 
     def run():
         s = PsSpindle()
-        if lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), length[0], 30.0, 30.0) != 0:
-            raise RuntimeError("init failed")
+        code = lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), length[0], 30.0, 30.0)
+        if code != abi.Status.PS_OK:
+            raise RuntimeError(f"init failed: {abi.status_name(code)}")
         code = lib.ps_spindle_run(ctypes.byref(s), ctypes.byref(p), *args, len(L), DT_S, 0.5,
                                   1, *outs, ctypes.byref(done))
-        if code != 0:
+        if code != abi.Status.PS_OK:
             raise RuntimeError(abi.status_name(code))
 
     run()

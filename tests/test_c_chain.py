@@ -1,4 +1,4 @@
-"""The C chain (spindle/c/chain.c, backend="c") against the numpy chain, sample by sample.
+"""The C chain (spindle/native/c/chain.c, backend="c") against the numpy chain, sample by sample.
 
 The numpy chain is the reference: it is tested against scipy references in test_chain.py.
 Every ArmSample field of the double build must agree within 1e-6 (rates in pps), and the
@@ -404,7 +404,7 @@ int main(void) {
 
 @pytest.mark.parametrize("variant", build.VARIANTS)
 def test_generated_config_source_runs_the_chain_in_plain_c(tmp_path, variant):
-    """config_c_source + spindle/c/*.c + a main reading counts: the numpy chain's rates."""
+    """config_c_source + spindle/native/c/*.c + a main reading counts: the numpy chain's rates."""
     (tmp_path / "config.c").write_text(native_chain.config_c_source())
     (tmp_path / "main.c").write_text(DEVICE_MAIN)
     exe = tmp_path / "device"

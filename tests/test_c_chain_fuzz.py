@@ -1,6 +1,6 @@
 """chain.c under AddressSanitizer + UndefinedBehaviorSanitizer, driven by random inputs.
 
-spindle/c/fuzz/fuzz_chain.c pushes random, extreme and invalid samples through every entry
+spindle/native/c/fuzz/fuzz_chain.c pushes random, extreme and invalid samples through every entry
 point of the chain (NaN/inf/huge times and values, time going backwards, corrupt clocks,
 fractional and out-of-range counts, out-of-range lengths, NULL pointers, blocks of any size,
 resets, the switch, corrupted configurations) and checks the header's contract itself: a

@@ -1,7 +1,7 @@
 """The fixed-point spindle step (ps_spindle_step_fx, int32 Q24) against the double C step.
 
 The fixed-point step is plain C99, so it is compiled for the host (the cached library of
-spindle.cbuild) and compared with the double ``ps_spindle_step`` (itself equal to the numpy
+spindle.native.build) and compared with the double ``ps_spindle_step`` (itself equal to the numpy
 core to ~1e-12 pps, tests/test_c_spindle.py) at the same step and theta, on the Mileusnic
 Fig. 3 protocol and on random trajectories over the valid input range. What is left is the
 fixed-point arithmetic (Q24 resolution 6e-8, products rounded to nearest, Newton to 1e-4 in
@@ -12,7 +12,7 @@ pps/L0), i.e. 0.02 pps for HUMAN and 0.1 pps for CAT (~5x the measured maxima). 
 Cortex-M0+ build computes the same integers as this host build (scripts/bench_embedded.py:
 emulator vs host 0 pps).
 
-The sanitizer fuzz (spindle/c/fuzz/fuzz_fixed.c, ASan + UBSan, which abort on any signed
+The sanitizer fuzz (spindle/native/c/fuzz/fuzz_fixed.c, ASan + UBSan, which abort on any signed
 int32 overflow) checks the overflow guarantee of ps_plan_fx_init's bound analysis on random
 and perturbed constants, in-range and corrupted states and invalid inputs, and the status
 codes and the untouched state on failure.
@@ -247,7 +247,7 @@ def test_plan_refuses_what_it_cannot_represent(lib):
     assert lib.ps_plan_fx_init(None, None, 5e-3, 0.5) == PS_ERR_NULL
 
 
-# ---- sanitizer fuzz (spindle/c/fuzz/fuzz_fixed.c) -------------------------------------------
+# ---- sanitizer fuzz (spindle/native/c/fuzz/fuzz_fixed.c) -----------------------------------------
 
 FUZZ_SOURCE = native_build.SOURCE_DIR / "fuzz" / "fuzz_fixed.c"
 

@@ -1,6 +1,6 @@
 """spindle.c under AddressSanitizer + UndefinedBehaviorSanitizer, driven by random inputs.
 
-spindle/c/fuzz/fuzz_spindle.c draws states, constants and inputs (NaN, inf, huge, negative
+spindle/native/c/fuzz/fuzz_spindle.c draws states, constants and inputs (NaN, inf, huge, negative
 drive, out-of-range lengths, h <= 0, theta outside [0, 1], NULL pointers, random state bytes)
 and checks the header's promises itself: a status of enum ps_status, the documented status for
 each invalid input, the state and outputs untouched on failure, finite rates >= 0 on success.

@@ -1,4 +1,4 @@
-"""The C spindle (spindle/c/spindle.c) against the numpy core and the stiff reference.
+"""The C spindle (spindle/native/c/spindle.c) against the numpy core and the stiff reference.
 
 The double build follows spindle.core operation by operation, so on contractive settings
 (trapezoidal rule, backward Euler) it agrees with numpy to ~1e-12 pps. Forward Euler is

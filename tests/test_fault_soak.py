@@ -1,4 +1,4 @@
-"""The fault-injection soak (spindle.fault_injection, scripts/fault_soak.py): its stream holds
+"""The fault-injection soak (proprio_env.fault_injection, scripts/fault_soak.py): its stream holds
 the faults it claims, its checks catch a broken backend, and both backends pass it."""
 
 from __future__ import annotations

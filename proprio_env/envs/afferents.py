@@ -6,7 +6,7 @@ Three sources feed the spindle chain (:class:`spindle.chain.ArmChain`) at differ
   sample per physics step (2 ms, 500 Hz);
 - ``"reduced"``: MuJoCo's elbow angle through the fitted length model, one sample per physics
   step;
-- ``"encoder"``: a simulated AX-12 encoder (:class:`spindle.sensor.Encoder`: jittered ~500 Hz
+- ``"encoder"``: a simulated AX-12 encoder (:class:`proprio_env.encoder.Encoder`: jittered ~500 Hz
   sample times, 0.29 deg counts, noise, rare invalid readings) reading the elbow angle, then
   the prosthesis chain (median filter, f(x), fitted lengths), as in the seed paper.
 
