@@ -21,6 +21,8 @@ from spindle import core
 from spindle.native import abi, build
 from spindle.native import spindle as native_spindle
 
+PS_OK, PS_ERR_NULL = abi.Status.PS_OK, abi.Status.PS_ERR_NULL
+
 try:
     build.find_compiler()
 except build.CBackendError as exc:  # pragma: no cover - depends on the machine
@@ -198,7 +200,7 @@ def c_api(variant="double"):
     p = abi.params_struct(spindle.CAT, variant)
     _, PsSpindle = abi.structs(variant)
     s = PsSpindle()
-    assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), 1.0, 20.0, 30.0) == 0
+    assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), 1.0, 20.0, 30.0) == PS_OK
     return lib, p, s
 
 
@@ -260,11 +262,12 @@ def test_bad_step_inputs_give_their_status_and_leave_the_state(variant, args, st
 
 def test_null_pointers_and_bad_params():
     lib, p, s = c_api()
-    assert lib.ps_spindle_step(None, ctypes.byref(p), 1.0, 0, 0, 1e-3, 0.5, None, None) == 1
-    assert lib.ps_spindle_step(ctypes.byref(s), None, 1.0, 0, 0, 1e-3, 0.5, None, None) == 1
-    assert lib.ps_spindle_init(None, ctypes.byref(p), 1.0, 0, 0) == 1
-    assert lib.ps_params_check(None) == 1
-    assert lib.ps_params_check(ctypes.byref(p)) == 0
+    step = lib.ps_spindle_step
+    assert step(None, ctypes.byref(p), 1.0, 0, 0, 1e-3, 0.5, None, None) == PS_ERR_NULL
+    assert step(ctypes.byref(s), None, 1.0, 0, 0, 1e-3, 0.5, None, None) == PS_ERR_NULL
+    assert lib.ps_spindle_init(None, ctypes.byref(p), 1.0, 0, 0) == PS_ERR_NULL
+    assert lib.ps_params_check(None) == PS_ERR_NULL
+    assert lib.ps_params_check(ctypes.byref(p)) == PS_OK
     lib.ps_spindle_afferents(None, None, None, None)  # documented no-op
     bad = abi.params_struct(spindle.CAT)
     bad.a[1] = 1.0
@@ -286,11 +289,11 @@ def test_plan_step_matches_the_exact_step(variant, theta, step_s):
     p = abi.params_struct(spindle.CAT, variant)
     _, PsSpindle = abi.structs(variant)
     plan = abi.plan_struct(variant)()
-    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), step_s, theta) == 0
+    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), step_s, theta) == PS_OK
     length = fig3_protocol(step_s)[0][:, 7]  # 1.55 L0/s
     a, b = PsSpindle(), PsSpindle()
     for s in (a, b):
-        assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), length[0], 70.0, 20.0) == 0
+        assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), length[0], 70.0, 20.0) == PS_OK
     ia_a, ii_a, ia_b, ii_b = real(), real(), real(), real()
     worst = 0.0
     for j in range(1, len(length)):
@@ -317,7 +320,7 @@ def test_plan_refuses_bad_setup_and_inputs():
     assert names(lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(bad), 1e-3, 0.5)) \
         == "PS_ERR_CONFIG"
     assert bytes(plan) == bytes(PsPlan())  # untouched on failure
-    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), 1e-3, 0.5) == 0
+    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), 1e-3, 0.5) == PS_OK
     before = state_bytes(s)
     for args, status in (((math.nan, 0.0, 0.0), "PS_ERR_NONFINITE"),
                          ((1.6, 0.0, 0.0), "PS_ERR_LENGTH_RANGE"),
