@@ -21,7 +21,8 @@ import pytest
 
 import spindle
 from spindle.native import build
-from spindle.simulate import MAX_SUBSTEPS, substep_lengths
+from spindle.simulate import MAX_SUBSTEPS
+from spindle.substeps import substep_lengths
 
 try:
     build.find_compiler()
