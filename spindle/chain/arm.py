@@ -4,10 +4,11 @@
            -> tracking low-pass (L, dL/dt) -> PI template -> gamma_s = h, gamma_d = g
            -> Mileusnic spindles (HUMAN gains) -> Ia, II per muscle
 
-This is what would run on the prosthesis, so it needs no MuJoCo. :class:`ArmChain` streams:
-push samples as they come and read the rates. :func:`run_chain` takes a whole trace and
-returns every intermediate signal; it is :class:`ArmChain` driven sample by sample, so the
-two agree exactly.
+This is what would run on the prosthesis, so it needs no MuJoCo. :class:`ArmChain` (numpy)
+streams: push samples as they come and read the rates. :func:`spindle.chain.run_chain` takes
+a whole trace and returns every intermediate signal; it is the chain driven sample by sample
+(:meth:`ArmChain.run_trace`), so the two agree exactly. The C chain,
+:class:`spindle.native.chain.CArmChain`, follows the same rules.
 
 Three entry points feed the same chain at different stages: encoder counts
 (:meth:`ArmChain.push_counts`, the prosthesis), clean elbow angles (:meth:`~ArmChain.push_angle`,
