@@ -3,7 +3,7 @@
 The exact model (:mod:`proprio_env.muscle_length`) is swept densely over the elbow range and
 each muscle's curve is fitted by a Chebyshev series (``numpy.polynomial``). The degree is the
 smallest whose error on held-out angles (every other sample, the fit made on the rest) is
-within the tolerance; the final fit uses all samples. ``spindle.length_fits`` evaluates the
+within the tolerance; the final fit uses all samples. ``spindle.chain.length_model`` evaluates the
 result without MuJoCo. The user-facing command is ``python scripts/fit_lengths.py``.
 
 :func:`fits_for_model` is what the envs use: the committed fits for the bundled model (or a
@@ -25,13 +25,12 @@ from numpy.polynomial import Chebyshev
 
 from proprio_env.model import JOINT, model_path
 from proprio_env.muscle_length import Sweep, elbow_range_rad, sweep
-from spindle.length_fits import (
+from spindle.chain.length_model import (
     FITS_FILENAME,
     FORMAT,
     REGENERATE_COMMAND,
     LengthFits,
     LengthFitsError,
-    default_model_path,
     file_sha256,
     length_fits_from_document,
     load_length_fits,
@@ -178,10 +177,10 @@ def fits_for_model(model_file: str | Path | None = None,
     ------
     LengthFitsError
         If a fit misses :data:`TARGET_L0` or a fitted length leaves the spindle's valid
-        range (:func:`spindle.length_fits.check_length_range`); the message names the model,
+        range (:func:`spindle.chain.length_model.check_length_range`); the message names the model,
         and the muscle, angle and length or the command that fits it with other settings.
     """
-    path = Path(model_file) if model_file is not None else default_model_path()
+    path = Path(model_file) if model_file is not None else model_path()
     try:
         sha = file_sha256(path)
     except OSError as err:

@@ -9,22 +9,22 @@ names: hinge ``r_elbow_flex`` (0-130 deg), spatial tendons and muscle actuators 
 from __future__ import annotations
 
 import math
+from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from spindle.length_fits import default_model_path
+from spindle.chain.config import MUSCLES
 
 if TYPE_CHECKING:
     import mujoco
 
-__all__ = ["FOREARM", "JOINT", "MUSCLES", "SERVO", "load_model", "model_path"]
+__all__ = ["FOREARM", "JOINT", "MODEL_FILENAME", "MUSCLES", "SERVO", "load_model", "model_path",
+           "models_dir"]
 
 JOINT = "r_elbow_flex"
 """Name of the elbow hinge (OpenSim coordinate name)."""
-MUSCLES = ("BRA", "TRImed")
-"""Muscles in the order used on every muscle axis of the package."""
 SERVO = "r_elbow_servo"
 """Name of the position actuator of the servo-driven prosthesis mode."""
 FOREARM = "r_ulna_radius_hand"
@@ -36,9 +36,33 @@ OBSTACLE_DISTANCE_M = 0.2
 """The obstacle is a sphere of this radius touching the forearm this far from the elbow."""
 
 
+MODEL_FILENAME = "elbow.xml"
+_DATA_PACKAGE = "proprio_models"
+
+
+def models_dir() -> Path:
+    """Folder holding ``elbow.xml``, ``length_fits.json`` and the oracles' data.
+
+    A source checkout (plain or editable install) uses the repository's ``models/`` next to
+    this package; a wheel install uses the installed data package ``proprio_models``.
+    """
+    checkout = Path(__file__).resolve().parent.parent / "models"
+    if (checkout / MODEL_FILENAME).is_file():
+        return checkout
+    try:
+        installed = resources.files(_DATA_PACKAGE)
+    except ModuleNotFoundError as err:
+        raise FileNotFoundError(
+            f"cannot find the models folder: neither {checkout} nor an installed "
+            f"'{_DATA_PACKAGE}' package exists; reinstall proprio-elbow"
+        ) from err
+    # Wheels install plain files, so the traversable is a real directory.
+    return Path(str(installed))
+
+
 def model_path() -> Path:
     """Path of ``elbow.xml`` (source checkout, editable or wheel install)."""
-    return default_model_path()
+    return models_dir() / MODEL_FILENAME
 
 
 def load_model(

@@ -23,8 +23,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from spindle.chain import ArmChain, ChainConfig
-from spindle.sensor import Encoder
+from proprio_env.encoder import Encoder
+from spindle.chain import ChainConfig, make_chain
 
 
 def encoder_trace(duration_s: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -40,7 +40,7 @@ def runner(backend: str, block: int, t_s: np.ndarray, counts: np.ndarray) -> Cal
     angle0 = float(config.calibration.angle_deg(counts[0]))
     t_rest, c_rest = t_s[1:], counts[1:].astype(float)
 
-    chain = ArmChain(config)  # built once: only reset and pushes are timed
+    chain = make_chain(config)  # built once: only reset and pushes are timed
 
     def run() -> int:
         chain.reset(angle0, t_s[0])

@@ -1,6 +1,6 @@
 """Cost of the C spindle on a Cortex-M0+: instructions per step, MIPS, flash and RAM.
 
-Cross-compiles spindle/c/spindle.c with the firmware spindle/c/m0plus/firmware.c (two
+Cross-compiles spindle/native/c/spindle.c with the firmware spindle/native/c/m0plus/firmware.c (two
 muscles, HUMAN constants in flash) for -mcpu=cortex-m0plus -mthumb, soft float, newlib-nano,
 and runs the step in an instruction-set emulator (unicorn >= 2.1) on the Mileusnic Fig. 3
 protocol (ramps 0.95 -> 1.08 L0 at 0.11, 0.66, 1.55 L0/s, drive (0,0), (70,0), (0,70) pps,
@@ -71,10 +71,11 @@ from pathlib import Path
 import numpy as np
 
 import spindle
-from spindle import cbackend, cbuild
+from spindle.native import abi, build
+from spindle.native import spindle as native_spindle
 
 REPO = Path(__file__).resolve().parents[1]
-C_DIR = REPO / "spindle" / "c"
+C_DIR = build.SOURCE_DIR
 FW_DIR = C_DIR / "m0plus"
 TOOL_PREFIX = "arm-none-eabi-"
 ARM_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wdouble-promotion",
@@ -160,13 +161,13 @@ def host_library(cfg: Config, build_dir: Path) -> ctypes.CDLL:
     """The same spindle.c and options, float32, as a host shared library."""
     out = build_dir / f"host_{key(cfg)}.so"
     if not out.exists():
-        cmd = [*cbuild.compiler_command(), *cbuild.WARNING_FLAGS, "-O2", "-fPIC", "-shared",
+        cmd = [*build.compiler_command(), *build.WARNING_FLAGS, "-O2", "-fPIC", "-shared",
                "-DPS_FLOAT", *cfg.c_defines(), "-I", str(C_DIR), str(C_DIR / "spindle.c"),
                "-o", str(out), "-lm"]
         subprocess.run(cmd, check=True)
     lib = ctypes.CDLL(str(out))
-    PsParams, PsSpindle = cbuild.structs("float")
-    PsPlan = cbackend.plan_struct("float")
+    PsParams, PsSpindle = abi.structs("float")
+    PsPlan = abi.plan_struct("float")
     P, f = ctypes.POINTER, ctypes.c_float
     lib.ps_spindle_init.argtypes = [P(PsSpindle), P(PsParams), f, f, f]
     lib.ps_spindle_step.argtypes = [P(PsSpindle), P(PsParams), f, f, f, f, f, P(f), P(f)]
@@ -208,9 +209,9 @@ def fixed_structs() -> tuple[type, type]:
 def declare_fixed(lib: ctypes.CDLL, variant: str) -> None:
     """Prototypes of the fixed-point functions in a host build of spindle.c."""
     PsPlanFx, PsSpindleFx = fixed_structs()
-    PsParams, _ = cbuild.structs(variant)
+    PsParams, _ = abi.structs(variant)
     P, i32 = ctypes.POINTER, ctypes.c_int32
-    real = cbuild.real_type(variant)
+    real = abi.real_type(variant)
     lib.ps_plan_fx_init.argtypes = [P(PsPlanFx), P(PsParams), real, real]
     lib.ps_spindle_fx_init.argtypes = [P(PsSpindleFx), P(PsPlanFx), i32, i32, i32]
     lib.ps_spindle_step_fx.argtypes = [P(PsSpindleFx), P(PsPlanFx), i32, i32, i32, P(i32),
@@ -232,7 +233,7 @@ def fixed_rates(lib: ctypes.CDLL, plan, L: np.ndarray, gd: np.ndarray,
     ii = np.full(len(L), np.nan)
     code = lib.ps_spindle_fx_init(ctypes.byref(s), ctypes.byref(plan), int(q24[0]),
                                   int(dgd[0]), int(dgs[0]))
-    if code != 0:
+    if code != abi.Status.PS_OK:
         return ia, ii, code
     a, b = ctypes.c_int32(), ctypes.c_int32()
     lib.ps_spindle_fx_afferents(ctypes.byref(s), ctypes.byref(plan), ctypes.byref(a),
@@ -242,7 +243,7 @@ def fixed_rates(lib: ctypes.CDLL, plan, L: np.ndarray, gd: np.ndarray,
         code = lib.ps_spindle_step_fx(ctypes.byref(s), ctypes.byref(plan), int(q24[j]),
                                       int(dgd[j]), int(dgs[j]), ctypes.byref(a),
                                       ctypes.byref(b))
-        if code != 0:
+        if code != abi.Status.PS_OK:
             return ia, ii, code
         ia[j], ii[j] = a.value / FX_RATE, b.value / FX_RATE
     return ia, ii, 0
@@ -251,12 +252,12 @@ def fixed_rates(lib: ctypes.CDLL, plan, L: np.ndarray, gd: np.ndarray,
 def plan_header(cfg: Config, build_dir: Path) -> Path:
     """fw_plan.h: the plan of ps_plan_init (host, float32) as a const initializer."""
     lib = host_library(cfg, build_dir)
-    PsPlan = cbackend.plan_struct("float")
+    PsPlan = abi.plan_struct("float")
     plan = PsPlan()
-    params = cbuild.params_struct(PARAMS, "float")
+    params = abi.params_struct(PARAMS, "float")
     code = lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(params), cfg.step_s, cfg.theta)
-    if code != 0:
-        raise RuntimeError(f"ps_plan_init: {cbackend.status_name(code)}")
+    if code != abi.Status.PS_OK:
+        raise RuntimeError(f"ps_plan_init: {abi.status_name(code)}")
 
     def literal(x: float) -> str:
         return f"{float(np.float32(x)).hex()}f"
@@ -282,10 +283,10 @@ def plan_header(cfg: Config, build_dir: Path) -> Path:
 def fixed_plan(lib: ctypes.CDLL, cfg: Config):
     PsPlanFx, _ = fixed_structs()
     plan = PsPlanFx()
-    params = cbuild.params_struct(PARAMS, "float")
+    params = abi.params_struct(PARAMS, "float")
     code = lib.ps_plan_fx_init(ctypes.byref(plan), ctypes.byref(params), cfg.step_s, cfg.theta)
-    if code != 0:
-        raise RuntimeError(f"ps_plan_fx_init: {cbackend.status_name(code)}")
+    if code != abi.Status.PS_OK:
+        raise RuntimeError(f"ps_plan_fx_init: {abi.status_name(code)}")
     return plan
 
 
@@ -563,14 +564,15 @@ def host_rates(lib, cfg: Config, run) -> tuple[np.ndarray, np.ndarray]:
         L = protocol(speed, cfg.step_s)
         ia, ii, code = fixed_rates(lib, fixed_plan(lib, cfg), L, np.full(L.shape, gd),
                                    np.full(L.shape, gs))
-        if code != 0:
-            raise RuntimeError(f"host fixed-point step: {cbackend.status_name(code)}")
+        if code != abi.Status.PS_OK:
+            raise RuntimeError(f"host fixed-point step: {abi.status_name(code)}")
         return ia, ii
     L = protocol(speed, cfg.step_s).astype(np.float32)
-    _, PsSpindle = cbuild.structs("float")
-    params = cbuild.params_struct(PARAMS, "float")
+    _, PsSpindle = abi.structs("float")
+    params = abi.params_struct(PARAMS, "float")
     s = PsSpindle()
-    if lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(params), L[0], gd, gs) != 0:
+    code = lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(params), L[0], gd, gs)
+    if code != abi.Status.PS_OK:
         raise RuntimeError("init failed")
     ia = np.empty(len(L))
     ii = np.empty(len(L))
@@ -579,7 +581,7 @@ def host_rates(lib, cfg: Config, run) -> tuple[np.ndarray, np.ndarray]:
                              ctypes.byref(b))
     ia[0], ii[0] = a.value, b.value
     if cfg.plan:
-        plan = cbackend.plan_struct("float")()
+        plan = abi.plan_struct("float")()
         lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(params), cfg.step_s, cfg.theta)
     for j in range(1, len(L)):
         if cfg.plan:
@@ -588,8 +590,8 @@ def host_rates(lib, cfg: Config, run) -> tuple[np.ndarray, np.ndarray]:
         else:
             code = lib.ps_spindle_step(ctypes.byref(s), ctypes.byref(params), L[j], gd, gs,
                                        cfg.step_s, cfg.theta, ctypes.byref(a), ctypes.byref(b))
-        if code != 0:
-            raise RuntimeError(f"host step {j}: {cbackend.status_name(code)}")
+        if code != abi.Status.PS_OK:
+            raise RuntimeError(f"host step {j}: {abi.status_name(code)}")
         ia[j], ii[j] = a.value, b.value
     return ia, ii
 
@@ -630,7 +632,7 @@ def measure(cfg: Config, runs, refs, build_dir: Path) -> Measured:
     emu = M0Plus(elf)
     # (the fixed-point firmware holds only the plan, made from PARAMS by plan_fx_header)
     if not cfg.fixed and emu.read_symbol("fw_params") != bytes(
-            cbuild.params_struct(PARAMS, "float")):
+            abi.params_struct(PARAMS, "float")):
         raise RuntimeError("fw_params in firmware.c differ from spindle.HUMAN")
     counts = []
     max_diff = 0.0
@@ -643,15 +645,15 @@ def measure(cfg: Config, runs, refs, build_dir: Path) -> Measured:
         gss = [gs for _, _, gs in pair]
         emu.write_io([x[0] for x in lengths], gds, gss, cfg.fixed)
         status, _ = emu.call("fw_init")
-        if status != 0:
-            raise RuntimeError(f"fw_init: {cbackend.status_name(status)}")
+        if status != abi.Status.PS_OK:
+            raise RuntimeError(f"fw_init: {abi.status_name(status)}")
         host = [host_rates(lib, cfg, run) for run in pair]
         for j in range(1, len(lengths[0])):
             emu.write_io([x[j] for x in lengths], gds, gss, cfg.fixed)
             for k in range(2):
                 status, n = emu.call("fw_step_muscle", k)
-                if status != 0:
-                    raise RuntimeError(f"fw_step_muscle: {cbackend.status_name(status)}")
+                if status != abi.Status.PS_OK:
+                    raise RuntimeError(f"fw_step_muscle: {abi.status_name(status)}")
                 counts.append(n)
             ia, ii, _ = emu.read_rates(cfg.fixed)
             for k in range(2):
@@ -713,8 +715,8 @@ def emulate_demo(emu: M0Plus, L: np.ndarray, gd: np.ndarray, gs: np.ndarray):
     """Both muscles through the sequence in the firmware: (instructions (T-1, 2), Ia, II)."""
     emu.write_io(L[0], gd[0], gs[0], True)
     status, _ = emu.call("fw_init")
-    if status != 0:
-        raise RuntimeError(f"fw_init: {cbackend.status_name(status)}")
+    if status != abi.Status.PS_OK:
+        raise RuntimeError(f"fw_init: {abi.status_name(status)}")
     counts = np.empty((len(L) - 1, 2), dtype=np.int64)
     ia = np.empty((len(L) - 1, 2))
     ii = np.empty((len(L) - 1, 2))
@@ -722,9 +724,9 @@ def emulate_demo(emu: M0Plus, L: np.ndarray, gd: np.ndarray, gs: np.ndarray):
         emu.write_io(L[j], gd[j], gs[j], True)
         for k in range(2):
             status, counts[j - 1, k] = emu.call("fw_step_muscle", k)
-            if status != 0:
+            if status != abi.Status.PS_OK:
                 raise RuntimeError(f"fw_step_muscle({k}) at step {j}: "
-                                   f"{cbackend.status_name(status)}")
+                                   f"{abi.status_name(status)}")
         ia[j - 1], ii[j - 1], _ = emu.read_rates(True)
     return counts, ia, ii
 
@@ -745,11 +747,11 @@ def measure_demo(cfg: Config, build_dir: Path) -> DemoMeasured:
     rms_double, rms_chain, max_diff = {}, {}, 0.0
     for k, muscle in enumerate(MUSCLES):
         fx_ia, fx_ii, code = fixed_rates(lib, plan, L[:, k], gd[:, k], gs[:, k])
-        if code != 0:
-            raise RuntimeError(f"host fixed-point step ({muscle}): {cbackend.status_name(code)}")
+        if code != abi.Status.PS_OK:
+            raise RuntimeError(f"host fixed-point step ({muscle}): {abi.status_name(code)}")
         max_diff = max(max_diff, float(np.max(np.abs(emu_ia[:, k] - fx_ia[1:]))),
                        float(np.max(np.abs(emu_ii[:, k] - fx_ii[1:]))))
-        ref_ia, ref_ii = cbackend.run_spindle(L[:, k], gd[:, k], gs[:, k], cfg.step_s,
+        ref_ia, ref_ii = native_spindle.run_spindle(L[:, k], gd[:, k], gs[:, k], cfg.step_s,
                                               cfg.theta, 1, PARAMS, "double")
         for name, got, ref, chain in (("Ia", fx_ia, ref_ia, trace.ia_pps[:, k]),
                                       ("II", fx_ii, ref_ii, trace.ii_pps[:, k])):

@@ -29,7 +29,8 @@ from collections.abc import Sequence
 import numpy as np
 
 import spindle
-from spindle import cbackend, cbuild
+from spindle.native import abi
+from spindle.native import spindle as native_spindle
 
 MYOGEN_MS_PER_SIMULATED_S = 52.0
 DT_S = 1e-3
@@ -53,9 +54,9 @@ def median_time(fn, repeats: int) -> float:
 
 def c_loop_seconds(length: np.ndarray, repeats: int) -> float:
     """Median wall time of one ps_spindle_run over the trace (1 step per sample)."""
-    lib = cbackend.library("double")
-    p = cbuild.params_struct(spindle.CAT)
-    _, PsSpindle = cbuild.structs("double")
+    lib = native_spindle.library("double")
+    p = abi.params_struct(spindle.CAT)
+    _, PsSpindle = abi.structs("double")
     L = np.ascontiguousarray(length[1:])
     gd = np.full_like(L, 30.0)
     gs = np.full_like(L, 30.0)
@@ -68,12 +69,13 @@ def c_loop_seconds(length: np.ndarray, repeats: int) -> float:
 
     def run():
         s = PsSpindle()
-        if lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), length[0], 30.0, 30.0) != 0:
-            raise RuntimeError("init failed")
+        code = lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), length[0], 30.0, 30.0)
+        if code != abi.Status.PS_OK:
+            raise RuntimeError(f"init failed: {abi.status_name(code)}")
         code = lib.ps_spindle_run(ctypes.byref(s), ctypes.byref(p), *args, len(L), DT_S, 0.5,
                                   1, *outs, ctypes.byref(done))
-        if code != 0:
-            raise RuntimeError(cbackend.status_name(code))
+        if code != abi.Status.PS_OK:
+            raise RuntimeError(abi.status_name(code))
 
     run()
     return median_time(run, repeats)

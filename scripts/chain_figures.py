@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 import spindle
+from proprio_env.encoder import Encoder
 from spindle.chain import ArmChain, ChainConfig, run_chain
-from spindle.fusimotor import SEED_PAPER, Fusimotor
-from spindle.sensor import Encoder
+from spindle.chain.fusimotor import SEED_PAPER, Fusimotor
 
 NOISE_L0 = (0.001, 0.002, 0.005)
 RATE_HZ = 500.0

@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 
 import spindle
+from proprio_env.encoder import Encoder
 from proprio_env.model import load_model
 from proprio_env.servo_motion import drive_servo, triangle_deg
 from spindle.chain import MUSCLES, ChainTrace, run_chain
-from spindle.sensor import Encoder
 
 
 def run(duration_s: float, seed: int) -> dict[str, object]:
@@ -80,7 +80,7 @@ def plot(result: dict[str, object], path: Path) -> None:
     pro: ChainTrace = result["prosthesis"]
     exact: ChainTrace = result["exact"]
     t = result["t_s"]
-    cal = spindle.sensor.Calibration()
+    cal = spindle.chain.sensor.Calibration()
     raw_deg = np.where(pro.counts >= 0, cal.angle_deg(pro.counts), np.nan)
     rows = ["encoder", "length", "gamma_s", "gamma_d", "ia", "ii"]
     fig, axes = plt.subplots(len(rows), 2, figsize=(11, 12), sharex=True)

@@ -4,7 +4,7 @@
     python scripts/fault_soak.py --quick         # ~10^4 samples
     python scripts/fault_soak.py --samples 200000 --seed 3 --no-progress
 
-The stream, the faults and the checks are those of :mod:`spindle.fault_injection` (servo
+The stream, the faults and the checks are those of :mod:`proprio_env.fault_injection` (servo
 moves read by a noisy AX-12 encoder; dropouts from one sample to minutes, clock jumps,
 corrupted times and readings). Prints a summary table, then a last line
 ``fault_soak samples=<n> counters_equal=<bool> max_rate_diff_pps=<f> rss_growth_MB=<f>
@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from spindle.fault_injection import run_soak
+from proprio_env.fault_injection import run_soak
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,7 +28,7 @@ from proprio_env.length_fitting import (
     write_fits,
 )
 from proprio_env.model import load_model, model_path
-from spindle.length_fits import load_length_fits
+from spindle.chain.length_model import load_length_fits
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_ORACLE = REPO_ROOT / "tests" / "data" / "arm26_elbow_oracle.csv"

@@ -1,4 +1,9 @@
-"""Batch simulation of spindles driven by sampled fascicle-length traces.
+"""Batch simulation of spindles driven by sampled fascicle-length traces (numpy).
+
+The public entry point is :func:`spindle.simulate` (``spindle/__init__.py``), which runs this
+module's :func:`simulate` or, with ``backend="c"``, :func:`spindle.native.spindle.simulate`;
+both share :func:`prepare_inputs`, :func:`chunk_bounds` and the sub-step lengths of
+:mod:`spindle.substeps`.
 
 Long inputs are streamed: the internal steps are built and run a chunk of sample intervals at
 a time (:data:`CHUNK_ELEMENTS`), so memory stays a small multiple of the input and output;
@@ -7,7 +12,6 @@ the results do not depend on the chunk size (bit for bit).
 
 from __future__ import annotations
 
-import math
 import operator
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -17,6 +21,7 @@ import numpy as np
 from spindle import core
 from spindle.methods import Method, get_method
 from spindle.params import CAT, SpindleParams
+from spindle.substeps import substep_lengths, substeps
 
 
 @dataclass(frozen=True)
@@ -58,11 +63,6 @@ def _broadcast_trace(name: str, value: object, shape: tuple[int, ...]) -> np.nda
         raise ValueError(
             f"{name} has shape {arr.shape}, which does not broadcast to length's shape {shape}"
         ) from None
-
-
-def substeps(dt_s: float, step_s: float) -> int:
-    """Number of equal internal steps, each at most ``step_s``, that make up ``dt_s``."""
-    return max(1, math.ceil(dt_s / step_s * (1 - 1e-12)))
 
 
 class PreparedInputs(NamedTuple):
@@ -144,54 +144,10 @@ def simulate(
     params: SpindleParams = CAT,
     method: str | Method | None = None,
     step: float | None = None,
-    backend: str = "numpy",
     chunk_samples: int | None = None,
 ) -> SpindleResult:
-    """Ia and II rates of spindles whose host fascicles follow ``length``.
-
-    Args:
-        length: normalised fascicle length (L0) sampled every ``dt`` seconds, shape (T,) for
-            one spindle or (T, n) for n spindles.
-        dt: sample interval (s).
-        velocity: dL/dt (L0/s) at the samples; if None, ``numpy.gradient`` of ``length``
-            (second-order central differences).
-        acceleration: d2L/dt2 (L0/s^2) at the samples, optional.
-        gamma_dyn, gamma_stat: fusimotor drive (pps), scalars or arrays broadcastable to
-            ``length``; held at each sample's value over the interval that ends there.
-        params: spindle constants (:data:`spindle.CAT`, :data:`spindle.HUMAN`, ...).
-        method: ``"trapezoidal"`` (default), ``"backward_euler"`` or ``"forward_euler"``.
-        step: internal integration step (s). Each sample interval is split into the fewest
-            equal sub-steps no longer than ``step``. None means the method's default.
-        backend: ``"numpy"`` (default) or ``"c"``: the C port (spindle/c/spindle.c, compiled
-            on first use; :class:`spindle.cbuild.CBackendError` if no C compiler is found).
-            Both take the same inputs, raise the same ValueErrors and agree to 1e-6 pps
-            (``docs/c_port.md``).
-        chunk_samples: sample intervals per chunk of the stream (default: about
-            :data:`CHUNK_ELEMENTS` internal steps x spindles); only memory depends on it.
-
-    The integrator consumes lengths only (the (T, v) form integrates the dL/dt input exactly
-    over a step, see :mod:`spindle.core`); the derivatives shape the length *between* samples
-    when sub-stepping: a cubic Hermite curve through the samples and their velocities, or a
-    quintic one when the acceleration is given too, held inside the valid range and the
-    speed limit (:func:`substep_lengths`; the count is ``substeps_limited``). The spindles
-    start at rest at the first sample's length and drive
-    (:func:`spindle.core.equilibrium_state`).
-
-    Raises:
-        ValueError: non-finite inputs, lengths outside :data:`spindle.core.LENGTH_RANGE_L0`,
-            length changes faster than :data:`spindle.core.MAX_SPEED_L0_S`, negative drive,
-            ``dt`` or ``step`` <= 0 or above the method's limit, more than
-            :data:`MAX_SUBSTEPS` internal steps per sample interval, shapes that do not
-            match.
-    """
-    if backend == "c":
-        from spindle import cbackend
-
-        return cbackend.simulate(length, dt, velocity=velocity, acceleration=acceleration,
-                                 gamma_dyn=gamma_dyn, gamma_stat=gamma_stat, params=params,
-                                 method=method, step=step, chunk_samples=chunk_samples)
-    if backend != "numpy":
-        raise ValueError(f"backend={backend!r} is not one of ['c', 'numpy']")
+    """The numpy path of :func:`spindle.simulate` (the package's function, which also takes
+    ``backend``): the same arguments, results and errors, as documented there."""
     m, L, gd, gs, derivatives, k, h = prepare_inputs(
         length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method, step)
     shape = np.shape(length)
@@ -258,70 +214,3 @@ def _run_one_spindle(carry, lengths, gd, gs, k, h, theta, c, ia, ii):
     ia[:, 0] = rates_ia
     ii[:, 0] = rates_ii
     return T, v, z, f, L0, gd0, gs0
-
-
-def substep_lengths(L: np.ndarray, derivatives: list[np.ndarray], k: int, dt: float,
-                    i0: int = 1, i1: int | None = None) -> tuple[np.ndarray, int]:
-    """The length at the end of every internal step of sample intervals i0 .. i1-1 (interval
-    i ends on sample i), shape ((i1 - i0)*k, n), and how many of them the limits changed.
-
-    Sub-step j of an interval is the Hermite curve at fraction j/k (linear without
-    ``derivatives``); step k ends on the sample itself. The curve can overshoot where valid
-    samples lie near a range end or move near the speed limit, so each sub-step length is
-    clipped to the valid range and to where it stays within MAX_SPEED_L0_S (less 1e-9, so
-    that rounding never crosses the limit) both of the previous sub-step and of the sample
-    that ends the interval: the clipped path is never faster than the limit and always lands
-    on that sample. Inside those limits the curve is untouched (bit for bit). Both backends
-    use these lengths.
-    """
-    i1 = L.shape[0] if i1 is None else i1
-    start, end = L[i0 - 1:i1 - 1], L[i0:i1]
-    out = np.empty((i1 - i0, k, L.shape[1]))
-    out[:, k - 1] = end
-    if k == 1:
-        return out.reshape(-1, L.shape[1]), 0
-    pairs = [(d[i0 - 1:i1 - 1], d[i0:i1]) for d in derivatives]
-    lo_range, hi_range = core.LENGTH_RANGE_L0
-    # each sub-step moves at most `reach`; samples that already move at the limit (within
-    # the margin) keep their own pace, so that the band below never closes
-    reach = np.maximum(core.MAX_SPEED_L0_S * (1.0 - 1e-9) * dt / k, np.abs(end - start) / k)
-    previous = start
-    changed = 0
-    for j in range(1, k):
-        w = hermite_weights(j / k, len(pairs))
-        value = w[0] * start + w[1] * end
-        scale = dt
-        for q, (d0, d1) in enumerate(pairs):
-            value = value + scale * (w[2 + 2 * q] * d0 + w[3 + 2 * q] * d1)
-            scale *= dt
-        left = reach * (k - j)  # what the remaining sub-steps can still cover
-        lo = np.maximum(np.maximum(previous - reach, end - left), lo_range)
-        hi = np.minimum(np.minimum(previous + reach, end + left), hi_range)
-        clipped = np.minimum(np.maximum(value, lo), hi)
-        changed += int(np.count_nonzero(clipped != value))
-        out[:, j - 1] = clipped
-        previous = clipped
-    return out.reshape(-1, L.shape[1]), changed
-
-
-def hermite_weights(s: float, order: int) -> np.ndarray:
-    """Weights of (L0, L1, dt*v0, dt*v1, dt^2*a0, dt^2*a1) at fraction s of an interval.
-
-    order 0: linear; 1: cubic Hermite (values and first derivatives); 2: quintic Hermite
-    (values, first and second derivatives).
-    """
-    if order == 0:
-        return np.array([1 - s, s])
-    if order == 1:
-        s2, s3 = s * s, s * s * s
-        return np.array([2 * s3 - 3 * s2 + 1, -2 * s3 + 3 * s2, s3 - 2 * s2 + s, s3 - s2])
-    s2, s3, s4, s5 = s**2, s**3, s**4, s**5
-    return np.array([
-        1 - 10 * s3 + 15 * s4 - 6 * s5,
-        10 * s3 - 15 * s4 + 6 * s5,
-        s - 6 * s3 + 8 * s4 - 3 * s5,
-        -4 * s3 + 7 * s4 - 3 * s5,
-        0.5 * (s2 - 3 * s3 + 3 * s4 - s5),
-        0.5 * (s3 - 2 * s4 + s5),
-    ])
-

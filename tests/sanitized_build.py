@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from spindle import cbuild
+from spindle.native import build as native_build
 
 SANITIZER_REPORT = re.compile(r"runtime error|AddressSanitizer|LeakSanitizer|SUMMARY:")
 """What a sanitizer prints when it finds something."""
@@ -19,14 +19,14 @@ SANITIZER_REPORT = re.compile(r"runtime error|AddressSanitizer|LeakSanitizer|SUM
 def build(out: Path, sources: list[Path], variant: str, extra_flags: tuple[str, ...] = ()
           ) -> Path:
     """Compile ``sources`` into the executable ``out`` with the sanitizer flags of
-    :func:`spindle.cbuild.compile_flags` (``variant``: "double" or "float")."""
+    :func:`spindle.build.compile_flags` (``variant``: "double" or "float")."""
     try:
-        compiler = cbuild.compiler_command()
-    except cbuild.CBackendError as exc:
+        compiler = native_build.compiler_command()
+    except native_build.CBackendError as exc:
         pytest.skip(str(exc))
-    flags = [f for f in cbuild.compile_flags(variant, sanitize=True)
+    flags = [f for f in native_build.compile_flags(variant, sanitize=True)
              if f not in ("-fPIC", "-shared")]
-    cmd = [*compiler, *flags, *extra_flags, "-I", str(cbuild.SOURCE_DIR), *map(str, sources),
+    cmd = [*compiler, *flags, *extra_flags, "-I", str(native_build.SOURCE_DIR), *map(str, sources),
            "-o", str(out), "-lm"]
     result = subprocess.run(cmd, capture_output=True, text=True)
     if result.returncode != 0 and "sanitize" in result.stderr:

@@ -1,4 +1,4 @@
-"""The C chain (spindle/c/chain.c, backend="c") against the numpy chain, sample by sample.
+"""The C chain (spindle/native/c/chain.c, backend="c") against the numpy chain, sample by sample.
 
 The numpy chain is the reference: it is tested against scipy references in test_chain.py.
 Every ArmSample field of the double build must agree within 1e-6 (rates in pps), and the
@@ -7,7 +7,6 @@ counters exactly, on realistic traces full of the bad samples each handling rule
 
 import ctypes
 import math
-import re
 import shutil
 import subprocess
 from dataclasses import fields, replace
@@ -15,17 +14,26 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 
-from spindle import cbuild
-from spindle.chain import COUNTERS, ArmChain, ArmSample, ChainConfig, run_chain
-from spindle.length_fits import load_length_fits
-from spindle.sensor import AX12, Encoder
+from proprio_env.encoder import Encoder
+from spindle.chain import (
+    COUNTERS,
+    MUSCLES,
+    ArmChain,
+    ArmSample,
+    ChainConfig,
+    make_chain,
+    run_chain,
+)
+from spindle.chain.length_model import load_length_fits
+from spindle.chain.sensor import AX12
+from spindle.native import abi, build
 
 try:
-    cbuild.find_compiler()
-except cbuild.CBackendError:  # pragma: no cover - CI has a compiler
+    build.find_compiler()
+except build.CBackendError:  # pragma: no cover - CI has a compiler
     pytest.skip("no C compiler: the C backend cannot be built", allow_module_level=True)
 
-from spindle import cchain
+from spindle.native import chain as native_chain
 
 TOL = 1e-6
 C = ChainConfig(backend="c")
@@ -54,13 +62,13 @@ def assert_same(numpy_out: ArmSample, c_out: ArmSample, where: str, tol: float =
 
 
 def pair():
-    return ArmChain(ChainConfig()), ArmChain(C)
+    return ArmChain(ChainConfig()), make_chain(C)
 
 
 # -- construction and build -----------------------------------------------------------------
 def test_backend_c_builds_a_c_chain_with_the_numpy_chains_ranges():
     numpy_chain, c_chain = pair()
-    assert isinstance(c_chain, cchain.CArmChain) and isinstance(c_chain, ArmChain)
+    assert isinstance(c_chain, native_chain.CArmChain) and isinstance(c_chain, ArmChain)
     assert type(numpy_chain) is ArmChain
     # the fitted range in degrees and each muscle's range over 1301 points, computed in C
     assert c_chain.angle_range_deg == numpy_chain.angle_range_deg
@@ -75,12 +83,12 @@ def test_backend_c_builds_a_c_chain_with_the_numpy_chains_ranges():
 def test_missing_compiler_is_a_clear_error(monkeypatch, tmp_path):
     monkeypatch.setenv("CC", "/nonexistent/cc")
     monkeypatch.setenv("PROPRIO_C_CACHE", str(tmp_path))
-    with pytest.raises(cbuild.CBackendError, match=r"no C compiler.*backend='numpy'"):
-        cbuild.library_path("double")
+    with pytest.raises(build.CBackendError, match=r"no C compiler.*backend='numpy'"):
+        build.library_path("double")
 
 
 def test_chebval_equals_numpy_and_configs_beyond_the_c_limits_are_refused():
-    lib = cchain.library("double")
+    lib = native_chain.library("double")
     lib.ps_chebval.restype = ctypes.c_double
     lib.ps_chebval.argtypes = [ctypes.c_double, ctypes.POINTER(ctypes.c_double), ctypes.c_int]
     rng = np.random.default_rng(0)
@@ -90,21 +98,32 @@ def test_chebval_equals_numpy_and_configs_beyond_the_c_limits_are_refused():
             got = lib.ps_chebval(x, coef.ctypes.data_as(ctypes.POINTER(ctypes.c_double)), n)
             assert got == pytest.approx(np.polynomial.chebyshev.chebval(x, coef), abs=1e-15)
     with pytest.raises(ValueError, match="PS_MEDIAN_MAX_WINDOW"):
-        ArmChain(ChainConfig(median_window=17, backend="c"))
+        make_chain(ChainConfig(median_window=17, backend="c"))
 
 
-def test_struct_layouts_and_constants_match_the_header(tmp_path):
+def test_constants_match_the_header():
+    """The binding's copies of the chain section's limits are the header's."""
+    header = abi.header_constants()
+    for name, value in (("PS_MEDIAN_MAX_WINDOW", native_chain.MEDIAN_MAX_WINDOW),
+                        ("PS_FIT_MAX_COEFFS", native_chain.FIT_MAX_COEFFS),
+                        ("PS_PREDICTOR_MAX_SEGMENTS", native_chain.PREDICTOR_MAX_SEGMENTS),
+                        ("PS_CHAIN_MAX_UPDATES", native_chain.MAX_UPDATES),
+                        ("PS_MUSCLES", len(MUSCLES))):
+        assert header[name] == value, name
+
+
+def test_status_enum_matches_the_header():
+    """abi.Status has exactly the names and values of proprio.h's one enum ps_status."""
+    assert {s.name: s.value for s in abi.Status} == abi.header_status_codes()
+    assert "#define PS_ERR" not in build.HEADER.read_text()  # one enum, no stray defines
+    assert abi.status_name(abi.Status.PS_ERR_INTERVAL) == "PS_ERR_INTERVAL"
+    assert abi.status_name(99) == "unknown status 99"
+
+
+def test_struct_layouts_match_the_header(tmp_path):
     """The ctypes mirrors have the C sizes and offsets (a compiled probe prints them)."""
-    header = cbuild.HEADER.read_text()
-    for name, value in (("PS_MEDIAN_MAX_WINDOW", cchain.MEDIAN_MAX_WINDOW),
-                        ("PS_FIT_MAX_COEFFS", cchain.FIT_MAX_COEFFS),
-                        ("PS_PREDICTOR_MAX_SEGMENTS", cchain.PREDICTOR_MAX_SEGMENTS),
-                        ("PS_CHAIN_MAX_UPDATES", cchain.MAX_UPDATES)):
-        assert re.search(rf"#define {name} {value}L?\b", header), name
-    for code, name in cchain.STATUS.items():
-        assert re.search(rf"{name} = {code}\b|#define {name} {code}\b", header) or code == 0
-    for variant in cbuild.VARIANTS:
-        s = cchain.structs(variant)
+    for variant in build.VARIANTS:
+        s = native_chain.structs(variant)
         checks = [("ps_arm_chain", "PsArmChain", "state"), ("ps_chain_state", "PsChainState",
                   "last"), ("ps_chain_config", "PsChainConfig", "params"),
                   ("ps_chain_config", "PsChainConfig", "step_s"),
@@ -120,8 +139,8 @@ def test_struct_layouts_and_constants_match_the_header(tmp_path):
                        f"int main(void) {{\n{lines}return 0;\n}}\n")
         exe = tmp_path / f"layout_{variant}"
         flags = ["-DPS_FLOAT"] if variant == "float" else []
-        subprocess.run([*cbuild.compiler_command(), *cbuild.WARNING_FLAGS, *flags, "-I",
-                        str(cbuild.SOURCE_DIR), str(src), "-o", str(exe)], check=True)
+        subprocess.run([*build.compiler_command(), *build.WARNING_FLAGS, *flags, "-I",
+                        str(build.SOURCE_DIR), str(src), "-o", str(exe)], check=True)
         out = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout
         for (_, py, field), line in zip(checks, out.split("\n"), strict=False):
             size, offset = map(int, line.split())
@@ -131,15 +150,15 @@ def test_struct_layouts_and_constants_match_the_header(tmp_path):
 
 @pytest.mark.parametrize("variant", ["", "-DPS_FLOAT"])
 def test_chain_compiles_warning_free_for_the_host_and_cortex_m0plus(tmp_path, variant):
-    flags = [*cbuild.WARNING_FLAGS, "-O2", *([variant] if variant else []), "-I",
-             str(cbuild.SOURCE_DIR), "-c"]
-    for src in cbuild.sources():
-        subprocess.run([*cbuild.compiler_command(), *flags, str(src), "-o",
+    flags = [*build.WARNING_FLAGS, "-O2", *([variant] if variant else []), "-I",
+             str(build.SOURCE_DIR), "-c"]
+    for src in build.sources():
+        subprocess.run([*build.compiler_command(), *flags, str(src), "-o",
                         str(tmp_path / (src.stem + ".o"))], check=True)
     cross = shutil.which("arm-none-eabi-gcc")
     if cross is None:
         pytest.skip("arm-none-eabi-gcc not installed (apt-get install gcc-arm-none-eabi)")
-    for src in cbuild.sources():
+    for src in build.sources():
         subprocess.run([cross, *flags, "-mcpu=cortex-m0plus", "-mthumb", str(src), "-o",
                         str(tmp_path / (src.stem + ".arm.o"))], check=True)
 
@@ -268,7 +287,7 @@ def test_block_pushes_equal_single_pushes_and_numpy_blocks():
     t_s[57] = t_s[56]  # a repeated time inside a block
     counts[123] = math.nan
     angle0 = float(ChainConfig().calibration.angle_deg(counts[0]))
-    single, block, numpy_block = ArmChain(C), ArmChain(C), ArmChain(ChainConfig())
+    single, block, numpy_block = make_chain(C), make_chain(C), ArmChain(ChainConfig())
     for chain in (single, block, numpy_block):
         chain.reset(angle0, t_s[0])
     for start in range(1, t_s.size, 10):
@@ -300,7 +319,7 @@ def test_block_pushes_equal_single_pushes_and_numpy_blocks():
 
 # -- errors leave the chain unchanged --------------------------------------------------------
 def test_errors_are_clear_and_leave_the_chain_unchanged():
-    chain = ArmChain(C)
+    chain = make_chain(C)
     with pytest.raises(RuntimeError, match="reset"):
         chain.push_angle(0.1, 30.0)
     assert chain.reset(140.0).angle_deg == pytest.approx(130.0)  # clamped, as numpy's
@@ -343,7 +362,7 @@ FLOAT_TOL = {"angle_deg": 1e-4, "length_L0": 2e-6, "velocity_L0_s": 1e-4, "templ
 def float_deviation(duration_s=2.0, seed=0):
     t_s, counts = encoder_trace(duration_s, seed=seed)
     ref = run_chain(t_s, counts=counts, config=C)
-    chain = cchain.CArmChain(ChainConfig(), variant="float")
+    chain = native_chain.CArmChain(ChainConfig(), variant="float")
     chain.reset(float(chain.config.calibration.angle_deg(counts[0])), t_s[0])
     outs = [chain.last] + [chain.push_counts(t, x) for t, x in zip(t_s[1:], counts[1:],
                                                                     strict=True)]
@@ -383,15 +402,15 @@ int main(void) {
 """
 
 
-@pytest.mark.parametrize("variant", cbuild.VARIANTS)
+@pytest.mark.parametrize("variant", build.VARIANTS)
 def test_generated_config_source_runs_the_chain_in_plain_c(tmp_path, variant):
-    """config_c_source + spindle/c/*.c + a main reading counts: the numpy chain's rates."""
-    (tmp_path / "config.c").write_text(cchain.config_c_source())
+    """config_c_source + spindle/native/c/*.c + a main reading counts: the numpy chain's rates."""
+    (tmp_path / "config.c").write_text(native_chain.config_c_source())
     (tmp_path / "main.c").write_text(DEVICE_MAIN)
     exe = tmp_path / "device"
     flags = ["-DPS_FLOAT"] if variant == "float" else []
-    subprocess.run([*cbuild.compiler_command(), *cbuild.WARNING_FLAGS, "-O2", *flags, "-I",
-                    str(cbuild.SOURCE_DIR), *map(str, cbuild.sources()),
+    subprocess.run([*build.compiler_command(), *build.WARNING_FLAGS, "-O2", *flags, "-I",
+                    str(build.SOURCE_DIR), *map(str, build.sources()),
                     str(tmp_path / "config.c"), str(tmp_path / "main.c"), "-o", str(exe), "-lm"],
                    check=True)
     t_s, counts = encoder_trace(1.0, seed=2)
@@ -442,7 +461,7 @@ def test_run_chain_in_one_c_call_with_the_switch_and_a_bad_start_matches_numpy()
 def test_run_trace_equals_single_pushes_bit_for_bit():
     t_s, counts = encoder_trace(0.5, seed=4, invalid_rate=0.05)
     angle0 = float(ChainConfig().calibration.angle_deg(counts[0]))
-    single, whole = ArmChain(C), ArmChain(C)
+    single, whole = make_chain(C), make_chain(C)
     single.reset(angle0, t_s[0])
     whole.reset(angle0, t_s[0])
     outs = [single.push_counts(t, x) for t, x in zip(t_s[1:], counts[1:], strict=True)]

@@ -1,6 +1,6 @@
 """chain.c under AddressSanitizer + UndefinedBehaviorSanitizer, driven by random inputs.
 
-spindle/c/fuzz/fuzz_chain.c pushes random, extreme and invalid samples through every entry
+spindle/native/c/fuzz/fuzz_chain.c pushes random, extreme and invalid samples through every entry
 point of the chain (NaN/inf/huge times and values, time going backwards, corrupt clocks,
 fractional and out-of-range counts, out-of-range lengths, NULL pointers, blocks of any size,
 resets, the switch, corrupted configurations) and checks the header's contract itself: a
@@ -18,27 +18,27 @@ from pathlib import Path
 import pytest
 from sanitized_build import SANITIZER_REPORT, build
 
-from spindle import cbuild
 from spindle.chain import ChainConfig
-from spindle.length_fits import load_length_fits
+from spindle.chain.length_model import load_length_fits
+from spindle.native import build as native_build
 
-FUZZ_SOURCE = cbuild.SOURCE_DIR / "fuzz" / "fuzz_chain.c"
+FUZZ_SOURCE = native_build.SOURCE_DIR / "fuzz" / "fuzz_chain.c"
 STATUS = re.compile(r"(\d+):(\d+)")
 
 
 def build_fuzzer(out: Path, variant: str) -> Path:
-    return build(out, [*cbuild.sources(), FUZZ_SOURCE], variant,
+    return build(out, [*native_build.sources(), FUZZ_SOURCE], variant,
                  ("-fsanitize=float-cast-overflow",))
 
 
 @pytest.fixture(scope="module")
 def fuzzers(tmp_path_factory) -> dict[str, tuple[Path, Path]]:
-    from spindle.cchain import chain_config_struct
+    from spindle.native.chain import chain_config_struct
 
     root = tmp_path_factory.mktemp("fuzz_chain")
     fits = load_length_fits()
     out = {}
-    for variant in cbuild.VARIANTS:
+    for variant in native_build.VARIANTS:
         config = root / f"config_{variant}.bin"
         config.write_bytes(bytes(chain_config_struct(ChainConfig(), fits, variant)))
         out[variant] = (build_fuzzer(root / f"fuzz_chain_{variant}", variant), config)
@@ -66,13 +66,13 @@ def run_fuzzer(binary: Path, config: Path, seed: int, iterations: int) -> dict[i
     return statuses
 
 
-@pytest.mark.parametrize("variant", cbuild.VARIANTS)
+@pytest.mark.parametrize("variant", native_build.VARIANTS)
 def test_chain_sanitizer_smoke(fuzzers, variant):
     run_fuzzer(*fuzzers[variant], seed=1, iterations=20_000)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("variant", cbuild.VARIANTS)
+@pytest.mark.parametrize("variant", native_build.VARIANTS)
 @pytest.mark.parametrize("seed", [2, 3, 4])
 def test_chain_sanitizer_long_random_runs(fuzzers, variant, seed):
     run_fuzzer(*fuzzers[variant], seed=seed, iterations=1_000_000)

@@ -1,7 +1,7 @@
 """The fixed-point spindle step (ps_spindle_step_fx, int32 Q24) against the double C step.
 
 The fixed-point step is plain C99, so it is compiled for the host (the cached library of
-spindle.cbuild) and compared with the double ``ps_spindle_step`` (itself equal to the numpy
+spindle.native.build) and compared with the double ``ps_spindle_step`` (itself equal to the numpy
 core to ~1e-12 pps, tests/test_c_spindle.py) at the same step and theta, on the Mileusnic
 Fig. 3 protocol and on random trajectories over the valid input range. What is left is the
 fixed-point arithmetic (Q24 resolution 6e-8, products rounded to nearest, Newton to 1e-4 in
@@ -12,7 +12,7 @@ pps/L0), i.e. 0.02 pps for HUMAN and 0.1 pps for CAT (~5x the measured maxima). 
 Cortex-M0+ build computes the same integers as this host build (scripts/bench_embedded.py:
 emulator vs host 0 pps).
 
-The sanitizer fuzz (spindle/c/fuzz/fuzz_fixed.c, ASan + UBSan, which abort on any signed
+The sanitizer fuzz (spindle/native/c/fuzz/fuzz_fixed.c, ASan + UBSan, which abort on any signed
 int32 overflow) checks the overflow guarantee of ps_plan_fx_init's bound analysis on random
 and perturbed constants, in-range and corrupted states and invalid inputs, and the status
 codes and the untouched state on failure.
@@ -32,14 +32,16 @@ import pytest
 from sanitized_build import SANITIZER_REPORT, build
 
 import spindle
-from spindle import cbuild
+from spindle.native import abi
+from spindle.native import build as native_build
+from spindle.native.abi import Status
 
 try:
-    cbuild.find_compiler()
-except cbuild.CBackendError as exc:  # pragma: no cover - depends on the machine
+    native_build.find_compiler()
+except native_build.CBackendError as exc:  # pragma: no cover - depends on the machine
     pytest.skip(str(exc), allow_module_level=True)
 
-BENCH = cbuild.SOURCE_DIR.parents[1] / "scripts" / "bench_embedded.py"
+BENCH = native_build.SOURCE_DIR.parents[2] / "scripts" / "bench_embedded.py"
 if not BENCH.exists():  # pragma: no cover - an installed wheel has no scripts/
     pytest.skip(f"{BENCH} not found (run from a source checkout)", allow_module_level=True)
 _spec = importlib.util.spec_from_file_location("bench_embedded", BENCH)
@@ -50,9 +52,15 @@ _spec.loader.exec_module(bench)
 PRESETS = {"HUMAN": spindle.HUMAN, "CAT": spindle.CAT}
 SPEEDS = (0.11, 0.66, 1.55)
 DRIVES = ((0.0, 0.0), (70.0, 0.0), (0.0, 70.0))
-PS_OK, PS_ERR_NULL, PS_ERR_NONFINITE = 0, 1, 2
-PS_ERR_LENGTH_RANGE, PS_ERR_NEGATIVE_DRIVE, PS_ERR_SPEED = 3, 4, 6
-PS_ERR_NO_CONVERGENCE, PS_ERR_METHOD, PS_ERR_CONFIG, PS_ERR_STEP = 7, 8, 9, 5
+PS_OK = Status.PS_OK
+PS_ERR_NULL = Status.PS_ERR_NULL
+PS_ERR_NONFINITE = Status.PS_ERR_NONFINITE
+PS_ERR_LENGTH_RANGE = Status.PS_ERR_LENGTH_RANGE
+PS_ERR_NEGATIVE_DRIVE = Status.PS_ERR_NEGATIVE_DRIVE
+PS_ERR_STEP = Status.PS_ERR_STEP
+PS_ERR_SPEED = Status.PS_ERR_SPEED
+PS_ERR_METHOD = Status.PS_ERR_METHOD
+PS_ERR_CONFIG = Status.PS_ERR_CONFIG
 
 
 def tolerance_pps(params) -> float:
@@ -61,10 +69,10 @@ def tolerance_pps(params) -> float:
 
 @pytest.fixture(scope="module")
 def lib() -> ctypes.CDLL:
-    out = cbuild.load("double")
+    out = native_build.load("double")
     bench.declare_fixed(out, "double")
-    _, PsSpindle = cbuild.structs("double")
-    PsParams, _ = cbuild.structs("double")
+    _, PsSpindle = abi.structs("double")
+    PsParams, _ = abi.structs("double")
     P, d = ctypes.POINTER, ctypes.c_double
     out.ps_spindle_init.argtypes = [P(PsSpindle), P(PsParams), d, d, d]
     out.ps_spindle_step.argtypes = [P(PsSpindle), P(PsParams), d, d, d, d, d, P(d), P(d)]
@@ -77,15 +85,15 @@ def make_plan(lib, params, h: float, theta: float = 0.5):
     PsPlanFx, _ = bench.fixed_structs()
     plan = PsPlanFx()
     code = lib.ps_plan_fx_init(ctypes.byref(plan),
-                               ctypes.byref(cbuild.params_struct(params, "double")), h, theta)
+                               ctypes.byref(abi.params_struct(params, "double")), h, theta)
     assert code == PS_OK
     return plan
 
 
 def double_rates(lib, params, L, gd, gs, h: float, theta: float = 0.5):
     """The double ps_spindle_step along the same samples; (ia, ii, status)."""
-    _, PsSpindle = cbuild.structs("double")
-    p = cbuild.params_struct(params, "double")
+    _, PsSpindle = abi.structs("double")
+    p = abi.params_struct(params, "double")
     s = PsSpindle()
     ia = np.full(len(L), np.nan)
     ii = np.full(len(L), np.nan)
@@ -227,7 +235,7 @@ def test_plan_refuses_what_it_cannot_represent(lib):
 
     def init(params, h=5e-3, theta=0.5):
         return lib.ps_plan_fx_init(ctypes.byref(plan),
-                                   ctypes.byref(cbuild.params_struct(params, "double")), h,
+                                   ctypes.byref(abi.params_struct(params, "double")), h,
                                    theta)
 
     assert init(spindle.HUMAN, theta=0.0) == PS_ERR_METHOD  # explicit: not in fixed point
@@ -239,9 +247,9 @@ def test_plan_refuses_what_it_cannot_represent(lib):
     assert lib.ps_plan_fx_init(None, None, 5e-3, 0.5) == PS_ERR_NULL
 
 
-# ---- sanitizer fuzz (spindle/c/fuzz/fuzz_fixed.c) -------------------------------------------
+# ---- sanitizer fuzz (spindle/native/c/fuzz/fuzz_fixed.c) -----------------------------------------
 
-FUZZ_SOURCE = cbuild.SOURCE_DIR / "fuzz" / "fuzz_fixed.c"
+FUZZ_SOURCE = native_build.SOURCE_DIR / "fuzz" / "fuzz_fixed.c"
 
 
 @pytest.fixture(scope="module")
@@ -251,9 +259,9 @@ def fuzzers(tmp_path_factory) -> dict[str, Path]:
         pytest.skip(f"{FUZZ_SOURCE} not found (run the tests from a source checkout)")
     root = tmp_path_factory.mktemp("fuzz_fixed")
     out = {}
-    for variant in cbuild.VARIANTS:
+    for variant in native_build.VARIANTS:
         out[variant] = build(root / f"fuzz_fixed_{variant}",
-                             [cbuild.SOURCE_DIR / "spindle.c", FUZZ_SOURCE], variant)
+                             [native_build.SOURCE_DIR / "spindle.c", FUZZ_SOURCE], variant)
     return out
 
 
@@ -271,13 +279,13 @@ def run_fuzzer(binary: Path, seed: int, iterations: int) -> dict[str, int]:
     return counts
 
 
-@pytest.mark.parametrize("variant", cbuild.VARIANTS)
+@pytest.mark.parametrize("variant", native_build.VARIANTS)
 def test_fixed_sanitizer_smoke(fuzzers, variant):
     run_fuzzer(fuzzers[variant], seed=1, iterations=50_000)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("variant", cbuild.VARIANTS)
+@pytest.mark.parametrize("variant", native_build.VARIANTS)
 @pytest.mark.parametrize("seed", [2, 3, 4, 5])
 def test_fixed_sanitizer_long_random_runs(fuzzers, variant, seed):
     run_fuzzer(fuzzers[variant], seed=seed, iterations=1_000_000)

@@ -1,6 +1,6 @@
 """spindle.c under AddressSanitizer + UndefinedBehaviorSanitizer, driven by random inputs.
 
-spindle/c/fuzz/fuzz_spindle.c draws states, constants and inputs (NaN, inf, huge, negative
+spindle/native/c/fuzz/fuzz_spindle.c draws states, constants and inputs (NaN, inf, huge, negative
 drive, out-of-range lengths, h <= 0, theta outside [0, 1], NULL pointers, random state bytes)
 and checks the header's promises itself: a status of enum ps_status, the documented status for
 each invalid input, the state and outputs untouched on failure, finite rates >= 0 on success.
@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 from sanitized_build import SANITIZER_REPORT, build
 
-from spindle import cbuild
+from spindle.native import build as native_build
 
-FUZZ_SOURCE = cbuild.SOURCE_DIR / "fuzz" / "fuzz_spindle.c"
+FUZZ_SOURCE = native_build.SOURCE_DIR / "fuzz" / "fuzz_spindle.c"
 
 
 # the embedded options too (scripts/bench_embedded.py): no libm cube root, fixed iterations
@@ -32,7 +32,7 @@ def fuzzers(tmp_path_factory) -> dict[str, Path]:
     if not FUZZ_SOURCE.exists():  # an installed wheel ships the library sources only
         pytest.skip(f"{FUZZ_SOURCE} not found (run the tests from a source checkout)")
     root = tmp_path_factory.mktemp("fuzz")
-    library = [p for p in cbuild.sources() if p.name == "spindle.c"]
+    library = [p for p in native_build.sources() if p.name == "spindle.c"]
     return {name: build(root / f"fuzz_spindle_{name}", [*library, FUZZ_SOURCE], variant, defs)
             for name, (variant, defs) in BUILDS.items()}
 

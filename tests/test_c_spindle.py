@@ -1,4 +1,4 @@
-"""The C spindle (spindle/c/spindle.c) against the numpy core and the stiff reference.
+"""The C spindle (spindle/native/c/spindle.c) against the numpy core and the stiff reference.
 
 The double build follows spindle.core operation by operation, so on contractive settings
 (trapezoidal rule, backward Euler) it agrees with numpy to ~1e-12 pps. Forward Euler is
@@ -17,11 +17,15 @@ import numpy as np
 import pytest
 
 import spindle
-from spindle import cbackend, cbuild, core
+from spindle import core
+from spindle.native import abi, build
+from spindle.native import spindle as native_spindle
+
+PS_OK, PS_ERR_NULL = abi.Status.PS_OK, abi.Status.PS_ERR_NULL
 
 try:
-    cbuild.find_compiler()
-except cbuild.CBackendError as exc:  # pragma: no cover - depends on the machine
+    build.find_compiler()
+except build.CBackendError as exc:  # pragma: no cover - depends on the machine
     pytest.skip(str(exc), allow_module_level=True)
 
 TOL_PPS = 1e-6
@@ -138,13 +142,13 @@ def test_float_build_within_documented_tolerance(method):
     length, velocity, gd, gs = fig3_protocol()
     kw = dict(velocity=velocity, gamma_dyn=gd, gamma_stat=gs, method=method, step=1e-3)
     ref = spindle.simulate(length, 1e-3, **kw)
-    f32 = cbackend.simulate(length, 1e-3, variant="float", **kw)
+    f32 = native_spindle.simulate(length, 1e-3, variant="float", **kw)
     assert f32.ia.dtype == np.float64  # returned as double, computed in float
     assert_close(ref, f32, FLOAT_TOL_PPS)
     length, _, _, gd, gs, dt = random_trajectories(3)
     kw = dict(gamma_dyn=gd, gamma_stat=gs, method=method, step=1e-3)
     assert_close(spindle.simulate(length, dt, **kw),
-                 cbackend.simulate(length, dt, variant="float", **kw), FLOAT_TOL_PPS)
+                 native_spindle.simulate(length, dt, variant="float", **kw), FLOAT_TOL_PPS)
 
 
 def test_c_backend_against_the_stiff_reference():
@@ -192,11 +196,11 @@ def test_unknown_backend_is_refused():
 # ---- the C API directly: status codes, state unchanged on failure -----------------------
 
 def c_api(variant="double"):
-    lib = cbackend.library(variant)
-    p = cbuild.params_struct(spindle.CAT, variant)
-    _, PsSpindle = cbuild.structs(variant)
+    lib = native_spindle.library(variant)
+    p = abi.params_struct(spindle.CAT, variant)
+    _, PsSpindle = abi.structs(variant)
     s = PsSpindle()
-    assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), 1.0, 20.0, 30.0) == 0
+    assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), 1.0, 20.0, 30.0) == PS_OK
     return lib, p, s
 
 
@@ -249,27 +253,28 @@ def test_step_matches_core_step_and_afferents():
 def test_bad_step_inputs_give_their_status_and_leave_the_state(variant, args, status):
     lib, p, s = c_api(variant)
     before = state_bytes(s)
-    ia = cbuild.real_type(variant)(-7.0)
+    ia = abi.real_type(variant)(-7.0)
     code = lib.ps_spindle_step(ctypes.byref(s), ctypes.byref(p), *args, ctypes.byref(ia), None)
-    assert cbackend.status_name(code) == status
+    assert abi.status_name(code) == status
     assert state_bytes(s) == before
     assert ia.value == -7.0
 
 
 def test_null_pointers_and_bad_params():
     lib, p, s = c_api()
-    assert lib.ps_spindle_step(None, ctypes.byref(p), 1.0, 0, 0, 1e-3, 0.5, None, None) == 1
-    assert lib.ps_spindle_step(ctypes.byref(s), None, 1.0, 0, 0, 1e-3, 0.5, None, None) == 1
-    assert lib.ps_spindle_init(None, ctypes.byref(p), 1.0, 0, 0) == 1
-    assert lib.ps_params_check(None) == 1
-    assert lib.ps_params_check(ctypes.byref(p)) == 0
+    step = lib.ps_spindle_step
+    assert step(None, ctypes.byref(p), 1.0, 0, 0, 1e-3, 0.5, None, None) == PS_ERR_NULL
+    assert step(ctypes.byref(s), None, 1.0, 0, 0, 1e-3, 0.5, None, None) == PS_ERR_NULL
+    assert lib.ps_spindle_init(None, ctypes.byref(p), 1.0, 0, 0) == PS_ERR_NULL
+    assert lib.ps_params_check(None) == PS_ERR_NULL
+    assert lib.ps_params_check(ctypes.byref(p)) == PS_OK
     lib.ps_spindle_afferents(None, None, None, None)  # documented no-op
-    bad = cbuild.params_struct(spindle.CAT)
+    bad = abi.params_struct(spindle.CAT)
     bad.a[1] = 1.0
-    assert cbackend.status_name(lib.ps_params_check(ctypes.byref(bad))) == "PS_ERR_CONFIG"
-    bad = cbuild.params_struct(spindle.CAT)
+    assert abi.status_name(lib.ps_params_check(ctypes.byref(bad))) == "PS_ERR_CONFIG"
+    bad = abi.params_struct(spindle.CAT)
     bad.KSR[0] = math.nan
-    assert cbackend.status_name(lib.ps_params_check(ctypes.byref(bad))) == "PS_ERR_CONFIG"
+    assert abi.status_name(lib.ps_params_check(ctypes.byref(bad))) == "PS_ERR_CONFIG"
 
 
 # ---- the embedded fast path (ps_plan) ---------------------------------------------------
@@ -279,16 +284,16 @@ def test_null_pointers_and_bad_params():
 def test_plan_step_matches_the_exact_step(variant, theta, step_s):
     """ps_spindle_step_plan (precomputed constants, bounded Newton start) = ps_spindle_step
     to round-off: 1e-6 pps in double; float32 within the float tolerance."""
-    lib = cbackend.library(variant)
-    real = cbuild.real_type(variant)
-    p = cbuild.params_struct(spindle.CAT, variant)
-    _, PsSpindle = cbuild.structs(variant)
-    plan = cbackend.plan_struct(variant)()
-    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), step_s, theta) == 0
+    lib = native_spindle.library(variant)
+    real = abi.real_type(variant)
+    p = abi.params_struct(spindle.CAT, variant)
+    _, PsSpindle = abi.structs(variant)
+    plan = abi.plan_struct(variant)()
+    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), step_s, theta) == PS_OK
     length = fig3_protocol(step_s)[0][:, 7]  # 1.55 L0/s
     a, b = PsSpindle(), PsSpindle()
     for s in (a, b):
-        assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), length[0], 70.0, 20.0) == 0
+        assert lib.ps_spindle_init(ctypes.byref(s), ctypes.byref(p), length[0], 70.0, 20.0) == PS_OK
     ia_a, ii_a, ia_b, ii_b = real(), real(), real(), real()
     worst = 0.0
     for j in range(1, len(length)):
@@ -303,19 +308,19 @@ def test_plan_step_matches_the_exact_step(variant, theta, step_s):
 
 def test_plan_refuses_bad_setup_and_inputs():
     lib, p, s = c_api()
-    PsPlan = cbackend.plan_struct()
+    PsPlan = abi.plan_struct()
     plan = PsPlan()
-    names = cbackend.status_name
+    names = abi.status_name
     assert names(lib.ps_plan_init(None, ctypes.byref(p), 1e-3, 0.5)) == "PS_ERR_NULL"
     assert names(lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), 0.0, 0.5)) == "PS_ERR_STEP"
     assert names(lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), 1e-3, 2.0)) \
         == "PS_ERR_METHOD"
-    bad = cbuild.params_struct(spindle.CAT)
+    bad = abi.params_struct(spindle.CAT)
     bad.M[2] = -1.0
     assert names(lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(bad), 1e-3, 0.5)) \
         == "PS_ERR_CONFIG"
     assert bytes(plan) == bytes(PsPlan())  # untouched on failure
-    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), 1e-3, 0.5) == 0
+    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), 1e-3, 0.5) == PS_OK
     before = state_bytes(s)
     for args, status in (((math.nan, 0.0, 0.0), "PS_ERR_NONFINITE"),
                          ((1.6, 0.0, 0.0), "PS_ERR_LENGTH_RANGE"),

@@ -1,4 +1,4 @@
-"""The C build cache (spindle/cbuild.py) under faults: a bad cached library is rebuilt, never
+"""The C build cache (spindle/build.py) under faults: a bad cached library is rebuilt, never
 loaded; a compiler that writes nothing or junk is a clear error and caches nothing; ``$CC``
 may carry arguments; a killed build leaves nothing behind; a valid cache loads without a
 compiler; concurrent builds do not corrupt each other.
@@ -22,14 +22,14 @@ from pathlib import Path
 
 import pytest
 
-from spindle import cbuild
+from spindle.native import build
 
 try:
-    cbuild.find_compiler()
-except cbuild.CBackendError as exc:  # pragma: no cover - depends on the machine
+    build.find_compiler()
+except build.CBackendError as exc:  # pragma: no cover - depends on the machine
     pytest.skip(str(exc), allow_module_level=True)
 
-REPO = Path(cbuild.__file__).resolve().parents[1]
+REPO = Path(build.__file__).resolve().parents[1]
 
 FAKECC = r"""#!/bin/sh
 # ccache-like launcher: fakecc [compiler] flags... (logs each compile; serves the stored build)
@@ -46,8 +46,8 @@ if [ -s "$STORE" ]; then cp "$STORE" "$out"; exit 0; fi
 # ps_chebval(0.5, [1, 2, 3]) = 1 + 2*0.5 + 3*(2*0.5**2 - 1) = 0.5: the loaded library works.
 CHILD = """
 import ctypes
-from spindle import cbuild
-lib = cbuild.load("double")
+from spindle.native import abi, build
+lib = build.load("double")
 lib.ps_chebval.restype = ctypes.c_double
 lib.ps_chebval.argtypes = [ctypes.c_double, ctypes.POINTER(ctypes.c_double), ctypes.c_int]
 print(lib.ps_chebval(0.5, (ctypes.c_double * 3)(1.0, 2.0, 3.0), 3))
@@ -71,7 +71,7 @@ def built(tmp_path_factory) -> dict:
         mp.setenv("PROPRIO_C_CACHE", str(cache))
         mp.setenv("CC", shlex.quote(str(fakecc)))
         mp.setenv("FAKECC_LOG", str(root / "build.log"))
-        cbuild.library_path("double")
+        build.library_path("double")
     assert store.stat().st_size > 0
     return {"cache": cache, "store": store, "fakecc": fakecc}
 
@@ -153,7 +153,7 @@ def test_a_bad_cached_library_is_rebuilt_not_loaded(built, env, fault, target):
     assert_loaded(load_in_child(env))  # the interpreter survives (no SIGBUS, no OSError)
     assert len(compiles(env)) == 1
     assert_clean_cache(cache, built["store"].read_bytes())
-    cbuild.library_path("double")  # and the rebuilt cache is used as it is
+    build.library_path("double")  # and the rebuilt cache is used as it is
     assert len(compiles(env)) == 1
 
 
@@ -166,12 +166,12 @@ def test_a_compiler_that_writes_nothing_or_junk_is_a_clear_error(built, env, mon
     script(tmp_path / "junkcc", '#!/bin/sh\nfor a; do [ "$p" = -o ] && o="$a"; p="$a"; done\n'
                                 'echo junk > "$o"\n')
     monkeypatch.setenv("CC", compiler if compiler == "true" else str(tmp_path / "junkcc"))
-    with pytest.raises(cbuild.CBackendError, match=error):
-        cbuild.library_path("double")
+    with pytest.raises(build.CBackendError, match=error):
+        build.library_path("double")
     cache = Path(env["PROPRIO_C_CACHE"])
     assert list(cache.iterdir()) == []  # nothing cached, no temporary file left
     monkeypatch.setenv("CC", env["CC"])  # a working compiler then builds it
-    assert cbuild.library_path("double").read_bytes() == built["store"].read_bytes()
+    assert build.library_path("double").read_bytes() == built["store"].read_bytes()
     assert len(compiles(env)) == 1
 
 
@@ -181,7 +181,7 @@ def test_cc_with_arguments_is_honoured(built, env, monkeypatch, tmp_path):
     launcher.parent.mkdir()
     shutil.copy2(built["fakecc"], launcher)
     monkeypatch.setenv("CC", f"{shlex.quote(str(launcher))} gcc -m64")
-    assert cbuild.library_path("double").read_bytes() == built["store"].read_bytes()
+    assert build.library_path("double").read_bytes() == built["store"].read_bytes()
     (call,) = compiles(env)
     assert call.startswith("gcc -m64 -std=c99 ")
 
@@ -208,7 +208,7 @@ def test_a_killed_build_leaves_nothing_behind(built, env, tmp_path):
     old.write_bytes(b"\x7fELF partial")
     os.utime(old, (time.time() - 7200, time.time() - 7200))
     assert len(list(cache.glob("tmp*"))) == 2
-    assert cbuild.library_path("double").read_bytes() == built["store"].read_bytes()
+    assert build.library_path("double").read_bytes() == built["store"].read_bytes()
     assert_clean_cache(cache, built["store"].read_bytes())
 
 
@@ -223,8 +223,8 @@ def test_a_valid_cache_loads_without_a_compiler(built, env, tmp_path, monkeypatc
     truncate(library_of(cache))
     monkeypatch.setenv("CC", "/nonexistent/cc")
     error = r"(?s)no C compiler.*backend='numpy'.*cannot be used: the library \S+ has \d+ bytes"
-    with pytest.raises(cbuild.CBackendError, match=error):
-        cbuild.library_path("double")
+    with pytest.raises(build.CBackendError, match=error):
+        build.library_path("double")
 
 
 def test_concurrent_builds_do_not_corrupt_each_other(built, env):

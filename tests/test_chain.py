@@ -6,16 +6,17 @@ import numpy as np
 import pytest
 
 import spindle
-from spindle.chain import COUNTERS, ArmChain, ChainConfig, run_chain
-from spindle.derivatives import difference, track, tracking_step
-from spindle.fusimotor import (
+from proprio_env.encoder import Encoder
+from spindle.chain import COUNTERS, ArmChain, ChainConfig, make_chain, run_chain
+from spindle.chain.conditioning import difference, track, tracking_step
+from spindle.chain.fusimotor import (
     SEED_PAPER,
     FusimotorParams,
     MotionPredictor,
     gamma_dynamic_pps,
     gamma_static_pps,
 )
-from spindle.sensor import AX12, INVALID_READING, Calibration, Encoder, MedianFilter, median_filter
+from spindle.chain.sensor import AX12, INVALID_READING, Calibration, MedianFilter, median_filter
 
 scipy_ndimage = pytest.importorskip("scipy.ndimage")
 scipy_signal = pytest.importorskip("scipy.signal")
@@ -384,6 +385,28 @@ def test_pushing_before_reset_and_bad_batches_raise():
         run_chain(np.arange(3.0), counts=np.zeros(3), angle_deg=np.zeros(3))
     with pytest.raises(ValueError, match="no valid sample"):
         run_chain(np.arange(3.0), counts=np.full(3, -1))
+
+
+def test_make_chain_picks_the_backend_and_the_numpy_chain_refuses_the_c_one():
+    assert type(make_chain()) is ArmChain
+    assert type(make_chain(ChainConfig(backend="numpy"))) is ArmChain
+    with pytest.raises(ValueError, match=r"backend='c'.*make_chain"):
+        ArmChain(ChainConfig(backend="c"))
+
+
+def test_run_trace_of_the_numpy_chain_equals_single_pushes():
+    _, _, t, counts = motion(0.2)
+    one, whole = ArmChain(), ArmChain()
+    angle0 = float(one.config.calibration.angle_deg(counts[0]))
+    one.reset(angle0, t[0])
+    whole.reset(angle0, t[0])
+    samples = [one.push_counts(ti, ci) for ti, ci in zip(t[1:], counts[1:], strict=True)]
+    stacked = whole.run_trace("push_counts", t[1:], counts[1:])
+    for name, column in stacked.items():
+        np.testing.assert_array_equal(column, [getattr(s, name) for s in samples])
+    assert one.counters == whole.counters
+    empty = whole.run_trace("push_lengths", t[:0], np.zeros((0, 2)))
+    assert empty["ia_pps"].shape == (0, 2) and empty["t_s"].shape == (0,)
 
 
 def test_block_pushes_equal_single_pushes():

@@ -14,20 +14,21 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from spindle import cbuild
 from spindle.chain import (
     BACKENDS,
-    MAX_BRIDGE_UPDATES,
     ArmChain,
     ArmSample,
     ChainConfig,
+    make_chain,
     run_chain,
 )
+from spindle.chain.config import MAX_BRIDGE_UPDATES
+from spindle.native import abi, build
 
 try:
-    cbuild.find_compiler()
+    build.find_compiler()
     BACKEND_PARAMS = list(BACKENDS)
-except cbuild.CBackendError:  # pragma: no cover - CI has a compiler
+except build.CBackendError:  # pragma: no cover - CI has a compiler
     BACKEND_PARAMS = ["numpy"]
 
 DT = 2e-3  # the seed paper's 500 Hz encoder
@@ -37,7 +38,7 @@ RATE_MAX_PPS = 400.0
 
 
 def chain_for(backend: str, **config) -> ArmChain:
-    return ArmChain(ChainConfig(backend=backend, **config))
+    return make_chain(ChainConfig(backend=backend, **config))
 
 
 def moving(chain: ArmChain, t0: float, duration_s: float, angle) -> float:
@@ -257,7 +258,7 @@ def test_resync_after_samples_is_checked(value):
 
 def test_work_per_push_is_bounded_by_max_bridge_s(monkeypatch):
     """Spindle steps per push (numpy, counted): at most max_bridge_s / step_s, any interval."""
-    from spindle import chain as chain_module
+    from spindle.chain import arm as chain_module
 
     calls = []
     advance = chain_module.core.advance
@@ -367,7 +368,7 @@ def failing_spindle_step(chain: ArmChain, monkeypatch):
         finally:
             params.M[0] = saved
         return
-    from spindle import chain as chain_module
+    from spindle.chain import arm as chain_module
 
     advance = chain_module.core.advance
     calls = []
@@ -419,8 +420,7 @@ def test_a_failing_push_leaves_the_chain_as_if_it_never_came(backend, kind, monk
 def test_max_bridge_s_is_checked(value, match):
     with pytest.raises(ValueError, match=rf"max_bridge_s={value!r}.*{match}"):
         ChainConfig(max_bridge_s=value)
-    header = cbuild.HEADER.read_text()
-    assert f"#define PS_CHAIN_MAX_BRIDGE_UPDATES {MAX_BRIDGE_UPDATES}L" in header
+    assert abi.header_constants()["PS_CHAIN_MAX_BRIDGE_UPDATES"] == MAX_BRIDGE_UPDATES
 
 
 @pytest.mark.parametrize("backend", BACKEND_PARAMS)

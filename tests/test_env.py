@@ -20,8 +20,8 @@ import proprio_env
 from proprio_env.envs import RATE_SCALE_PPS, ElbowReachEnv, ProsthesisElbowEnv
 from proprio_env.model import JOINT, MUSCLES, SERVO, load_model
 from proprio_env.muscle_length import fibre_state, muscle_geometry
-from spindle.chain import BACKENDS, ArmChain, run_chain
-from spindle.sensor import AX12, Calibration
+from spindle.chain import BACKENDS, make_chain, run_chain
+from spindle.chain.sensor import AX12, Calibration
 
 ROOT = Path(__file__).resolve().parents[1]
 IDS = ("proprio_env/ElbowReach-v0", "proprio_env/ProsthesisElbow-v0")
@@ -154,7 +154,7 @@ def test_encoder_source_matches_chain_on_ideal_readings():
     t, angle, _, skip = replay_physics(ProsthesisElbowEnv, actions, seed=2)
     counts = np.clip(np.rint(Calibration().counts(angle)), 0, ideal.max_count)
     # the chain starts at rest on the reset angle, then reads every physics step
-    chain = ArmChain(env.afferents.chain.config)
+    chain = make_chain(env.afferents.chain.config)
     chain.reset(angle[0], t[0])
     ia = [chain.last.ia_pps]
     for k in range(1, t.size):

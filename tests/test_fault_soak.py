@@ -1,4 +1,4 @@
-"""The fault-injection soak (spindle.fault_injection, scripts/fault_soak.py): its stream holds
+"""The fault-injection soak (proprio_env.fault_injection, scripts/fault_soak.py): its stream holds
 the faults it claims, its checks catch a broken backend, and both backends pass it."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from spindle import fault_injection as fi
-from spindle.chain import BACKENDS, COUNTERS, ArmChain, ChainConfig
-from spindle.length_fits import load_length_fits
-from spindle.sensor import is_valid_reading
+from proprio_env import fault_injection as fi
+from spindle.chain import BACKENDS, COUNTERS, ArmChain, ChainConfig, make_chain
+from spindle.chain.length_model import load_length_fits
+from spindle.chain.sensor import is_valid_reading
 
 
 def _stream(seed: int, n: int, p: float = 0.5) -> list[fi.Segment]:
@@ -71,7 +71,7 @@ class _Broken(ArmChain):
 
 
 def test_checks_catch_a_broken_backend():
-    chains = {"numpy": _Broken(ChainConfig()), "c": ArmChain(ChainConfig(backend="c"))}
+    chains = {"numpy": _Broken(ChainConfig()), "c": make_chain(ChainConfig(backend="c"))}
     report = fi.run_soak(600, seed=3, fault_probability=0.0, chains=chains)
     assert report.samples >= 600
     assert not report.ok and not report.counters_equal

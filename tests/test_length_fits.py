@@ -1,4 +1,4 @@
-"""The reduced length model (models/length_fits.json, evaluated by spindle.length_fits).
+"""The reduced length model (models/length_fits.json, evaluated by spindle.chain.length_model).
 
 Accuracy is checked against the exact MuJoCo length model on a grid other than the one the
 fits were made on, and against the OpenSim oracle; bad angles and a missing, malformed or
@@ -18,18 +18,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spindle.length_fits import (
+from proprio_env.model import model_path
+from spindle.chain import MUSCLES
+from spindle.chain.length_model import (
     REGENERATE_COMMAND,
     LengthFitsError,
     default_fits_path,
-    default_model_path,
     file_sha256,
     load_length_fits,
 )
 
 REPO = Path(__file__).resolve().parents[1]
 ORACLE = Path(__file__).parent / "data" / "arm26_elbow_oracle.csv"
-MUSCLES = ("BRA", "TRImed")
 
 
 def read_oracle() -> dict[str, np.ndarray]:
@@ -44,8 +44,8 @@ def fits():
 
 
 def test_committed_fits_match_committed_model(fits):
-    assert default_fits_path().parent == default_model_path().parent
-    assert fits.model_sha256 == file_sha256(default_model_path())
+    assert default_fits_path().parent == model_path().parent
+    assert fits.model_sha256 == file_sha256(model_path())
     assert fits.muscles == MUSCLES
 
 
@@ -121,7 +121,7 @@ def test_clip_clamps_to_range_but_not_nan(fits):
 def _copy_fits(tmp_path: Path) -> tuple[Path, Path]:
     xml = tmp_path / "elbow.xml"
     js = tmp_path / "length_fits.json"
-    shutil.copy(default_model_path(), xml)
+    shutil.copy(model_path(), xml)
     shutil.copy(default_fits_path(), js)
     return xml, js
 
@@ -182,7 +182,7 @@ def test_unverifiable_json_is_refused(tmp_path):
     shutil.copy(default_fits_path(), js)
     with pytest.raises(LengthFitsError, match="staleness"):
         load_length_fits(js)
-    load_length_fits(js, model_xml=default_model_path())
+    load_length_fits(js, model_xml=model_path())
 
 
 def _run(code: str) -> subprocess.CompletedProcess:
@@ -194,7 +194,7 @@ def _run(code: str) -> subprocess.CompletedProcess:
 
 def test_spindle_evaluates_fits_without_mujoco():
     done = _run(
-        "import sys; from spindle.length_fits import load_length_fits;"
+        "import sys; from spindle.chain.length_model import load_length_fits;"
         "print(load_length_fits().length_L0(0.5));"
         "assert 'mujoco' not in sys.modules and 'proprio_env' not in sys.modules"
     )
@@ -301,7 +301,7 @@ ANGLES_DEG = (5.0, 40.0, 80.0, 125.0)
 
 def _edited_model(tmp_path: Path, dy_m: float) -> Path:
     """elbow.xml with BRA's origin (BRA-P1, on the humerus) moved by ``dy_m`` along y."""
-    text = default_model_path().read_text()
+    text = model_path().read_text()
     assert text.count(BRA_P1) == 1
     xml = tmp_path / f"elbow_bra_{dy_m:+.3f}.xml"
     xml.write_text(text.replace(BRA_P1, f'<site name="BRA-P1" pos="0.0068 {-0.1739 + dy_m:.4f} '
@@ -340,7 +340,7 @@ def test_edited_model_gets_its_own_fits(tmp_path, env_id, source, backend):
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_bundled_model_and_its_copy_use_the_committed_fits(tmp_path, env_id):
     copy = tmp_path / "my_elbow.xml"
-    shutil.copy(default_model_path(), copy)
+    shutil.copy(model_path(), copy)
     committed = load_length_fits().length_L0(np.radians(ANGLES_DEG))
     for xml in (None, str(copy)):
         lengths = _reset_lengths(env_id, ANGLES_DEG, xml_file=xml, afferent_source="reduced")

@@ -13,7 +13,7 @@ import pytest
 
 import proprio_env
 from proprio_env.envs.afferents import SOURCES
-from spindle.chain import BACKENDS, ArmChain, ArmSample, ChainConfig
+from spindle.chain import BACKENDS, ArmSample, ChainConfig, make_chain
 
 IDS = tuple(proprio_env.ENV_IDS)
 
@@ -69,7 +69,7 @@ def _movement(n: int, t0: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("variant", ["double", "float"])
 def test_c_chain_copied_mid_movement_continues_bit_identically(variant):
-    from spindle.cchain import CArmChain
+    from spindle.native.chain import CArmChain
 
     chain = CArmChain(ChainConfig(backend="c"), variant=variant)
     chain.reset(70.0, 0.0)
@@ -104,7 +104,7 @@ def test_c_chain_copied_mid_movement_continues_bit_identically(variant):
 
 
 def test_c_chain_copies_are_independent_and_agree_with_numpy():
-    chains = {b: ArmChain(ChainConfig(backend=b)) for b in BACKENDS}
+    chains = {b: make_chain(ChainConfig(backend=b)) for b in BACKENDS}
     t, angle = _movement(120)
     for c in chains.values():
         c.reset(70.0, 0.0)
@@ -120,7 +120,7 @@ def test_c_chain_copies_are_independent_and_agree_with_numpy():
 
 
 def test_c_chain_pickled_before_reset_still_needs_reset():
-    chain = ArmChain(ChainConfig(backend="c"))
+    chain = make_chain(ChainConfig(backend="c"))
     clone = pickle.loads(pickle.dumps(chain))
     with pytest.raises(RuntimeError, match="reset"):
         clone.push_angle(0.002, 70.0)

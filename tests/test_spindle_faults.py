@@ -20,13 +20,14 @@ import numpy as np
 import pytest
 
 import spindle
-from spindle import cbuild
-from spindle.simulate import MAX_SUBSTEPS, substep_lengths
+from spindle.native import build
+from spindle.simulate import MAX_SUBSTEPS
+from spindle.substeps import substep_lengths
 
 try:
-    cbuild.find_compiler()
+    build.find_compiler()
     BACKENDS = ["numpy", "c"]
-except cbuild.CBackendError:  # pragma: no cover - depends on the machine
+except build.CBackendError:  # pragma: no cover - depends on the machine
     BACKENDS = ["numpy"]
 
 needs_c = pytest.mark.skipif("c" not in BACKENDS, reason="no C compiler")

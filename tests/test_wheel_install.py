@@ -30,7 +30,7 @@ CHECK = textwrap.dedent(
     import mujoco
     import numpy as np
 
-    import spindle.length_fits as lf
+    import spindle.chain.length_model as lf
     from proprio_env.model import load_model, model_path
     from proprio_env.muscle_length import sweep
 
@@ -46,10 +46,10 @@ CHECK = textwrap.dedent(
 
     import proprio_env.envs
     import proprio_env.validation.ecrb as ecrb
-    import spindle.cbuild as cbuild
+    from spindle.native import build
 
     assert prefix in Path(proprio_env.envs.__file__).resolve().parents
-    assert prefix in cbuild.SOURCE_DIR.resolve().parents and cbuild.sources()
+    assert prefix in build.SOURCE_DIR.resolve().parents and build.sources()
     env = gym.make("proprio_env/ElbowReach-v0", backend="c")
     obs, _ = env.reset(seed=0)
     obs, *_ = env.step(env.action_space.sample())

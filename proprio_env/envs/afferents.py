@@ -1,14 +1,15 @@
 """The sensory side of an env step: physics samples in, one :class:`~spindle.chain.ArmSample` out.
 
-Three sources feed the spindle chain (:class:`spindle.chain.ArmChain`) at different stages:
+Three sources feed the spindle chain (``spindle.chain.make_chain``: numpy or C) at different
+stages:
 
 - ``"exact"``: MuJoCo's fibre lengths (tendon path -> :mod:`proprio_env.muscle_length`), one
   sample per physics step (2 ms, 500 Hz);
 - ``"reduced"``: MuJoCo's elbow angle through the fitted length model, one sample per physics
   step;
-- ``"encoder"``: a simulated AX-12 encoder (:class:`spindle.sensor.Encoder`: jittered ~500 Hz
-  sample times, 0.29 deg counts, noise, rare invalid readings) reading the elbow angle, then
-  the prosthesis chain (median filter, f(x), fitted lengths), as in the seed paper.
+- ``"encoder"``: a simulated AX-12 encoder (:class:`proprio_env.encoder.Encoder`: jittered
+  ~500 Hz sample times, 0.29 deg counts, noise, rare invalid readings) reading the elbow
+  angle, then the prosthesis chain (median filter, f(x), fitted lengths), as in the seed paper.
 
 Every source pushes all the samples of one env step in one block call
 (``push_*_block``), which a compiled chain backend runs in one call.
@@ -18,9 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from spindle.chain import ArmChain, ArmSample, ChainConfig
-from spindle.length_fits import LengthFits
-from spindle.sensor import AX12, Encoder, EncoderParams
+from proprio_env.encoder import Encoder
+from spindle.chain import ArmSample, ChainConfig, make_chain
+from spindle.chain.length_model import LengthFits
+from spindle.chain.sensor import AX12, EncoderParams
 
 SOURCES = ("exact", "reduced", "encoder")
 """Names of the afferent sources (see the module docstring)."""
@@ -48,7 +50,7 @@ class AfferentReadout:
                  encoder_params: EncoderParams = AX12,
                  fits: LengthFits | None = None) -> None:
         self.source = check_source(source)
-        self.chain = ArmChain(chain_config, fits)
+        self.chain = make_chain(chain_config, fits)
         self.encoder_params = encoder_params
         self.encoder: Encoder | None = None
         self._next_read_s = 0.0

@@ -33,8 +33,8 @@ from proprio_env.length_fitting import fits_for_model
 from proprio_env.model import JOINT, MUSCLES, load_model, model_path
 from proprio_env.muscle_length import fibre_length_L0, muscle_geometry
 from spindle.chain import BACKENDS, ArmSample, ChainConfig
-from spindle.length_fits import LengthFits, load_length_fits
-from spindle.sensor import AX12, EncoderParams
+from spindle.chain.length_model import LengthFits, load_length_fits
+from spindle.chain.sensor import AX12, EncoderParams
 
 RATE_SCALE_PPS = 100.0
 """Afferent and fusimotor rates enter the observation divided by this (pps)."""

@@ -15,7 +15,7 @@ normalised fibre length from OpenSim's wrist model. Here:
 - the movements (:data:`PROTOCOLS`): passive ramp-and-hold flexion from -30 to +30 deg and
   back at 30 and 120 deg/s, and sinusoids of +/-30 deg at 0.25 and 0.5 Hz (peak 47 and
   94 deg/s), sampled at 1 kHz, corners of the ramps rounded over 50 ms;
-- the fusimotor model of the chain (:class:`spindle.fusimotor.Fusimotor`: PI template from the
+- the fusimotor model of the chain (:class:`spindle.chain.fusimotor.Fusimotor`: PI template from the
   measured length, h(x) over the ECRB's range across the wrist's whole -70..70 deg range of
   motion, g(x)), driving one HUMAN spindle (trapezoidal, 1 ms).
 """
@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 import spindle
-from spindle.fusimotor import Fusimotor
-from spindle.length_fits import models_dir
+from proprio_env.model import models_dir
+from spindle.chain.fusimotor import Fusimotor
 
 TABLE_FILENAME = "wrist_ecrb.csv"
 SHARED_REFERENCE = (Path(__file__).resolve().parents[3] / "shared" / "reference" / "opensim"

@@ -38,7 +38,7 @@ import numpy as np
 import spindle
 from spindle import core
 from spindle.chain import MUSCLES, run_chain
-from spindle.fusimotor import SEED_PAPER
+from spindle.chain.fusimotor import SEED_PAPER
 
 PRESETS = {"HUMAN": spindle.HUMAN, "CAT": spindle.CAT}
 HUMAN_LIMIT_PPS = 30.0

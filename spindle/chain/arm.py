@@ -4,10 +4,11 @@
            -> tracking low-pass (L, dL/dt) -> PI template -> gamma_s = h, gamma_d = g
            -> Mileusnic spindles (HUMAN gains) -> Ia, II per muscle
 
-This is what would run on the prosthesis, so it needs no MuJoCo. :class:`ArmChain` streams:
-push samples as they come and read the rates. :func:`run_chain` takes a whole trace and
-returns every intermediate signal; it is :class:`ArmChain` driven sample by sample, so the
-two agree exactly.
+This is what would run on the prosthesis, so it needs no MuJoCo. :class:`ArmChain` (numpy)
+streams: push samples as they come and read the rates. :func:`spindle.chain.run_chain` takes
+a whole trace and returns every intermediate signal; it is the chain driven sample by sample
+(:meth:`ArmChain.run_trace`), so the two agree exactly. The C chain,
+:class:`spindle.native.chain.CArmChain`, follows the same rules.
 
 Three entry points feed the same chain at different stages: encoder counts
 (:meth:`ArmChain.push_counts`, the prosthesis), clean elbow angles (:meth:`~ArmChain.push_angle`,
@@ -55,203 +56,47 @@ the valid range however the motion before it went. A push is atomic: if it raise
 step that fails), the chain, its counters included, is left exactly as it was.
 """
 
+
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
-from pathlib import Path
+from dataclasses import fields
 
 import numpy as np
 
 from spindle import core
-from spindle.derivatives import natural_rad_s, tracking_step
-from spindle.fusimotor import SEED_PAPER, Fusimotor, FusimotorParams
-from spindle.length_fits import LengthFits, load_length_fits
-from spindle.methods import get_method
-from spindle.params import HUMAN, SpindleParams
-from spindle.sensor import AX12, Calibration, EncoderParams, MedianFilter, is_valid_reading
-from spindle.simulate import hermite_weights
-
-MUSCLES = ("BRA", "TRImed")
-BACKENDS = ("numpy", "c")
-"""``ChainConfig.backend``: ``"numpy"`` (this module) or ``"c"`` (``spindle/c/chain.c`` through
-:mod:`spindle.cchain`, compiled on first use: same API, outputs and counters)."""
-
-COUNTERS = (
-    "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
-    "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped", "restarts",
-    "clock_resyncs",
+from spindle.chain.conditioning import natural_rad_s, tracking_step
+from spindle.chain.config import (
+    COUNTERS,
+    MUSCLES,
+    ArmSample,
+    ChainConfig,
+    real_array,
+    real_number,
 )
-"""Names of :attr:`ArmChain.counters` (see the module docstring for each rule)."""
-MAX_RESYNC_AFTER_SAMPLES = 1_000_000
-"""Largest ``ChainConfig.resync_after_samples`` (``PS_CHAIN_MAX_RESYNC`` in C: an int there)."""
-
-MAX_BRIDGE_UPDATES = 100_000
-"""Most spindle sub-steps or predictor updates one bridged interval may take
-(``PS_CHAIN_MAX_BRIDGE_UPDATES`` in C, a tenth of the C chain's last-resort guard):
-``ChainConfig`` refuses a ``max_bridge_s`` needing more, so the work of a push is bounded."""
-
-
-@dataclass(frozen=True)
-class ChainConfig:
-    """Every setting of the chain (frozen; defaults: the seed paper's system).
-
-    Attributes:
-        encoder: the encoder's range and nominal rate (validity of readings, default gap).
-        calibration: f(x), counts to elbow angle.
-        median_window: the median filter's window (odd; paper: 7).
-        lowpass_hz: natural frequency of the tracking low-pass on the lengths (Hz); ``None``
-            passes lengths unfiltered (only for clean inputs). 20 Hz delays a movement by
-            16 ms; it minimised the total Ia/II error of the encoder chain against the
-            noise-free one among 5-50 Hz (``scripts/chain_figures.py``).
-        fusimotor: :class:`~spindle.fusimotor.FusimotorParams`.
-        params: spindle constants (default :data:`spindle.HUMAN`, G x 1/5).
-        method: the spindle integrator (``"trapezoidal"``, ``"backward_euler"``,
-            ``"forward_euler"``).
-        step_s: largest internal spindle step (s); each sample interval is split into equal
-            sub-steps no longer than it. ``None``: the method's default.
-        max_gap_s: intervals longer than this are counted as gaps; ``None``: the median window
-            times the nominal sample period (14 ms).
-        max_bridge_s: the longest interval bridged by the smooth curve; a longer one restarts
-            the chain at rest at the new sample (counter ``restarts``). The default, 50 ms
-            (25 periods of the seed paper's 500 Hz encoder), is where extrapolating the motion
-            before a gap stops meaning something: the velocity a bridge starts from predicts
-            the arm for a fraction of a movement's cycle, and voluntary elbow movement and
-            tremor stay below about 10 Hz (half a cycle: 50 ms); by then the 20 Hz low-pass
-            (1/w = 8 ms) has long forgotten its state before the gap (e^(-wT)(1 + wT) = 1.4 %),
-            and across 50 ms the Hermite curve between any two states the low-pass can reach
-            stays within the 8 L0/s slew limit (measured; it exceeds the spindle's 10 L0/s
-            from about 100 ms on, where the sub-step limits take over). It also bounds the
-            work of a push: at most ``max_bridge_s / step_s`` spindle sub-steps (50).
-        resync_after_samples: a sample older than the last accepted one is rejected
-            (``time_backwards``), unless it is the ``resync_after_samples``-th such sample
-            since the last accepted one: then the chain trusts the new clock and restarts at
-            rest at that sample (counters ``restarts`` and ``clock_resyncs``). Without it, a
-            single corrupt time far in the future, once accepted as a long gap, would make
-            every later true sample "backwards" and the chain would never accept one again.
-            The default, 7, is the median window: as many readings as the filter needs before
-            it follows a change.
-        max_speed_deg_s: slew limit of the conditioned angle (deg/s).
-        max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
-        fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
-        backend: ``"numpy"`` or ``"c"`` (:data:`BACKENDS`); ``ArmChain(config)`` with
-            ``backend="c"`` is a :class:`spindle.cchain.CArmChain`.
-    """
-
-    encoder: EncoderParams = AX12
-    calibration: Calibration = field(default_factory=Calibration)
-    median_window: int = 7
-    lowpass_hz: float | None = 20.0
-    fusimotor: FusimotorParams = SEED_PAPER
-    params: SpindleParams = HUMAN
-    method: str = "trapezoidal"
-    step_s: float | None = None
-    max_gap_s: float | None = None
-    max_bridge_s: float = 0.05
-    resync_after_samples: int = 7
-    max_speed_deg_s: float = 1000.0
-    max_speed_L0_s: float = 8.0
-    fits_path: str | Path | None = None
-    backend: str = "numpy"
-
-    def __post_init__(self) -> None:
-        # bool is an int and a float to Python; here it is always a mistake
-        _check_positive_int("median_window", self.median_window)
-        _check_positive_int("resync_after_samples", self.resync_after_samples,
-                            MAX_RESYNC_AFTER_SAMPLES)
-        if self.median_window % 2 == 0:
-            raise ValueError(f"median_window={self.median_window!r} must be an odd integer >= 1")
-        for name in ("lowpass_hz", "step_s", "max_gap_s"):
-            if getattr(self, name) is not None:
-                _check_positive_real(name, getattr(self, name))
-        for name in ("max_bridge_s", "max_speed_deg_s", "max_speed_L0_s"):
-            _check_positive_real(name, getattr(self, name))
-        if self.lowpass_hz is not None:
-            natural_rad_s(self.lowpass_hz)
-        method = get_method(self.method)
-        if self.step_s is not None:
-            core.check_step(float(self.step_s), method)
-        bridge = float(self.max_bridge_s)
-        updates = max(bridge / self.spindle_step_s, bridge * self.fusimotor.predictor_rate_hz)
-        if updates > MAX_BRIDGE_UPDATES:
-            raise ValueError(
-                f"max_bridge_s={self.max_bridge_s!r} needs {updates:.3g} spindle sub-steps or "
-                f"predictor updates per push, above {MAX_BRIDGE_UPDATES}")
-        if not float(self.max_speed_L0_s) <= core.MAX_SPEED_L0_S:
-            raise ValueError(
-                f"max_speed_L0_s={self.max_speed_L0_s!r} must lie in (0, "
-                f"{core.MAX_SPEED_L0_S}] (the spindle's speed limit)"
-            )
-        if not isinstance(self.backend, str) or self.backend not in BACKENDS:
-            raise ValueError(f"backend={self.backend!r} is not one of {BACKENDS}")
-
-    @property
-    def gap_s(self) -> float:
-        if self.max_gap_s is not None:
-            return float(self.max_gap_s)
-        return self.median_window * self.encoder.period_s
-
-    @property
-    def spindle_step_s(self) -> float:
-        m = get_method(self.method)
-        return m.default_step_s if self.step_s is None else float(self.step_s)
-
-
-@dataclass(frozen=True)
-class ArmSample:
-    """The chain's output after one sample; per-muscle arrays are (2,) in order BRA, TRImed.
-
-    Attributes:
-        t_s: sample time (s).
-        accepted: False if this sample was rejected (every other field then repeats the
-            previous output).
-        counts: the raw reading (-1 when the sample did not come from the encoder).
-        counts_filtered: the median-filtered reading (-1 likewise).
-        angle_deg: conditioned elbow angle (deg).
-        length_L0: conditioned (low-passed) fibre length.
-        velocity_L0_s, acceleration_L0_s2: its first and second time derivatives.
-        template_L0: the fusimotor template (PI predictor output).
-        gamma_static_pps, gamma_dynamic_pps: fusimotor drive.
-        ia_pps, ii_pps: primary and secondary afferent rates.
-    """
-
-    t_s: float
-    accepted: bool
-    counts: float
-    counts_filtered: float
-    angle_deg: float
-    length_L0: np.ndarray
-    velocity_L0_s: np.ndarray
-    acceleration_L0_s2: np.ndarray
-    template_L0: np.ndarray
-    gamma_static_pps: np.ndarray
-    gamma_dynamic_pps: np.ndarray
-    ia_pps: np.ndarray
-    ii_pps: np.ndarray
+from spindle.chain.fusimotor import Fusimotor
+from spindle.chain.length_model import LengthFits, load_length_fits
+from spindle.chain.sensor import MedianFilter, is_valid_reading
+from spindle.methods import get_method
+from spindle.substeps import hermite_weights, substeps
 
 
 class ArmChain:
-    """The streaming chain of one arm (BRA and TRImed).
+    """The streaming chain of one arm (BRA and TRImed), in numpy.
 
     Call :meth:`reset` once, then push samples in increasing time. Each accepted push
-    advances the spindles from the previous sample's time to the new one.
-
-    With ``config.backend == "c"`` the constructor returns a
-    :class:`spindle.cchain.CArmChain` (a subclass: the same API, computed in C), so the
-    numpy path below carries no dispatch cost.
+    advances the spindles from the previous sample's time to the new one. The C chain
+    (:class:`spindle.native.chain.CArmChain`) has the same API; :func:`spindle.chain.make_chain`
+    builds the one ``config.backend`` names.
     """
-
-    def __new__(cls, config: ChainConfig | None = None, fits: LengthFits | None = None,
-                *args, **kwargs):
-        if cls is ArmChain and config is not None and config.backend == "c":
-            from spindle.cchain import CArmChain
-
-            return super().__new__(CArmChain)
-        return super().__new__(cls)
 
     def __init__(self, config: ChainConfig | None = None, fits: LengthFits | None = None):
         self.config = ChainConfig() if config is None else config
+        if self.config.backend != "numpy":
+            raise ValueError(
+                f"ArmChain is the numpy chain, but config.backend={self.config.backend!r}; "
+                "build the chain with spindle.chain.make_chain(config, fits)")
         self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
         if self.fits.muscles != MUSCLES:
             raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
@@ -281,7 +126,7 @@ class ArmChain:
         ``length_L0``, an angle outside the length model's range is clamped to it and counted
         (``angle_clamped``), as a pushed angle is. The switch returns to the measured motion.
         """
-        t = _real(t_s)
+        t = real_number(t_s)
         if not math.isfinite(t):
             raise ValueError(f"t_s={t_s!r} must be a finite real number")
         angle = self._check_angle(angle_deg)
@@ -332,7 +177,7 @@ class ArmChain:
         t = self._time(t_s)
         if t is None:
             return self._rejected()
-        reading = _real(counts)
+        reading = real_number(counts)
         if not is_valid_reading(reading, self.config.encoder.max_count):
             self.counters["invalid_reading"] += 1
             return self._rejected()
@@ -343,7 +188,7 @@ class ArmChain:
         t = self._time(t_s)
         if t is None:
             return self._rejected()
-        angle = _real(angle_deg)
+        angle = real_number(angle_deg)
         if not math.isfinite(angle):
             self.counters["invalid_angle"] += 1
             return self._rejected()
@@ -363,7 +208,7 @@ class ArmChain:
         if L is None:
             self.counters["invalid_length"] += 1
             return self._rejected()
-        angle = self._angle if angle_deg is None else _real(angle_deg)
+        angle = self._angle if angle_deg is None else real_number(angle_deg)
         if not math.isfinite(angle):
             angle = self._angle
         return self._atomic(self._length_stage, t, L, angle, -1.0, -1.0)
@@ -375,21 +220,44 @@ class ArmChain:
         Exactly ``push_counts`` sample by sample (counters included); a backend may do it in
         one call.
         """
-        for t, x in zip(*_block("counts", t_s, counts, ()), strict=True):
+        for t, x in zip(*block_inputs("counts", t_s, counts, ()), strict=True):
             self.push_counts(t, x)
         return self.last
 
     def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray) -> ArmSample:
         """``push_angle`` over (k,) times and angles; return the last output."""
-        for t, x in zip(*_block("angle_deg", t_s, angle_deg, ()), strict=True):
+        for t, x in zip(*block_inputs("angle_deg", t_s, angle_deg, ()), strict=True):
             self.push_angle(t, x)
         return self.last
 
     def push_lengths_block(self, t_s: np.ndarray, length_L0: np.ndarray) -> ArmSample:
         """``push_lengths`` over (k,) times and (k, 2) lengths; return the last output."""
-        for t, x in zip(*_block("length_L0", t_s, length_L0, (2,)), strict=True):
+        for t, x in zip(*block_inputs("length_L0", t_s, length_L0, (2,)), strict=True):
             self.push_lengths(t, x)
         return self.last
+
+    def run_trace(self, push: str, t_s: np.ndarray, signal: np.ndarray,
+                  intended_angle_deg: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Push a whole trace; every output stacked (what :func:`spindle.chain.run_chain` uses).
+
+        ``push`` names the entry point (``"push_counts"``, ``"push_angle"``,
+        ``"push_lengths"``); ``intended_angle_deg`` (k,) sets the switch before each sample
+        (NaN: the measured motion). Returns the fields of :class:`ArmSample` stacked over the
+        k samples (rejected ones included). Here a plain loop; the C chain makes one call.
+        """
+        kind = push.removeprefix("push_")
+        t, x = block_inputs(kind, t_s, signal, (2,) if kind == "lengths" else ())
+        if intended_angle_deg is not None and np.shape(intended_angle_deg) != t.shape:
+            raise ValueError(f"intended_angle_deg has shape {np.shape(intended_angle_deg)}, "
+                             f"expected {t.shape}")
+        push_one = getattr(self, push)
+        samples = []
+        for i in range(t.size):
+            if intended_angle_deg is not None:
+                angle = intended_angle_deg[i]
+                self.set_intended_angle(None if np.isnan(angle) else angle)
+            samples.append(push_one(t[i], x[i]))
+        return stack_samples(samples, self.last)
 
     # -- stages ----------------------------------------------------------------------------
     def _atomic(self, stage: Callable[..., ArmSample], *args) -> ArmSample:
@@ -489,7 +357,7 @@ class ArmChain:
 
     def _advance_spindles(self, x0, v0, x1, v1, gd, gs, dt):
         c, theta = self._columns, self._method.theta
-        k = max(1, math.ceil(dt / self.config.spindle_step_s * (1 - 1e-12)))
+        k = substeps(dt, self.config.spindle_step_s)
         h = dt / k
         lo, hi = core.LENGTH_RANGE_L0
         reach = self.config.max_speed_L0_s * h
@@ -516,7 +384,7 @@ class ArmChain:
         """The sample's time, or None (counted) if it may not be pushed."""
         if self._last is None:
             raise RuntimeError("call ArmChain.reset before pushing samples")
-        t = _real(t_s)
+        t = real_number(t_s)
         if not math.isfinite(t):
             self.counters["bad_time"] += 1
             return None
@@ -554,204 +422,43 @@ class ArmChain:
 
     @staticmethod
     def _check_angle(angle_deg: float) -> float:
-        angle = _real(angle_deg)
+        angle = real_number(angle_deg)
         if not math.isfinite(angle):
             raise ValueError(f"angle_deg={angle_deg!r} must be a finite real number")
         return angle
 
     @staticmethod
     def _check_lengths(length_L0: np.ndarray) -> np.ndarray | None:
-        L = _real_array(length_L0)
-        lo, hi = core.LENGTH_RANGE_L0
-        if L.shape != (2,) or not np.all(np.isfinite(L)) or L.min() < lo or L.max() > hi:
-            return None
-        return L.copy()
+        return checked_lengths(length_L0)
+
+
+def checked_lengths(length_L0: np.ndarray) -> np.ndarray | None:
+    """A copy of ``length_L0`` if it is 2 finite lengths within the spindle's range, else None."""
+    L = real_array(length_L0)
+    lo, hi = core.LENGTH_RANGE_L0
+    if L.shape != (2,) or not np.all(np.isfinite(L)) or L.min() < lo or L.max() > hi:
+        return None
+    return L.copy()
 
 
 _SPINDLE_ARRAYS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activation",
                    "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
 
 
-def _check_positive_int(name: str, value: object, most: int | None = None) -> None:
-    if (isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer)
-            or value < 1 or (most is not None and value > most)):
-        limit = "" if most is None else f" and <= {most}"
-        raise ValueError(f"{name}={value!r} must be an integer >= 1{limit}")
-
-
-def _check_positive_real(name: str, value: object) -> None:
-    if isinstance(value, bool | np.bool_) or not (math.isfinite(_real(value))
-                                                  and _real(value) > 0):
-        raise ValueError(f"{name}={value!r} must be a finite real number > 0")
-
-
-def _real(value: object) -> float:
-    """``value`` as a float; NaN if it is not one real number (complex, an integer beyond
-    float's range, a string, None...), so the caller's rule for non-finite input applies."""
-    if isinstance(value, complex | np.complexfloating) or (
-            isinstance(value, np.ndarray) and np.iscomplexobj(value)):
-        return math.nan
-    try:
-        return float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError, OverflowError):
-        return math.nan
-
-
-def _real_array(value: object) -> np.ndarray:
-    """``value`` as a float array; NaN in place of every element that is not a real number
-    (all of them if the array is complex)."""
-    if np.iscomplexobj(value):
-        return np.full(np.shape(value), math.nan)
-    try:
-        return np.asarray(value, dtype=float)
-    except (TypeError, ValueError, OverflowError):
-        try:
-            items = np.asarray(value, dtype=object)
-        except ValueError:  # ragged
-            return np.full(1, math.nan)
-        return np.vectorize(_real, otypes=[float])(items) if items.size else np.zeros(
-            items.shape)
-
-
-@dataclass(frozen=True)
-class ChainTrace:
-    """Every signal of a batch run; arrays have the samples on axis 0, muscles on axis 1.
-
-    Fields are those of :class:`ArmSample` stacked over samples, plus the final counters.
-    """
-
-    t_s: np.ndarray
-    accepted: np.ndarray
-    counts: np.ndarray
-    counts_filtered: np.ndarray
-    angle_deg: np.ndarray
-    length_L0: np.ndarray
-    velocity_L0_s: np.ndarray
-    acceleration_L0_s2: np.ndarray
-    template_L0: np.ndarray
-    gamma_static_pps: np.ndarray
-    gamma_dynamic_pps: np.ndarray
-    ia_pps: np.ndarray
-    ii_pps: np.ndarray
-    counters: dict[str, int]
-
-    def columns(self) -> dict[str, np.ndarray]:
-        """Flat named columns (per-muscle signals split as ``BRA_ia_pps`` ...), e.g. for CSV."""
-        out: dict[str, np.ndarray] = {}
-        for f in fields(ArmSample):
-            value = getattr(self, f.name)
-            if value.ndim == 2:
-                for k, muscle in enumerate(MUSCLES):
-                    out[f"{muscle}_{f.name}"] = value[:, k]
-            else:
-                out[f.name] = value
-        return out
-
-
-def run_chain(
-    t_s: np.ndarray,
-    *,
-    counts: np.ndarray | None = None,
-    angle_deg: np.ndarray | None = None,
-    length_L0: np.ndarray | None = None,
-    intended_angle_deg: np.ndarray | None = None,
-    config: ChainConfig | None = None,
-    fits: LengthFits | None = None,
-) -> ChainTrace:
-    """Run the chain over a whole trace; exactly what :class:`ArmChain` does sample by sample.
-
-    Give the samples' times ``t_s`` (T,) and one of ``counts`` (T,) encoder readings,
-    ``angle_deg`` (T,) elbow angles or ``length_L0`` (T, 2) fibre lengths. The arm starts at
-    rest at the first sample that is valid (its output is that rest state, its angle clamped to
-    the length model's range and counted like any other sample's); the other samples
-    are pushed in order (bad ones are handled by the documented rules). ``intended_angle_deg``
-    (T,) switches the fusimotor template to the intended motion.
-    """
-    given = [x is not None for x in (counts, angle_deg, length_L0)]
-    if sum(given) != 1:
-        raise ValueError("give exactly one of counts, angle_deg or length_L0")
-    t = _real_array(t_s)
-    if t.ndim != 1 or t.size == 0:
-        raise ValueError(f"t_s must be a non-empty 1-D array, got shape {t.shape}")
-    signal = _real_array(next(x for x in (counts, angle_deg, length_L0) if x is not None))
-    want = (t.size, 2) if length_L0 is not None else (t.size,)
-    if signal.shape != want:
-        raise ValueError(f"the signal has shape {signal.shape}, expected {want} for t_s "
-                         f"{t.shape}")
-    intended = None
-    if intended_angle_deg is not None:
-        intended = _intended_angles(intended_angle_deg)
-        if intended.shape != t.shape:
-            raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected {t.shape}")
-
-    chain = ArmChain(config, fits)
-    start = _first_valid(t, signal, counts is not None, length_L0 is not None, chain)
-    if counts is not None:
-        chain.reset(float(chain.config.calibration.angle_deg(signal[start])), t[start])
-        push = chain.push_counts
-    elif angle_deg is not None:
-        chain.reset(signal[start], t[start])
-        push = chain.push_angle
-    else:
-        lo, hi = chain.angle_range_deg
-        chain.reset(0.5 * (lo + hi), t[start], length_L0=signal[start])
-        push = chain.push_lengths
-    run_trace = getattr(chain, "run_trace", None)
-    if run_trace is not None:  # a backend that runs the whole trace in one call
-        first = chain.last
-        rest = run_trace(push.__name__, t[start + 1:], signal[start + 1:],
-                         None if intended is None else intended[start + 1:])
-        stacked = {
-            f.name: np.concatenate([np.array([getattr(first, f.name)] * (start + 1)),
-                                    rest[f.name]]) for f in fields(ArmSample)
-        }
-    else:
-        samples = [chain.last] * (start + 1)
-        for i in range(start + 1, t.size):
-            if intended is not None:
-                chain.set_intended_angle(None if np.isnan(intended[i]) else intended[i])
-            samples.append(push(t[i], signal[i]))
-        stacked = {
-            f.name: np.array([getattr(s, f.name) for s in samples]) for f in fields(ArmSample)
-        }
-    stacked["accepted"][:start] = False
-    return ChainTrace(**stacked, counters=dict(chain.counters))
-
-
-def _intended_angles(value: object) -> np.ndarray:
-    """``run_chain``'s intended angles as floats: real numbers, NaN for the measured motion."""
-    why = "must hold real angles in deg (NaN: the measured motion)"
-    if np.iscomplexobj(value):
-        raise ValueError(f"intended_angle_deg {why}, got complex values")
-    try:
-        intended = np.asarray(value, dtype=float)
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise ValueError(f"intended_angle_deg {why}: {exc}") from None
-    if np.isinf(intended).any():
-        raise ValueError(f"intended_angle_deg {why}, got an infinite one")
-    return intended
-
-
-def _first_valid(t, signal, is_counts, is_lengths, chain) -> int:
-    for i in range(t.size):
-        if not np.isfinite(t[i]):
-            continue
-        if is_counts:
-            ok = is_valid_reading(signal[i], chain.config.encoder.max_count)
-        elif is_lengths:
-            ok = chain._check_lengths(signal[i]) is not None
-        else:
-            ok = bool(np.isfinite(signal[i]))
-        if ok:
-            return i
-    raise ValueError("the trace holds no valid sample to start from")
-
-
-def _block(name: str, t_s: np.ndarray, signal: np.ndarray,
-           sample_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-    t = _real_array(t_s)
-    x = _real_array(signal)
+def block_inputs(name: str, t_s: np.ndarray, signal: np.ndarray,
+                 sample_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(times, signal) of a block push as real arrays (NaN for anything else), shapes checked."""
+    t = real_array(t_s)
+    x = real_array(signal)
     if t.ndim != 1 or x.shape != (t.size, *sample_shape):
         raise ValueError(f"{name} has shape {x.shape} and t_s {t.shape}; expected "
                          f"{(t.size, *sample_shape)} for (k,) times")
     return t, x
+
+
+def stack_samples(samples: list[ArmSample], like: ArmSample) -> dict[str, np.ndarray]:
+    """The fields of ``samples`` stacked on axis 0 (shaped as ``like``'s when there are none)."""
+    return {f.name: np.array([getattr(sample, f.name) for sample in samples]) if samples
+            else np.empty((0, *np.shape(getattr(like, f.name))),
+                          dtype=np.asarray(getattr(like, f.name)).dtype)
+            for f in fields(ArmSample)}

@@ -1,4 +1,4 @@
-"""Build and load the C port (``spindle/c/*.c``) as a shared library, on first use.
+"""Build and load the C port (``spindle/native/c/*.c``) as a shared library, on first use.
 
 The library is compiled once per source version, compiler flags and variant, into a cache
 directory (``$PROPRIO_C_CACHE`` or ``~/.cache/proprio-elbow/c``), and loaded with ctypes.
@@ -8,7 +8,7 @@ and UndefinedBehaviorSanitizer (for the fuzz tests; needs a compiler that has th
 
 The cache, and what is never done with it:
 
-- The cache key is the sources (``spindle/c/*.c``, ``*.h``), the flags and the variant, not
+- The cache key is the sources (``c/*.c``, ``*.h``), the flags and the variant, not
   the compiler: a library built by one compiler is reused by any other, and a valid cache
   loads on a machine without a compiler. Changing ``$CC`` does not rebuild (empty the cache
   directory, or point ``$PROPRIO_C_CACHE`` elsewhere, to rebuild with another compiler).
@@ -29,8 +29,7 @@ The cache, and what is never done with it:
 - ``$CC`` may carry arguments (``CC="ccache gcc"``, ``CC="gcc -m64"``; split as a shell
   would, :func:`shlex.split`).
 
-The ctypes mirrors of the header's structs live here, next to the loader, so every module
-that binds part of the header shares one definition.
+The ctypes mirrors of the header live in :mod:`spindle.native.abi`.
 """
 
 from __future__ import annotations
@@ -48,8 +47,6 @@ import tempfile
 import time
 from functools import cache
 from pathlib import Path
-
-from spindle.params import SpindleParams
 
 SOURCE_DIR = Path(__file__).resolve().parent / "c"
 HEADER = SOURCE_DIR / "proprio.h"
@@ -72,7 +69,7 @@ class CBackendError(RuntimeError):
 
 
 def sources() -> list[Path]:
-    """The library's C sources (``spindle/c/*.c``; subdirectories are other targets)."""
+    """The library's C sources (``c/*.c`` here; subdirectories are other targets)."""
     return sorted(SOURCE_DIR.glob("*.c"))
 
 
@@ -95,7 +92,7 @@ def compiler_command() -> list[str]:
     tried = f"$CC={cc!r}" if cc else "cc, gcc, clang"
     raise CBackendError(
         f"no C compiler found (tried {tried}); the 'c' backend compiles "
-        "spindle/c/*.c on first use: install one (Debian: apt-get install gcc) or set $CC, "
+        "spindle/native/c/*.c on first use: install one (Debian: apt-get install gcc) or set $CC, "
         "or use backend='numpy'"
     )
 
@@ -297,56 +294,3 @@ def _version(compiler: list[str]) -> str:
 def load(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
     """The loaded library (built on first use). Callers declare the prototypes they use."""
     return ctypes.CDLL(str(library_path(variant, sanitize)))
-
-
-def real_type(variant: str = "double") -> type:
-    """The ctypes type of ``ps_real`` in ``variant``."""
-    return ctypes.c_float if variant == "float" else ctypes.c_double
-
-
-def structs(variant: str = "double") -> tuple[type, type]:
-    """ctypes mirrors of (``ps_params``, ``ps_spindle``) for ``variant``.
-
-    One pair of classes per variant however it is called (``structs()`` and
-    ``structs("double")`` must agree, or ctypes refuses one's pointers where the other's are
-    declared).
-    """
-    if variant not in VARIANTS:
-        raise ValueError(f"variant={variant!r} is not one of {VARIANTS}")
-    return _structs(variant)
-
-
-@cache
-def _structs(variant: str) -> tuple[type, type]:
-    real = real_type(variant)
-    fibre = real * 3
-
-    class PsParams(ctypes.Structure):
-        _fields_ = [(name, fibre) for name in PARAMS_FIELDS] + [("S", real)]
-
-    class PsSpindle(ctypes.Structure):
-        _fields_ = [("T", fibre), ("v", fibre), ("z", fibre), ("f", fibre),
-                    ("L", real), ("gd", real), ("gs", real)]
-
-    return PsParams, PsSpindle
-
-
-# ps_params field -> spindle.FibreParams attribute, in the header's order.
-PARAMS_FIELDS = {
-    "KSR": "KSR_FU_L0", "KPR": "KPR_FU_L0", "M": "M_FU_s2_L0",
-    "beta0": "beta0_FU_s_L0", "beta_drive": "beta_drive_FU_s_L0",
-    "Gamma_drive": "Gamma_drive_FU", "CL": "CL", "CS": "CS", "R": "R_L0", "a": "a",
-    "LSR0": "LSR0_L0", "LPR0": "LPR0_L0", "LNSR": "LNSR_L0", "LNPR": "LNPR_L0", "X": "X",
-    "Lsec": "Lsec_L0", "G_pri": "G_primary_pps_L0", "G_sec": "G_secondary_pps_L0",
-    "freq": "freq_pps", "p": "p", "tau": "tau_s",
-}
-
-
-def params_struct(params: SpindleParams, variant: str = "double") -> ctypes.Structure:
-    """``params`` as a filled ``ps_params``."""
-    PsParams, _ = structs(variant)
-    out = PsParams()
-    for field, attr in PARAMS_FIELDS.items():
-        getattr(out, field)[:] = [getattr(f, attr) for f in params.fibres]
-    out.S = params.S
-    return out

@@ -1,10 +1,10 @@
-"""The C backend of the arm chain: :class:`CArmChain`, ``spindle/c/chain.c`` through ctypes.
+"""The C backend of the arm chain: :class:`CArmChain`, ``c/chain.c`` through ctypes.
 
-``ArmChain(ChainConfig(backend="c"))`` returns a :class:`CArmChain`: the same API, outputs
-and counters as the numpy :class:`~spindle.chain.ArmChain` (the double build agrees to
-round-off), with every push done in C and each block push in ONE C call. The library is
-compiled on first use (:mod:`spindle.cbuild`); without a C compiler the constructor raises
-:class:`~spindle.cbuild.CBackendError` saying so.
+``spindle.chain.make_chain(ChainConfig(backend="c"))`` returns a :class:`CArmChain`: the same
+API, outputs and counters as the numpy :class:`~spindle.chain.arm.ArmChain` (the double build
+agrees to round-off), with every push done in C and each block push in ONE C call. The library
+is compiled on first use (:mod:`spindle.native.build`); without a C compiler the constructor
+raises :class:`~spindle.native.build.CBackendError` saying so.
 
 As in the numpy chain, a push that fails (a spindle step that does not converge) raises and
 leaves the chain exactly as it was (see ``docs/c_chain.md``).
@@ -19,34 +19,28 @@ from functools import cache
 
 import numpy as np
 
-from spindle import cbuild, core
-from spindle.chain import (
+from spindle import core
+from spindle.chain.arm import ArmChain, block_inputs
+from spindle.chain.conditioning import natural_rad_s
+from spindle.chain.config import (
     COUNTERS,
     MUSCLES,
-    ArmChain,
     ArmSample,
     ChainConfig,
-    _block,
-    _real,
-    _real_array,
+    real_array,
+    real_number,
 )
-from spindle.derivatives import natural_rad_s
-from spindle.length_fits import LengthFits, load_length_fits
+from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.methods import get_method
+from spindle.native import build
+from spindle.native.abi import Status, params_struct, real_type, status_name
+from spindle.native.abi import structs as spindle_structs
 
 # Constants of proprio.h's chain section (checked against the header by the tests).
 MEDIAN_MAX_WINDOW = 15
 FIT_MAX_COEFFS = 16
 PREDICTOR_MAX_SEGMENTS = 16
 MAX_UPDATES = 1_000_000
-
-STATUS = {
-    0: "PS_OK", 1: "PS_ERR_NULL", 2: "PS_ERR_NONFINITE", 3: "PS_ERR_LENGTH_RANGE",
-    4: "PS_ERR_NEGATIVE_DRIVE", 5: "PS_ERR_STEP", 6: "PS_ERR_SPEED", 7: "PS_ERR_NO_CONVERGENCE",
-    8: "PS_ERR_METHOD", 9: "PS_ERR_CONFIG", 10: "PS_ERR_ANGLE_RANGE", 11: "PS_ERR_NOT_RESET",
-    12: "PS_ERR_INTERVAL",
-}
-PS_OK, PS_ERR_NOT_RESET, PS_ERR_INTERVAL = 0, 11, 12
 
 PER_MUSCLE = ("length_L0", "velocity_L0_s", "acceleration_L0_s2", "template_L0",
               "gamma_static_pps", "gamma_dynamic_pps", "ia_pps", "ii_pps")
@@ -58,8 +52,8 @@ assert SAMPLE_FIELDS[5:] == PER_MUSCLE
 @cache
 def structs(variant: str = "double") -> dict[str, type]:
     """ctypes mirrors of the chain section's structs for ``variant``."""
-    real = cbuild.real_type(variant)
-    PsParams, PsSpindle = cbuild.structs(variant)
+    real = real_type(variant)
+    PsParams, PsSpindle = spindle_structs(variant)
     pair = real * 2
     n_muscles = len(MUSCLES)
 
@@ -136,8 +130,8 @@ def sample_dtype(variant: str = "double") -> np.dtype:
 @cache
 def library(variant: str = "double") -> ctypes.CDLL:
     """The built library with the chain's prototypes declared."""
-    lib = cbuild.load(variant)
-    real = cbuild.real_type(variant)
+    lib = build.load(variant)
+    real = real_type(variant)
     s = structs(variant)
     chain_p = ctypes.POINTER(s["PsArmChain"])
     sample_p = ctypes.POINTER(s["PsArmSample"])
@@ -207,13 +201,13 @@ def chain_config_struct(config: ChainConfig, fits: LengthFits,
         raise ValueError(
             f"delay_s={fm.delay_s!r} at predictor_rate_hz={fm.predictor_rate_hz!r} needs more "
             f"than the C backend's PS_PREDICTOR_MAX_SEGMENTS={PREDICTOR_MAX_SEGMENTS} segments")
-    out.params = cbuild.params_struct(config.params, variant)
+    out.params = params_struct(config.params, variant)
     out.theta = get_method(config.method).theta
     out.step_s = config.spindle_step_s
     return out
 
 
-_float = _real  # NaN for anything that is not one real number: the C chain's bad-sample rules
+_float = real_number  # NaN for anything that is not one real number: the C chain's bad-sample rules
 
 
 _C_SNAPSHOTS = "_c_struct_snapshots"
@@ -247,10 +241,10 @@ def _layout(cls: type) -> tuple:
 
 
 class CArmChain(ArmChain):
-    """:class:`~spindle.chain.ArmChain` computed by ``spindle/c/chain.c``.
+    """:class:`~spindle.chain.arm.ArmChain` computed by ``c/chain.c``.
 
     Args:
-        config, fits: as for :class:`~spindle.chain.ArmChain` (``config.backend`` is not
+        config, fits: as for :class:`~spindle.chain.arm.ArmChain` (``config.backend`` is not
             read: this class is the C backend).
         variant: ``"double"`` (agrees with numpy to round-off) or ``"float"`` (what a
             microcontroller without an FPU runs; see ``docs/c_chain.md`` for its accuracy).
@@ -265,7 +259,7 @@ class CArmChain(ArmChain):
         self.variant = variant
         self._lib = library(variant)
         self._structs = structs(variant)
-        self._real = cbuild.real_type(variant)
+        self._real = real_type(variant)
         self._np_real = np.float32 if variant == "float" else np.float64
         self._config_struct = chain_config_struct(self.config, self.fits, variant)
         self._chain = self._structs["PsArmChain"]()
@@ -279,8 +273,8 @@ class CArmChain(ArmChain):
         self._scalar = self._real()
         self._scalar_p = ctypes.pointer(self._scalar)
         status = self._lib.ps_chain_init(self._chain_p, ctypes.byref(self._config_struct))
-        if status != PS_OK:
-            raise ValueError(f"the C chain refused the configuration ({STATUS[status]})")
+        if status != Status.PS_OK:
+            raise ValueError(f"the C chain refused the configuration ({status_name(status)})")
         c = self._chain
         self.angle_range_deg = (float(c.angle_min_deg), float(c.angle_max_deg))
         self.length_min_L0 = np.array(c.length_min_L0[:], dtype=float)
@@ -329,7 +323,7 @@ class CArmChain(ArmChain):
     # -- state ---------------------------------------------------------------------------
     def reset(self, angle_deg: float, t_s: float = 0.0,
               length_L0: np.ndarray | None = None) -> ArmSample:
-        t = _real(t_s)
+        t = real_number(t_s)
         if not math.isfinite(t):
             raise ValueError(f"t_s={t_s!r} must be a finite real number")
         angle = self._check_angle(angle_deg)
@@ -343,7 +337,7 @@ class CArmChain(ArmChain):
             lengths_p = self._pair_p
         status = self._lib.ps_chain_reset(self._chain_p, angle, t, lengths_p,
                                           self._sample_p)
-        if status == 10:  # PS_ERR_ANGLE_RANGE: the fits' own error and message
+        if status == Status.PS_ERR_ANGLE_RANGE:  # the fits' own error and message
             self.fits.length_L0(math.radians(angle))
         self._check(status, "reset")
         self._last = self._sample_out(True)
@@ -392,7 +386,7 @@ class CArmChain(ArmChain):
 
     def push_lengths(self, t_s: float, length_L0: np.ndarray,
                      angle_deg: float | None = None) -> ArmSample:
-        L = _real_array(length_L0)
+        L = real_array(length_L0)
         self._pair[:] = L.tolist() if L.shape == (2,) else [math.nan, math.nan]
         angle_p = None
         if angle_deg is not None:
@@ -424,7 +418,7 @@ class CArmChain(ArmChain):
         """
         kind = push.removeprefix("push_")
         shape = (2,) if kind == "lengths" else ()
-        t, x = _block(kind, t_s, signal, shape)
+        t, x = block_inputs(kind, t_s, signal, shape)
         t = np.ascontiguousarray(t, dtype=np.float64)
         x = np.ascontiguousarray(x, dtype=self._np_real)
         intended = None
@@ -442,8 +436,8 @@ class CArmChain(ArmChain):
         done = self._n_done.value
         if self._last is not None:
             self._last = self._sample_from(self._chain.state.last)
-        if status != PS_OK:
-            if intended is not None and status == 2:  # PS_ERR_NONFINITE: the switch's input
+        if status != Status.PS_OK:
+            if intended is not None and status == Status.PS_ERR_NONFINITE:  # the switch's input
                 raise ValueError(f"intended_angle_deg={float(intended[done])!r} must be "
                                  "finite (NaN selects the measured motion)")
             self._check(status, "push", float(t[done]))
@@ -454,13 +448,13 @@ class CArmChain(ArmChain):
 
     # -- plumbing ----------------------------------------------------------------------------
     def _block(self, fn, name, t_s, signal, sample_shape) -> ArmSample:
-        t, x = _block(name, t_s, signal, sample_shape)
+        t, x = block_inputs(name, t_s, signal, sample_shape)
         t = np.ascontiguousarray(t, dtype=np.float64)
         x = np.ascontiguousarray(x, dtype=self._np_real)
         # Raw addresses: the arrays outlive the call, and .ctypes.data_as costs microseconds.
         status = fn(self._chain_p, t.size, t.__array_interface__["data"][0],
                     x.__array_interface__["data"][0], self._sample_p, self._n_done_p)
-        if status != PS_OK:
+        if status != Status.PS_OK:
             i = self._n_done.value
             if self._n_done.value > 0:
                 self._last = self._sample_out(True)
@@ -477,20 +471,20 @@ class CArmChain(ArmChain):
         return self._rejected()
 
     def _check(self, status: int, what: str, t_s: float | None = None) -> None:
-        if status == PS_OK:
+        if status == Status.PS_OK:
             return
-        if status == PS_ERR_NOT_RESET:
+        if status == Status.PS_ERR_NOT_RESET:
             raise RuntimeError(f"call ArmChain.reset before using the chain ({what})")
-        if status == PS_ERR_INTERVAL:
+        if status == Status.PS_ERR_INTERVAL:
             raise ValueError(
                 f"the sample at t_s={t_s!r} is too far after the last accepted one at "
                 f"{float(self._chain.state.t_s)!r} s: the interval needs more than "
                 f"{MAX_UPDATES} spindle sub-steps or predictor updates; chain left unchanged")
         if what == "push":
             raise FloatingPointError(
-                f"the C chain failed at t_s={t_s!r} ({STATUS.get(status, status)}): a spindle "
+                f"the C chain failed at t_s={t_s!r} ({status_name(status)}): a spindle "
                 "step did not produce a valid state; chain left unchanged")
-        raise ValueError(f"the C chain refused the {what} ({STATUS.get(status, status)})")
+        raise ValueError(f"the C chain refused the {what} ({status_name(status)})")
 
     def _sample_out(self, accepted: bool) -> ArmSample:
         return self._sample_from(self._sample, accepted, self._rows)
@@ -513,10 +507,10 @@ def config_c_source(config: ChainConfig | None = None, fits: LengthFits | None =
                     name: str = "proprio_chain_config") -> str:
     """C99 source defining ``const ps_chain_config <name>`` for ``config`` and ``fits``.
 
-    What a microcontroller build compiles beside ``spindle/c/*.c`` (no Python, no JSON on
-    the device). Values are C99 hexadecimal floating constants, so the double build gets
-    exactly the numbers the Python binding passes. ``python -m spindle.cchain > config.c``
-    writes it for the default chain.
+    What a microcontroller build compiles beside ``spindle/native/c/*.c`` (no Python, no JSON
+    on the device). Values are C99 hexadecimal floating constants, so the double build gets
+    exactly the numbers the Python binding passes. ``python -m spindle.native.chain >
+    config.c`` writes it for the default chain.
     """
     config = ChainConfig() if config is None else config
     fits = fits if fits is not None else load_length_fits(config.fits_path)
@@ -533,7 +527,7 @@ def config_c_source(config: ChainConfig | None = None, fits: LengthFits | None =
         return float(value).hex()
 
     body = ",\n".join(f"    .{f} = {literal(getattr(filled, f))}" for f, _ in filled._fields_)
-    return (f"/* Generated by spindle.cchain.config_c_source: {config.method}, "
+    return (f"/* Generated by spindle.native.chain.config_c_source: {config.method}, "
             f"fits of {', '.join(fits.muscles)} (elbow.xml sha256 {fits.model_sha256[:12]}). */\n"
             f'#include "proprio.h"\n\nconst ps_chain_config {name} = {{\n{body}\n}};\n')
 

@@ -35,61 +35,50 @@ from numpy.polynomial import chebyshev
 from spindle.core import LENGTH_RANGE_L0
 
 __all__ = [
+    "DEFAULT_MODEL_FILE",
     "FITS_FILENAME",
     "FORMAT",
-    "MODEL_FILENAME",
     "REGENERATE_COMMAND",
     "LengthFit",
     "LengthFits",
     "LengthFitsError",
     "check_length_range",
     "default_fits_path",
-    "default_model_path",
     "file_sha256",
     "length_fits_from_document",
     "load_length_fits",
-    "models_dir",
 ]
 
 FITS_FILENAME = "length_fits.json"
-MODEL_FILENAME = "elbow.xml"
+DEFAULT_MODEL_FILE = "elbow.xml"
+"""The model a fits document that names none (no ``model`` field) was made from, beside it."""
 FORMAT = "proprio-elbow/length-fits/1"
 REGENERATE_COMMAND = "python scripts/fit_lengths.py"
-_MODELS_PACKAGE = "proprio_models"
+_DATA_PACKAGE = "proprio_models"
 
 
 class LengthFitsError(RuntimeError):
     """``length_fits.json`` is missing, malformed, or stale (fitted to another ``elbow.xml``)."""
 
 
-def models_dir() -> Path:
-    """Folder holding ``elbow.xml`` and ``length_fits.json``.
+def default_fits_path() -> Path:
+    """Path of the bundled ``length_fits.json``.
 
-    A source checkout (plain or editable install) uses the repository's ``models/`` next to
-    this package; a wheel install uses the installed data package ``proprio_models``.
+    A source checkout (plain or editable install) uses the repository's ``models/``; a wheel
+    install uses the installed data package ``proprio_models``.
     """
-    checkout = Path(__file__).resolve().parent.parent / "models"
-    if (checkout / MODEL_FILENAME).is_file():
+    checkout = Path(__file__).resolve().parents[2] / "models" / FITS_FILENAME
+    if checkout.is_file():
         return checkout
     try:
-        installed = resources.files(_MODELS_PACKAGE)
+        installed = resources.files(_DATA_PACKAGE)
     except ModuleNotFoundError as err:
         raise FileNotFoundError(
-            f"cannot find the models folder: neither {checkout} nor an installed "
-            f"'{_MODELS_PACKAGE}' package exists; reinstall proprio-elbow"
+            f"cannot find the length fits: neither {checkout} nor an installed "
+            f"'{_DATA_PACKAGE}' package exists; reinstall proprio-elbow"
         ) from err
     # Wheels install plain files, so the traversable is a real directory.
-    return Path(str(installed))
-
-
-def default_fits_path() -> Path:
-    """Path of the packaged ``length_fits.json`` (it may not exist yet)."""
-    return models_dir() / FITS_FILENAME
-
-
-def default_model_path() -> Path:
-    """Path of the packaged ``elbow.xml``."""
-    return models_dir() / MODEL_FILENAME
+    return Path(str(installed)) / FITS_FILENAME
 
 
 def file_sha256(path: str | Path) -> str:
@@ -304,7 +293,7 @@ def length_fits_from_document(
             raise ValueError(f"valid_range_rad has {len(bounds)} numbers, not 2")
         lo, hi = bounds
         sha = doc["model_sha256"]
-        model_file = doc.get("model", MODEL_FILENAME)
+        model_file = doc.get("model", DEFAULT_MODEL_FILE)
         if not isinstance(model_file, str):
             raise ValueError(f"model is {model_file!r}, not a file name")
         muscles = doc["muscles"]

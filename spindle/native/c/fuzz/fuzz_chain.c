@@ -9,7 +9,7 @@
  *
  * Usage: fuzz_chain CONFIG_FILE ITERATIONS SEED
  * CONFIG_FILE holds the bytes of a valid ps_chain_config (written by the test from
- * spindle.cchain.chain_config_struct for the same build); each iteration also tries a
+ * spindle.native.chain.chain_config_struct for the same build); each iteration also tries a
  * corrupted copy of it on ps_chain_init.
  */
 #include "proprio.h"

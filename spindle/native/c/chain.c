@@ -4,9 +4,9 @@
  *   counts -> median filter -> f(x) -> angle -> fitted BRA/TRImed lengths -> tracking
  *   low-pass (L, dL/dt) -> PI template -> gamma_s = h, gamma_d = g -> spindles -> Ia, II
  *
- * A port of spindle/chain.py with spindle/sensor.py, spindle/length_fits.py,
- * spindle/derivatives.py and spindle/fusimotor.py, in their order of operations, so the
- * double build agrees with the numpy chain to round-off. Sections follow those modules.
+ * A port of spindle/chain/ (arm.py with sensor.py, length_model.py, conditioning.py and
+ * fusimotor.py), in their order of operations, so the double build agrees with the numpy
+ * chain to round-off. Sections follow those modules.
  *
  * Both chains are atomic: a push either completes or leaves the chain exactly as it was
  * (here it works on a copy of the state). Intervals longer than max_bridge_s restart the
@@ -90,7 +90,7 @@ static ps_real calibration_angle_deg(const ps_chain_config *cfg, ps_real counts)
 }
 
 /* ======================================================================================
- * length_fits.py
+ * length_model.py
  * ====================================================================================== */
 
 ps_real ps_chebval(ps_real x, const ps_real *c, int n)
@@ -128,7 +128,7 @@ static void fit_lengths(const ps_chain_config *cfg, ps_real angle_rad, ps_real *
 }
 
 /* ======================================================================================
- * derivatives.py
+ * conditioning.py
  * ====================================================================================== */
 
 void ps_tracking_step(ps_real x, ps_real v, ps_real u0, ps_real u1, ps_real dt_s,
@@ -278,7 +278,7 @@ static void fusimotor_rates(const ps_arm_chain *c, const ps_predictor *pr, ps_ti
 }
 
 /* ======================================================================================
- * chain.py
+ * arm.py
  * ====================================================================================== */
 
 static int config_ok(const ps_chain_config *cfg)

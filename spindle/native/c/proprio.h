@@ -38,7 +38,12 @@ enum ps_status {
     PS_ERR_SPEED = 6,         /* a length change faster than PS_MAX_SPEED_L0_S */
     PS_ERR_NO_CONVERGENCE = 7,/* the implicit solve did not converge */
     PS_ERR_METHOD = 8,        /* theta outside [0, 1] */
-    PS_ERR_CONFIG = 9         /* an unusable configuration (chain) */
+    PS_ERR_CONFIG = 9,        /* an unusable configuration (chain) */
+    PS_ERR_ANGLE_RANGE = 10,  /* reserved (ps_chain_reset now clamps the angle) */
+    PS_ERR_NOT_RESET = 11,    /* a chain used before ps_chain_init and ps_chain_reset */
+    PS_ERR_INTERVAL = 12      /* an interval needing more than PS_CHAIN_MAX_UPDATES spindle
+                                 sub-steps or predictor updates: a guard, not reached with a
+                                 config ps_chain_init accepted (longer intervals restart) */
 };
 
 #define PS_LENGTH_MIN_L0 0.5
@@ -83,8 +88,6 @@ int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, 
 
 /* Ia and II (pps) of the state: spindle.afferents. */
 void ps_spindle_afferents(const ps_spindle *s, const ps_params *p, ps_real *ia, ps_real *ii);
-
-/* ---- spindle section: further declarations go below this line (spindle.c owner) ---- */
 
 /* PS_OK if every constant of p is finite and KSR, M, freq, p, CL, CS > 0, 0 < a < 1,
  * tau >= 0 (the checks of spindle.FibreParams); PS_ERR_CONFIG otherwise. The step functions
@@ -226,18 +229,9 @@ void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_
 
 
 /* ======================================================================================
- * (3) Chain (chain.c) -- spindle/chain.py, spindle/sensor.py, spindle/derivatives.py,
- *     spindle/fusimotor.py, spindle/length_fits.py for one arm (BRA, TRImed).
+ * (3) Chain (chain.c) -- spindle/chain/ (arm.py, sensor.py, length_model.py,
+ *     conditioning.py, fusimotor.py) for one arm (BRA, TRImed).
  * ====================================================================================== */
-
-/* ---- chain section: declarations go below this line (chain.c owner) ---- */
-
-/* Chain-specific status codes (beside enum ps_status). */
-#define PS_ERR_ANGLE_RANGE 10 /* reserved (ps_chain_reset now clamps the angle) */
-#define PS_ERR_NOT_RESET 11   /* a chain used before ps_chain_init and ps_chain_reset */
-#define PS_ERR_INTERVAL 12    /* an interval needing more than PS_CHAIN_MAX_UPDATES spindle
-                                 sub-steps or predictor updates: a guard, not reached with a
-                                 config ps_chain_init accepted (longer intervals restart) */
 
 #define PS_MUSCLES 2                 /* BRA, TRImed: the order of every per-muscle array */
 #define PS_MEDIAN_MAX_WINDOW 15      /* largest median window (odd) */
@@ -253,7 +247,7 @@ void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_
 /* Times are double in both builds: a float clock cannot resolve 2 ms after a few hours. */
 typedef double ps_time;
 
-/* ---- sensor (spindle/sensor.py) ---- */
+/* ---- sensor (spindle/chain/sensor.py) ---- */
 
 /* Streaming causal median of the last `window` samples (MedianFilter). */
 typedef struct ps_median {
@@ -270,23 +264,23 @@ ps_real ps_median_push(ps_median *m, ps_real value);
 /* is_valid_reading: 1 for an integer reading in 0..max_count, else 0 (NaN included). */
 int ps_is_valid_reading(ps_real counts, ps_real max_count);
 
-/* ---- length fits (spindle/length_fits.py): Chebyshev series in the elbow angle ---- */
+/* ---- length model (spindle/chain/length_model.py): Chebyshev series in the elbow angle ---- */
 
 /* sum_k c_k T_k(x) by Clenshaw's recurrence, in numpy.polynomial.chebyshev.chebval's
  * order of operations; n >= 1 coefficients, lowest first. */
 ps_real ps_chebval(ps_real x, const ps_real *coefficients, int n);
 
-/* ---- tracking low-pass (spindle/derivatives.py) ---- */
+/* ---- tracking low-pass (spindle/chain/conditioning.py) ---- */
 
 /* tracking_step for one signal: advance (x, v) by dt_s while the input goes linearly from
  * u0 to u1; writes x1, v1, a1. dt_s > 0 and omega > 0 are the caller's duty. */
 void ps_tracking_step(ps_real x, ps_real v, ps_real u0, ps_real u1, ps_real dt_s,
                       ps_real omega_rad_s, ps_real *x1, ps_real *v1, ps_real *a1);
 
-/* ---- chain (spindle/chain.py, spindle/fusimotor.py) ---- */
+/* ---- chain (spindle/chain/arm.py, spindle/chain/fusimotor.py) ---- */
 
 /* Every setting of one arm's chain: chain.ChainConfig resolved to numbers. Fill it (the
- * Python binding shows how: spindle/cchain.py, chain_config_struct) and pass it to
+ * Python binding shows how: spindle/native/chain.py, chain_config_struct) and pass it to
  * ps_chain_init, which checks it. */
 typedef struct ps_chain_config {
     /* sensor: valid readings are the integers 0..max_count; f(x) = sign (x - zero) dpc */

@@ -1,10 +1,10 @@
-"""ctypes binding of the C spindle (spindle/c/spindle.c) and the C path of ``simulate``.
+"""ctypes binding of the C spindle (``c/spindle.c``) and the C path of ``simulate``.
 
-The library is compiled on first use by :mod:`spindle.cbuild` (a clear
-:class:`~spindle.cbuild.CBackendError` if no C compiler is found). :func:`simulate` is
-``spindle.simulate(..., backend="c")``: the same validation and ValueErrors as the numpy path,
-the same sub-step lengths (Hermite curves computed here with the numpy path's weights), then
-one ``ps_spindle_run`` call per spindle.
+The library is compiled on first use by :mod:`spindle.native.build` (a clear
+:class:`~spindle.native.build.CBackendError` if no C compiler is found). :func:`simulate` is
+``spindle.simulate(..., backend="c")``: the same validation and ValueErrors as the numpy path
+(:func:`spindle.simulate.prepare_inputs`), the same sub-step lengths
+(:func:`spindle.substeps.substep_lengths`), then one ``ps_spindle_run`` call per spindle.
 """
 
 from __future__ import annotations
@@ -14,34 +14,21 @@ from functools import cache
 
 import numpy as np
 
-from spindle import cbuild
 from spindle.methods import Method
+from spindle.native import build
+from spindle.native.abi import Status, params_struct, plan_struct, real_type, status_name, structs
 from spindle.params import CAT, SpindleParams
-
-STATUS = {
-    0: "PS_OK",
-    1: "PS_ERR_NULL",
-    2: "PS_ERR_NONFINITE",
-    3: "PS_ERR_LENGTH_RANGE",
-    4: "PS_ERR_NEGATIVE_DRIVE",
-    5: "PS_ERR_STEP",
-    6: "PS_ERR_SPEED",
-    7: "PS_ERR_NO_CONVERGENCE",
-    8: "PS_ERR_METHOD",
-    9: "PS_ERR_CONFIG",
-}
-"""enum ps_status of proprio.h: value -> name."""
-
-PS_OK = 0
+from spindle.simulate import SpindleResult, chunk_bounds, prepare_inputs
+from spindle.substeps import substep_lengths
 
 
 @cache
 def library(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
     """The C library with the spindle functions' prototypes declared."""
-    lib = cbuild.load(variant, sanitize)
-    real = cbuild.real_type(variant)
+    lib = build.load(variant, sanitize)
+    real = real_type(variant)
     P = ctypes.POINTER
-    PsParams, PsSpindle = cbuild.structs(variant)
+    PsParams, PsSpindle = structs(variant)
     ptr_real = P(real)
     lib.ps_spindle_init.argtypes = [P(PsSpindle), P(PsParams), real, real, real]
     lib.ps_spindle_init.restype = ctypes.c_int
@@ -65,48 +52,12 @@ def library(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
     return lib
 
 
-# ps_plan of proprio.h, field by field in the header's order.
-PLAN_SCALARS = ("h", "theta", "one_minus_theta", "th_h", "max_dL", "S")
-PLAN_FLAGS = ("p_is_2", "a_is_03", "explicit_step", "uses_F0")
-PLAN_FIBRE_FIELDS = (
-    ("KSR", "inv_KSR", "c_f0", "c_a0", "c_a1", "c_a01"),
-    ("freq_p", "p", "a", "beta0", "beta_drive", "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R",
-     "LSR0", "LSR0_R", "LSR0_LPR0", "h_KSR", "h_M", "c_Av", "a2", "inv_a2", "M_h", "th_h_KSR",
-     "th_k1", "th_KPR", "th_CS", "th_dC", "stretch0", "G_pri", "c_sec1", "c_sec2", "sec_off"),
-)
-
-
-def plan_struct(variant: str = "double") -> type:
-    """ctypes mirror of ``ps_plan`` (the embedded fast path's precomputed constants)."""
-    if variant not in cbuild.VARIANTS:
-        raise ValueError(f"variant={variant!r} is not one of {cbuild.VARIANTS}")
-    return _plan_struct(variant)
-
-
-@cache
-def _plan_struct(variant: str) -> type:
-    real = cbuild.real_type(variant)
-
-    class PsPlan(ctypes.Structure):
-        _fields_ = ([(name, real) for name in PLAN_SCALARS]
-                    + [(name, ctypes.c_int) for name in PLAN_FLAGS]
-                    + [(name, real * 3) for name in PLAN_FIBRE_FIELDS[0]]
-                    + [("lagged", ctypes.c_int * 3)]
-                    + [(name, real * 3) for name in PLAN_FIBRE_FIELDS[1]])
-
-    return PsPlan
-
-
-def status_name(code: int) -> str:
-    return STATUS.get(code, f"unknown status {code}")
-
-
 def _np_real(variant: str) -> type:
     return np.float32 if variant == "float" else np.float64
 
 
 def _pointer(arr: np.ndarray, variant: str):
-    return arr.ctypes.data_as(ctypes.POINTER(cbuild.real_type(variant)))
+    return arr.ctypes.data_as(ctypes.POINTER(real_type(variant)))
 
 
 def run_spindle(
@@ -146,16 +97,16 @@ class _CSpindle:
         self.lib = library(variant, sanitize)
         self.variant = variant
         self.dtype = _np_real(variant)
-        self.p = cbuild.params_struct(params, variant)
-        _, PsSpindle = cbuild.structs(variant)
+        self.p = params_struct(params, variant)
+        _, PsSpindle = structs(variant)
         self.s = PsSpindle()
         self.steps_done = 0
         code = self.lib.ps_spindle_init(ctypes.byref(self.s), ctypes.byref(self.p), L, gd, gs)
-        if code != PS_OK:
+        if code != Status.PS_OK:
             raise ValueError(f"ps_spindle_init refused the first sample: {status_name(code)}")
 
     def afferents(self) -> tuple[float, float]:
-        real = cbuild.real_type(self.variant)
+        real = real_type(self.variant)
         r_ia, r_ii = real(), real()
         self.lib.ps_spindle_afferents(ctypes.byref(self.s), ctypes.byref(self.p),
                                       ctypes.byref(r_ia), ctypes.byref(r_ii))
@@ -172,10 +123,10 @@ class _CSpindle:
             ctypes.byref(self.s), ctypes.byref(self.p), _pointer(L, variant),
             _pointer(gd, variant), _pointer(gs, variant), n_steps, h_s, theta, every,
             _pointer(ia, variant), _pointer(ii, variant), ctypes.byref(done))
-        if code != PS_OK:
+        if code != Status.PS_OK:
             message = (f"C spindle step {self.steps_done + done.value + 1} failed with "
                        f"{status_name(code)} (step {h_s!r} s, theta {theta!r})")
-            if code in (2, 7):
+            if code in (Status.PS_ERR_NONFINITE, Status.PS_ERR_NO_CONVERGENCE):
                 raise FloatingPointError(message)
             raise ValueError(message)
         self.steps_done += n_steps
@@ -197,10 +148,8 @@ def simulate(
     chunk_samples: int | None = None,
 ):
     """:func:`spindle.simulate` in C; ``variant="float"`` runs the float32 build. The same
-    chunks and sub-step lengths as the numpy path (:func:`spindle.simulate.substep_lengths`),
+    chunks and sub-step lengths as the numpy path (:func:`spindle.substeps.substep_lengths`),
     then one ``ps_spindle_run`` call per spindle and chunk."""
-    from spindle.simulate import SpindleResult, chunk_bounds, prepare_inputs, substep_lengths
-
     m, L, gd, gs, derivatives, k, h = prepare_inputs(
         length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method, step)
     shape = np.shape(length)

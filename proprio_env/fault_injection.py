@@ -6,7 +6,7 @@ pushed through the numpy and the C backend side by side, and the checks of the s
 The stream (:func:`fault_stream`) is what an encoder on a moving servo delivers: minimum-jerk
 moves between random elbow angles at 40-450 deg/s peak (the servo's no-load speed is 684
 deg/s) separated by holds, read at ~500 Hz with jitter, noise and the encoder's own rare
-invalid readings (:class:`spindle.sensor.Encoder`). Mostly encoder counts
+invalid readings (:class:`proprio_env.encoder.Encoder`). Mostly encoder counts
 (``push_counts``), with runs of clean angles (``push_angle``) and fitted lengths
 (``push_lengths``). Between runs it injects one fault (:data:`FAULTS`):
 
@@ -53,10 +53,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from proprio_env.encoder import Encoder
 from spindle import core
-from spindle.chain import BACKENDS, COUNTERS, ArmChain, ArmSample, ChainConfig
-from spindle.length_fits import LengthFits
-from spindle.sensor import AX12, Calibration, Encoder, is_valid_reading
+from spindle.chain import BACKENDS, COUNTERS, ArmChain, ArmSample, ChainConfig, make_chain
+from spindle.chain.length_model import LengthFits
+from spindle.chain.sensor import AX12, Calibration, is_valid_reading
 
 RATE_BOUND_PPS = 1000.0
 """Physiological bound of the Ia and II rates (pps): human spindle afferents fire below
@@ -520,7 +521,7 @@ def run_soak(n_samples: int, seed: int = 0, config: ChainConfig | None = None,
     """
     config = ChainConfig() if config is None else config
     if chains is None:
-        chains = {b: ArmChain(replace(config, backend=b)) for b in BACKENDS}
+        chains = {b: make_chain(replace(config, backend=b)) for b in BACKENDS}
     fits = chains["numpy"].fits
     rng = np.random.default_rng(seed)
     report = SoakReport(allowed_rejections=config.resync_after_samples - 1)

@@ -1,0 +1,35 @@
+"""What runs on the prosthesis: the seed paper's processing chain for one arm.
+
+    counts -> median filter, f(x) (sensor) -> elbow angle -> fitted fibre lengths
+    (length_model) -> tracking low-pass (conditioning) -> PI template, gamma_s, gamma_d
+    (fusimotor) -> Mileusnic spindles (spindle.core) -> Ia, II per muscle
+
+:class:`ArmChain` (numpy, :mod:`spindle.chain.arm`) streams sample by sample; its C mirror is
+:class:`spindle.native.chain.CArmChain`. :func:`make_chain` builds the one
+``ChainConfig.backend`` names; :func:`run_chain` runs a whole trace through it. No MuJoCo here.
+"""
+
+from spindle.chain.arm import ArmChain
+from spindle.chain.config import (
+    BACKENDS,
+    COUNTERS,
+    MUSCLES,
+    ArmSample,
+    Chain,
+    ChainConfig,
+)
+from spindle.chain.factory import make_chain
+from spindle.chain.trace import ChainTrace, run_chain
+
+__all__ = [
+    "BACKENDS",
+    "COUNTERS",
+    "MUSCLES",
+    "ArmChain",
+    "ArmSample",
+    "Chain",
+    "ChainConfig",
+    "ChainTrace",
+    "make_chain",
+    "run_chain",
+]

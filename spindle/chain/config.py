@@ -1,0 +1,249 @@
+"""Settings and outputs of the prosthesis chain, shared by its numpy and C implementations.
+
+:data:`MUSCLES` (the project's one muscle order), :data:`COUNTERS` (the handling rules'
+names), :data:`BACKENDS`, :class:`ChainConfig` (every setting), :class:`ArmSample` (one
+output), and the coercion of pushed values to real numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from spindle import core
+from spindle.chain.conditioning import natural_rad_s
+from spindle.chain.fusimotor import SEED_PAPER, FusimotorParams
+from spindle.chain.sensor import AX12, Calibration, EncoderParams
+from spindle.methods import get_method
+from spindle.params import HUMAN, SpindleParams
+
+MUSCLES = ("BRA", "TRImed")
+"""The muscles of the arm, in the order of every per-muscle axis of the project."""
+BACKENDS = ("numpy", "c")
+"""``ChainConfig.backend``: ``"numpy"`` (:class:`spindle.chain.arm.ArmChain`) or ``"c"``
+(``spindle/native/c/chain.c`` through :class:`spindle.native.chain.CArmChain`, compiled on
+first use: same API, outputs and counters); :func:`spindle.chain.make_chain` picks one."""
+
+COUNTERS = (
+    "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
+    "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped", "restarts",
+    "clock_resyncs",
+)
+"""Names of :attr:`ArmChain.counters` (:mod:`spindle.chain.arm` describes each rule)."""
+MAX_RESYNC_AFTER_SAMPLES = 1_000_000
+"""Largest ``ChainConfig.resync_after_samples`` (``PS_CHAIN_MAX_RESYNC`` in C: an int there)."""
+
+MAX_BRIDGE_UPDATES = 100_000
+"""Most spindle sub-steps or predictor updates one bridged interval may take
+(``PS_CHAIN_MAX_BRIDGE_UPDATES`` in C, a tenth of the C chain's last-resort guard):
+``ChainConfig`` refuses a ``max_bridge_s`` needing more, so the work of a push is bounded."""
+
+
+@dataclass(frozen=True)
+class ChainConfig:
+    """Every setting of the chain (frozen; defaults: the seed paper's system).
+
+    Attributes:
+        encoder: the encoder's range and nominal rate (validity of readings, default gap).
+        calibration: f(x), counts to elbow angle.
+        median_window: the median filter's window (odd; paper: 7).
+        lowpass_hz: natural frequency of the tracking low-pass on the lengths (Hz); ``None``
+            passes lengths unfiltered (only for clean inputs). 20 Hz delays a movement by
+            16 ms; it minimised the total Ia/II error of the encoder chain against the
+            noise-free one among 5-50 Hz (``scripts/chain_figures.py``).
+        fusimotor: :class:`~spindle.chain.fusimotor.FusimotorParams`.
+        params: spindle constants (default :data:`spindle.HUMAN`, G x 1/5).
+        method: the spindle integrator (``"trapezoidal"``, ``"backward_euler"``,
+            ``"forward_euler"``).
+        step_s: largest internal spindle step (s); each sample interval is split into equal
+            sub-steps no longer than it. ``None``: the method's default.
+        max_gap_s: intervals longer than this are counted as gaps; ``None``: the median window
+            times the nominal sample period (14 ms).
+        max_bridge_s: the longest interval bridged by the smooth curve; a longer one restarts
+            the chain at rest at the new sample (counter ``restarts``). The default, 50 ms
+            (25 periods of the seed paper's 500 Hz encoder), is where extrapolating the motion
+            before a gap stops meaning something: the velocity a bridge starts from predicts
+            the arm for a fraction of a movement's cycle, and voluntary elbow movement and
+            tremor stay below about 10 Hz (half a cycle: 50 ms); by then the 20 Hz low-pass
+            (1/w = 8 ms) has long forgotten its state before the gap (e^(-wT)(1 + wT) = 1.4 %),
+            and across 50 ms the Hermite curve between any two states the low-pass can reach
+            stays within the 8 L0/s slew limit (measured; it exceeds the spindle's 10 L0/s
+            from about 100 ms on, where the sub-step limits take over). It also bounds the
+            work of a push: at most ``max_bridge_s / step_s`` spindle sub-steps (50).
+        resync_after_samples: a sample older than the last accepted one is rejected
+            (``time_backwards``), unless it is the ``resync_after_samples``-th such sample
+            since the last accepted one: then the chain trusts the new clock and restarts at
+            rest at that sample (counters ``restarts`` and ``clock_resyncs``). Without it, a
+            single corrupt time far in the future, once accepted as a long gap, would make
+            every later true sample "backwards" and the chain would never accept one again.
+            The default, 7, is the median window: as many readings as the filter needs before
+            it follows a change.
+        max_speed_deg_s: slew limit of the conditioned angle (deg/s).
+        max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
+        fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
+        backend: ``"numpy"`` or ``"c"`` (:data:`BACKENDS`); :func:`spindle.chain.make_chain`
+            builds the chain it names.
+    """
+
+    encoder: EncoderParams = AX12
+    calibration: Calibration = field(default_factory=Calibration)
+    median_window: int = 7
+    lowpass_hz: float | None = 20.0
+    fusimotor: FusimotorParams = SEED_PAPER
+    params: SpindleParams = HUMAN
+    method: str = "trapezoidal"
+    step_s: float | None = None
+    max_gap_s: float | None = None
+    max_bridge_s: float = 0.05
+    resync_after_samples: int = 7
+    max_speed_deg_s: float = 1000.0
+    max_speed_L0_s: float = 8.0
+    fits_path: str | Path | None = None
+    backend: str = "numpy"
+
+    def __post_init__(self) -> None:
+        # bool is an int and a float to Python; here it is always a mistake
+        _check_positive_int("median_window", self.median_window)
+        _check_positive_int("resync_after_samples", self.resync_after_samples,
+                            MAX_RESYNC_AFTER_SAMPLES)
+        if self.median_window % 2 == 0:
+            raise ValueError(f"median_window={self.median_window!r} must be an odd integer >= 1")
+        for name in ("lowpass_hz", "step_s", "max_gap_s"):
+            if getattr(self, name) is not None:
+                _check_positive_real(name, getattr(self, name))
+        for name in ("max_bridge_s", "max_speed_deg_s", "max_speed_L0_s"):
+            _check_positive_real(name, getattr(self, name))
+        if self.lowpass_hz is not None:
+            natural_rad_s(self.lowpass_hz)
+        method = get_method(self.method)
+        if self.step_s is not None:
+            core.check_step(float(self.step_s), method)
+        bridge = float(self.max_bridge_s)
+        updates = max(bridge / self.spindle_step_s, bridge * self.fusimotor.predictor_rate_hz)
+        if updates > MAX_BRIDGE_UPDATES:
+            raise ValueError(
+                f"max_bridge_s={self.max_bridge_s!r} needs {updates:.3g} spindle sub-steps or "
+                f"predictor updates per push, above {MAX_BRIDGE_UPDATES}")
+        if not float(self.max_speed_L0_s) <= core.MAX_SPEED_L0_S:
+            raise ValueError(
+                f"max_speed_L0_s={self.max_speed_L0_s!r} must lie in (0, "
+                f"{core.MAX_SPEED_L0_S}] (the spindle's speed limit)"
+            )
+        if not isinstance(self.backend, str) or self.backend not in BACKENDS:
+            raise ValueError(f"backend={self.backend!r} is not one of {BACKENDS}")
+
+    @property
+    def gap_s(self) -> float:
+        if self.max_gap_s is not None:
+            return float(self.max_gap_s)
+        return self.median_window * self.encoder.period_s
+
+    @property
+    def spindle_step_s(self) -> float:
+        m = get_method(self.method)
+        return m.default_step_s if self.step_s is None else float(self.step_s)
+
+
+@dataclass(frozen=True)
+class ArmSample:
+    """The chain's output after one sample; per-muscle arrays are (2,) in order BRA, TRImed.
+
+    Attributes:
+        t_s: sample time (s).
+        accepted: False if this sample was rejected (every other field then repeats the
+            previous output).
+        counts: the raw reading (-1 when the sample did not come from the encoder).
+        counts_filtered: the median-filtered reading (-1 likewise).
+        angle_deg: conditioned elbow angle (deg).
+        length_L0: conditioned (low-passed) fibre length.
+        velocity_L0_s, acceleration_L0_s2: its first and second time derivatives.
+        template_L0: the fusimotor template (PI predictor output).
+        gamma_static_pps, gamma_dynamic_pps: fusimotor drive.
+        ia_pps, ii_pps: primary and secondary afferent rates.
+    """
+
+    t_s: float
+    accepted: bool
+    counts: float
+    counts_filtered: float
+    angle_deg: float
+    length_L0: np.ndarray
+    velocity_L0_s: np.ndarray
+    acceleration_L0_s2: np.ndarray
+    template_L0: np.ndarray
+    gamma_static_pps: np.ndarray
+    gamma_dynamic_pps: np.ndarray
+    ia_pps: np.ndarray
+    ii_pps: np.ndarray
+
+
+
+class Chain(Protocol):
+    """What both chains (numpy :class:`~spindle.chain.arm.ArmChain`, C
+    :class:`~spindle.native.chain.CArmChain`) offer and :func:`spindle.chain.run_chain` uses.
+
+    Both also have the per-sample pushes (``push_counts``, ``push_angle``, ``push_lengths``),
+    their ``*_block`` forms, ``set_intended_angle`` and ``spindle_state``.
+    """
+
+    config: ChainConfig
+    angle_range_deg: tuple[float, float]
+
+    @property
+    def counters(self) -> dict[str, int]: ...
+
+    @property
+    def last(self) -> ArmSample: ...
+
+    def reset(self, angle_deg: float, t_s: float = 0.0,
+              length_L0: np.ndarray | None = None) -> ArmSample: ...
+
+    def run_trace(self, push: str, t_s: np.ndarray, signal: np.ndarray,
+                  intended_angle_deg: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Push a whole trace through entry point ``push`` (``"push_counts"``...), setting
+        the switch from ``intended_angle_deg`` before each sample; the stacked outputs."""
+        ...
+
+def _check_positive_int(name: str, value: object, most: int | None = None) -> None:
+    if (isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer)
+            or value < 1 or (most is not None and value > most)):
+        limit = "" if most is None else f" and <= {most}"
+        raise ValueError(f"{name}={value!r} must be an integer >= 1{limit}")
+
+
+def _check_positive_real(name: str, value: object) -> None:
+    if isinstance(value, bool | np.bool_) or not (math.isfinite(real_number(value))
+                                                  and real_number(value) > 0):
+        raise ValueError(f"{name}={value!r} must be a finite real number > 0")
+
+
+def real_number(value: object) -> float:
+    """``value`` as a float; NaN if it is not one real number (complex, an integer beyond
+    float's range, a string, None...), so the caller's rule for non-finite input applies."""
+    if isinstance(value, complex | np.complexfloating) or (
+            isinstance(value, np.ndarray) and np.iscomplexobj(value)):
+        return math.nan
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        return math.nan
+
+
+def real_array(value: object) -> np.ndarray:
+    """``value`` as a float array; NaN in place of every element that is not a real number
+    (all of them if the array is complex)."""
+    if np.iscomplexobj(value):
+        return np.full(np.shape(value), math.nan)
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        try:
+            items = np.asarray(value, dtype=object)
+        except ValueError:  # ragged
+            return np.full(1, math.nan)
+        return np.vectorize(real_number, otypes=[float])(items) if items.size else np.zeros(
+            items.shape)
