@@ -11,12 +11,12 @@ predictor.
 2. ``predictor_overshoot.png``: the fusimotor template of the down-sampled PI predictor on a
    step and on a ramp that stops suddenly, with gamma_s and gamma_d.
 
-    python scripts/chain_figures.py [--out DIR]
+Command line: ``python scripts/chain_figures.py [--out DIR]``.
 """
 
 from __future__ import annotations
 
-import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -149,28 +149,38 @@ def plot_predictor(result: dict[str, np.ndarray], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("out/chain"))
-    parser.add_argument("--duration", type=float, default=3.0)
-    args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    noise = noise_experiment(args.duration)
-    plot_noise(noise, args.out / "derivative_noise.png")
-    print("RMS error vs clean lengths (pps), BRA / TRImed:")
-    print(f"{'input':30s} {'Ia unfiltered':>16s} {'II unfiltered':>16s} {'Ia filtered':>14s} "
-          f"{'II filtered':>14s}")
-    for name, *vals in noise["rows"]:
-        print(f"{name:30s} " + " ".join(f"{v[0]:7.2f}/{v[1]:<7.2f}" for v in vals))
+@dataclass(frozen=True)
+class ChainFigureNumbers:
+    """What the figures report: per input, the RMS error against the clean lengths (pps,
+    BRA/TRImed arrays) as (name, Ia unfiltered, II unfiltered, Ia filtered, II filtered); the
+    PI predictor's step overshoot (fraction of the step) and ramp overshoot (L0)."""
+
+    noise_rows: list[tuple]
+    step_overshoot: float
+    ramp_overshoot_L0: float
+
+    def report(self) -> str:
+        lines = ["RMS error vs clean lengths (pps), BRA / TRImed:",
+                 f"{'input':30s} {'Ia unfiltered':>16s} {'II unfiltered':>16s} "
+                 f"{'Ia filtered':>14s} {'II filtered':>14s}"]
+        for name, *vals in self.noise_rows:
+            lines.append(f"{name:30s} " + " ".join(f"{v[0]:7.2f}/{v[1]:<7.2f}" for v in vals))
+        lines.append(f"PI predictor: step overshoot {100 * self.step_overshoot:.0f} % of the "
+                     f"step; ramp (0.5 L0/s) overshoots its stop by "
+                     f"{self.ramp_overshoot_L0:.4f} L0")
+        return "\n".join(lines)
+
+
+def run(out_dir: Path, quick: bool = False, duration_s: float = 3.0) -> ChainFigureNumbers:
+    """Write ``derivative_noise.png`` and ``predictor_overshoot.png`` into ``out_dir``
+    (``quick`` changes nothing: both take seconds)."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    noise = noise_experiment(duration_s)
+    plot_noise(noise, out_dir / "derivative_noise.png")
     pred = predictor_experiment()
-    plot_predictor(pred, args.out / "predictor_overshoot.png")
+    plot_predictor(pred, out_dir / "predictor_overshoot.png")
     t = pred["t"]
     step_os = (pred["template"][(t > 0.3) & (t < 1.5)].max() - 1.05) / 0.1
     ramp_os = (0.9 - pred["template"][t > 1.8].min())
-    print(f"PI predictor: step overshoot {100 * step_os:.0f} % of the step; ramp (0.5 L0/s) "
-          f"overshoots its stop by {ramp_os:.4f} L0")
-    print(f"wrote {args.out / 'derivative_noise.png'} and {args.out / 'predictor_overshoot.png'}")
-
-
-if __name__ == "__main__":
-    main()
+    return ChainFigureNumbers(noise["rows"], float(step_os), float(ramp_os))

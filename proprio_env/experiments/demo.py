@@ -13,29 +13,27 @@ tendon-derived fibre lengths (exact). The summary reports the exact-vs-reduced d
 (what the fitted length model costs) and the encoder-vs-clean difference (what the sensor
 stage costs), in pps.
 
-Writes ``demo.png`` (one column per muscle) and ``demo_signals.csv`` (every signal) into
-``--out`` (default ``out/demo``).
-
-    python scripts/demo.py [--out DIR] [--duration S] [--seed N]
+:func:`run` writes ``demo.png`` (one column per muscle) and ``demo_signals.csv`` (every
+signal); the command line is ``python scripts/demo.py [--out DIR] [--duration S] [--seed N]``.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-import spindle
 from proprio_env.model import load_model
 from proprio_env.servo_motion import drive_servo, triangle_deg
 from spindle.chain import MUSCLES, ChainTrace, run_chain
-from spindle.sensor import Encoder
+from spindle.sensor import Calibration, Encoder
 
 
-def run(duration_s: float, seed: int) -> dict[str, object]:
+def run_chains(duration_s: float, seed: int) -> dict[str, object]:
+    """The servo motion, the encoder readings and the three chains' traces."""
     model = load_model()
     t_phys = np.arange(0.0, duration_s, model.opt.timestep)
     motion = drive_servo(triangle_deg(t_phys), model)
@@ -80,7 +78,7 @@ def plot(result: dict[str, object], path: Path) -> None:
     pro: ChainTrace = result["prosthesis"]
     exact: ChainTrace = result["exact"]
     t = result["t_s"]
-    cal = spindle.sensor.Calibration()
+    cal = Calibration()
     raw_deg = np.where(pro.counts >= 0, cal.angle_deg(pro.counts), np.nan)
     rows = ["encoder", "length", "gamma_s", "gamma_d", "ia", "ii"]
     fig, axes = plt.subplots(len(rows), 2, figsize=(11, 12), sharex=True)
@@ -117,35 +115,69 @@ def plot(result: dict[str, object], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("out/demo"))
-    parser.add_argument("--duration", type=float, default=6.0, help="seconds of motion")
-    parser.add_argument("--seed", type=int, default=0, help="encoder noise seed")
-    args = parser.parse_args(argv)
-    if not args.duration > 0:
-        parser.error(f"--duration={args.duration} must be > 0")
-    args.out.mkdir(parents=True, exist_ok=True)
+@dataclass(frozen=True)
+class DemoNumbers:
+    """What the demo reports: the run's size and time, the encoder handling counters and, per
+    muscle, the prosthesis chain's Ia/II ranges (pps) and the exact-vs-reduced and
+    encoder-vs-clean RMS differences (pps)."""
 
+    out_dir: Path
+    duration_s: float
+    samples: int
+    elapsed_s: float
+    counters: dict[str, int]
+    ia_range_pps: dict[str, tuple[float, float]]
+    ii_range_pps: dict[str, tuple[float, float]]
+    exact_vs_reduced_rms_pps: dict[str, tuple[float, float]]
+    """muscle -> (Ia, II)"""
+    encoder_vs_clean_rms_pps: dict[str, tuple[float, float]]
+    """muscle -> (Ia, II)"""
+
+    def report(self) -> str:
+        lines = [f"{self.duration_s:g} s of servo motion, {self.samples} encoder samples "
+                 f"({self.samples / self.duration_s:.0f} Hz), chains run in "
+                 f"{self.elapsed_s:.1f} s",
+                 f"encoder handling: {self.counters}"]
+        for muscle in MUSCLES:
+            (ia_lo, ia_hi), (ii_lo, ii_hi) = self.ia_range_pps[muscle], self.ii_range_pps[muscle]
+            ex_ia, ex_ii = self.exact_vs_reduced_rms_pps[muscle]
+            enc_ia, enc_ii = self.encoder_vs_clean_rms_pps[muscle]
+            lines.append(f"{muscle:7s} Ia {ia_lo:5.1f}-{ia_hi:5.1f} pps, II {ii_lo:5.1f}-"
+                         f"{ii_hi:5.1f} pps | exact vs reduced RMS Ia {ex_ia:.3f}, II "
+                         f"{ex_ii:.3f} pps | encoder vs clean RMS Ia {enc_ia:.2f}, II "
+                         f"{enc_ii:.2f} pps")
+        lines.append(f"wrote {self.out_dir / 'demo.png'} and "
+                     f"{self.out_dir / 'demo_signals.csv'}")
+        return "\n".join(lines)
+
+    def summary_md(self) -> str:
+        return "```\n" + self.report() + "\n```\n"
+
+
+def run(out_dir: Path, quick: bool = False, duration_s: float | None = None,
+        seed: int = 0) -> DemoNumbers:
+    """Run the chains on ``duration_s`` of servo motion (default 6 s, ``quick`` 1.5 s) with
+    encoder noise seed ``seed``; write ``demo.png`` and ``demo_signals.csv`` into
+    ``out_dir``."""
+    if duration_s is None:
+        duration_s = 1.5 if quick else 6.0
+    if not duration_s > 0:
+        raise ValueError(f"duration_s={duration_s!r} must be > 0")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    result = run(args.duration, args.seed)
+    result = run_chains(duration_s, seed)
     elapsed = time.perf_counter() - start
-    write_csv(result, args.out / "demo_signals.csv")
-    plot(result, args.out / "demo.png")
-
+    write_csv(result, out_dir / "demo_signals.csv")
+    plot(result, out_dir / "demo.png")
     pro, red, ex = result["prosthesis"], result["reduced"], result["exact"]
-    print(f"{args.duration:g} s of servo motion, {pro.t_s.size} encoder samples "
-          f"({pro.t_s.size / args.duration:.0f} Hz), chains run in {elapsed:.1f} s")
-    print("encoder handling:", {k: v for k, v in pro.counters.items() if v})
-    for k, muscle in enumerate(MUSCLES):
-        print(f"{muscle:7s} Ia {pro.ia_pps[:, k].min():5.1f}-{pro.ia_pps[:, k].max():5.1f} pps,"
-              f" II {pro.ii_pps[:, k].min():5.1f}-{pro.ii_pps[:, k].max():5.1f} pps | "
-              f"exact vs reduced RMS Ia {rms(ex.ia_pps, red.ia_pps)[k]:.3f}, "
-              f"II {rms(ex.ii_pps, red.ii_pps)[k]:.3f} pps | "
-              f"encoder vs clean RMS Ia {rms(pro.ia_pps, red.ia_pps)[k]:.2f}, "
-              f"II {rms(pro.ii_pps, red.ii_pps)[k]:.2f} pps")
-    print(f"wrote {args.out / 'demo.png'} and {args.out / 'demo_signals.csv'}")
-
-
-if __name__ == "__main__":
-    main()
+    ex_ia, ex_ii = rms(ex.ia_pps, red.ia_pps), rms(ex.ii_pps, red.ii_pps)
+    enc_ia, enc_ii = rms(pro.ia_pps, red.ia_pps), rms(pro.ii_pps, red.ii_pps)
+    return DemoNumbers(
+        out_dir, duration_s, pro.t_s.size, elapsed,
+        {k: v for k, v in pro.counters.items() if v},
+        {m: (pro.ia_pps[:, k].min(), pro.ia_pps[:, k].max()) for k, m in enumerate(MUSCLES)},
+        {m: (pro.ii_pps[:, k].min(), pro.ii_pps[:, k].max()) for k, m in enumerate(MUSCLES)},
+        {m: (ex_ia[k], ex_ii[k]) for k, m in enumerate(MUSCLES)},
+        {m: (enc_ia[k], enc_ii[k]) for k, m in enumerate(MUSCLES)},
+    )

@@ -1,19 +1,17 @@
-"""Regenerate the reduced length model ``models/length_fits.json`` and its figure.
+"""The reduced length model ``models/length_fits.json`` and its figure (the seed paper's Fig. 5).
 
-    python scripts/fit_lengths.py                      # writes models/length_fits.json
-    python scripts/fit_lengths.py --out out/fig5.png   # figure path (default out/length_fits.png)
+Command line: ``python scripts/fit_lengths.py`` (rewrites ``models/length_fits.json``).
 
 Sweeps the MJCF elbow (``models/elbow.xml``) over 0-130 deg, fits each muscle's normalised
 fibre length with a Chebyshev series whose degree is chosen by held-out error, records the
 coefficients, valid range, max error and the sha256 of ``elbow.xml``, and draws the curves
 like the seed paper's Fig. 5 with the OpenSim oracle (``tests/data/arm26_elbow_oracle.csv``)
-overlaid. Exits non-zero if a fit misses the 0.001 L0 target.
+overlaid. The fit target is 0.001 L0.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,9 +28,9 @@ from proprio_env.length_fitting import (
 from proprio_env.model import load_model, model_path
 from spindle.length_fits import load_length_fits
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
+# A source checkout's oracle; absent from an installed wheel, where the figure goes without it.
 DEFAULT_ORACLE = REPO_ROOT / "tests" / "data" / "arm26_elbow_oracle.csv"
-DEFAULT_FIGURE = REPO_ROOT / "out" / "length_fits.png"
 
 
 def read_oracle(path: Path) -> dict[str, np.ndarray] | None:
@@ -120,50 +118,49 @@ def draw(figure: Path, exact, fits, oracle: dict[str, np.ndarray] | None) -> Non
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", type=Path, default=None, help="MJCF (default: models/elbow.xml)")
-    p.add_argument(
-        "--fits",
-        type=Path,
-        default=None,
-        help="JSON to write (default: length_fits.json next to the model)",
-    )
-    p.add_argument("--out", type=Path, default=DEFAULT_FIGURE, help="figure (PNG) to write")
-    p.add_argument("--no-figure", action="store_true", help="skip the figure")
-    p.add_argument("--oracle", type=Path, default=DEFAULT_ORACLE, help="OpenSim oracle CSV")
-    p.add_argument("--step-deg", type=float, default=DEFAULT_STEP_DEG, help="sweep step, deg")
-    p.add_argument(
-        "--tolerance",
-        type=float,
-        default=DEFAULT_TOLERANCE_L0,
-        help="held-out max error (L0) a degree must reach",
-    )
-    p.add_argument("--max-degree", type=int, default=DEFAULT_MAX_DEGREE)
-    args = p.parse_args(argv)
+@dataclass(frozen=True)
+class LengthFitNumbers:
+    """What the experiment reports: where the fits went, the sha256 of the MJCF they fit, and
+    per muscle its fit entry (``degree``, ``max_error_L0``, ``heldout_max_error_L0``, ...)."""
 
-    model_file = (args.model or model_path()).resolve()
-    fits_file = args.fits or default_output(model_file)
-    model = load_model(model_file)
-    doc, exact = fit_document(model, model_file, args.step_deg, args.tolerance, args.max_degree)
+    fits_file: Path
+    model_sha256: str
+    muscles: dict[str, dict]
+
+    @property
+    def within_target(self) -> bool:
+        return all(e["max_error_L0"] <= TARGET_L0 for e in self.muscles.values())
+
+    def summary_md(self) -> str:
+        rows = [f"- {m}: Chebyshev degree {e['degree']}, max error {e['max_error_L0']:.1e} L0 "
+                f"against the exact MuJoCo lengths" for m, e in self.muscles.items()]
+        return "\n".join(rows) + "\n"
+
+
+def fit_and_draw(model_file: Path | None = None, fits_file: Path | None = None,
+                 figure: Path | None = None, oracle: Path = DEFAULT_ORACLE,
+                 step_deg: float = DEFAULT_STEP_DEG, tolerance_L0: float = DEFAULT_TOLERANCE_L0,
+                 max_degree: int = DEFAULT_MAX_DEGREE) -> LengthFitNumbers:
+    """Sweep and fit ``model_file`` (default ``models/elbow.xml``), write the fits to
+    ``fits_file`` (default: next to the model) and, if ``figure`` is given, draw it there."""
+    model_file = (model_file or model_path()).resolve()
+    fits_file = fits_file or default_output(model_file)
+    doc, exact = fit_document(load_model(model_file), model_file, step_deg, tolerance_L0,
+                              max_degree)
     write_fits(doc, fits_file)
     fits = load_length_fits(fits_file, model_xml=model_file)
-    print(f"wrote {fits_file} (elbow.xml sha256 {doc['model_sha256'][:12]}...)")
-    ok = True
-    for name, entry in doc["muscles"].items():
-        print(
-            f"  {name}: degree {entry['degree']}, max error {entry['max_error_L0']:.2e} L0 "
-            f"(held-out {entry['heldout_max_error_L0']:.2e} L0)"
-        )
-        ok &= entry["max_error_L0"] <= TARGET_L0
-    if not args.no_figure:
-        draw(args.out, exact, fits, read_oracle(args.oracle))
-        print(f"wrote {args.out}")
-    if not ok:
-        print(f"a fit misses the {TARGET_L0} L0 target; raise --max-degree", file=sys.stderr)
-        return 1
-    return 0
+    if figure is not None:
+        draw(figure, exact, fits, read_oracle(oracle))
+    return LengthFitNumbers(Path(fits_file), doc["model_sha256"], doc["muscles"])
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def run(out_dir: Path, quick: bool = False) -> LengthFitNumbers:
+    """Fit the bundled elbow into ``out_dir/length_fits.json`` (the committed
+    ``models/length_fits.json`` is left alone) and draw ``length_fits.png``; raise if a fit
+    misses the 0.001 L0 target. ``quick`` changes nothing: the sweep takes seconds."""
+    out_dir = Path(out_dir)
+    numbers = fit_and_draw(fits_file=out_dir / "length_fits.json",
+                           figure=out_dir / "length_fits.png")
+    if not numbers.within_target:
+        raise ValueError(f"a length fit misses the {TARGET_L0} L0 target: {numbers.muscles}")
+    return numbers

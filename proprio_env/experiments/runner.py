@@ -1,35 +1,48 @@
 """Run every validation experiment into one folder: figures, tables and a summary.
 
-Each :class:`Step` writes into its own sub-folder of the output and returns a short markdown
-summary; :func:`run_steps` runs them in order with a progress bar, sends what a step prints
-to ``logs/<step>.log`` (so the bar stays readable) and writes ``summary.md``.
-``scripts/validate.py`` is the command line; it adds the steps that live in ``scripts/``
-(spindle accuracy, length fits, demo).
+Each :class:`Step` writes into its own sub-folder of the output and returns its numbers with
+a short markdown summary; :func:`run_steps` runs them in order with a progress bar, sends
+what a step prints to ``logs/<step>.log`` (so the bar stays readable) and writes
+``summary.md``. ``scripts/validate.py`` is the command line over
+:func:`validation_steps`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
+from typing import Protocol
 
-from proprio_env.validation import ecrb, human_gains
+from proprio_env.experiments import (
+    demo,
+    ecrb,
+    human_gains,
+    length_fits,
+    obstruction,
+    spindle_accuracy,
+)
 
-HUMAN_LIMIT_PPS = human_gains.HUMAN_LIMIT_PPS
 PNG_COLOURS = 128
+
+
+class Numbers(Protocol):
+    """What an experiment's ``run`` returns: its numbers, able to summarise themselves."""
+
+    def summary_md(self) -> str: ...
 
 
 @dataclass(frozen=True)
 class Step:
     """One experiment: ``run(out_dir, quick)`` writes its files into ``out_dir`` and returns
-    a markdown summary (a few lines)."""
+    its numbers (:class:`Numbers`)."""
 
     name: str
     title: str
-    run: Callable[[Path, bool], str]
+    run: Callable[[Path, bool], Numbers]
 
 
 def shrink_png(path: Path, colours: int = PNG_COLOURS) -> int:
@@ -45,85 +58,31 @@ def shrink_png(path: Path, colours: int = PNG_COLOURS) -> int:
     return path.stat().st_size
 
 
-def human_gains_step(out_dir: Path, quick: bool) -> str:
-    result = human_gains.run_human_gains(duration_s=1.5 if quick else 6.0,
-                                         angle_step_deg=5.0 if quick else 1.0)
-    table = human_gains.markdown_table(result)
-    (out_dir / "human_gains.md").write_text(table)
-    human_gains.write_csv(result, out_dir / "human_gains.csv")
-    human_gains.plot(result, out_dir / "human_gains.png")
-    static = result.worst("HUMAN", "static")
-    motion = result.worst("HUMAN", "motion")
-    ratio = result.worst("CAT", "static") / static
+def validation_steps(jobs: int = 1) -> tuple[Step, ...]:
+    """Every experiment of ``scripts/validate.py``, in its order (``jobs``: worker processes
+    of the spindle accuracy sweep)."""
     return (
-        f"- largest fusimotor swing, HUMAN, static over 0-130 deg: **{static:.1f} pps** "
-        f"({'below' if static < HUMAN_LIMIT_PPS else 'ABOVE'} the paper's 30 pps)\n"
-        f"- largest fusimotor swing, HUMAN, during the demo motion: **{motion:.1f} pps** "
-        f"({'below' if motion < HUMAN_LIMIT_PPS else 'above'} 30 pps)\n"
-        f"- CAT / HUMAN: {ratio:.2f}\n\n{table}"
+        Step("human_gains", "Human gains: fusimotor swing with HUMAN and CAT", human_gains.run),
+        Step("ecrb", "Human ECRB wrist protocol (Fig. 6)", ecrb.run),
+        Step("obstruction", "Obstructed movement (Fig. 7)", obstruction.run),
+        Step("spindle_accuracy", "Spindle accuracy on the Mileusnic Fig. 3 protocol",
+             partial(spindle_accuracy.run, jobs=jobs)),
+        Step("length_fits", "Length fits (the paper's Fig. 5)", length_fits.run),
+        Step("demo", "Chain demo (the paper's Fig. 8)", demo.run),
     )
 
 
-def ecrb_step(out_dir: Path, quick: bool) -> str:
-    # quick: the fast ramp and the fast sinusoid only
-    runs = ecrb.run_ecrb(ecrb.PROTOCOLS[1::2] if quick else ecrb.PROTOCOLS)
-    curve = ecrb.EcrbCurve.load()
-    reference = None
-    if ecrb.SHARED_REFERENCE.is_file():
-        reference = ecrb.read_table(ecrb.SHARED_REFERENCE)
-    table = ecrb.markdown_table(runs)
-    (out_dir / "ecrb_ranges.md").write_text(table)
-    ecrb.plot(runs, out_dir / "ecrb_protocol.png")
-    ecrb.plot_curve(curve, out_dir / "ecrb_length.png", reference)
-    if reference is None:
-        check = "OpenSim reference not found (../shared absent): curve not re-checked"
-    else:
-        diff = ecrb.compare_with_reference(curve, reference)
-        check = f"largest difference from the OpenSim reference: {diff:.1e} L0"
-    return f"- ECRB curve: {check}\n\n{table}"
-
-
-def obstruction_step(out_dir: Path, quick: bool) -> str:
-    from proprio_env.obstruction import run_obstruction
-
-    metrics = run_obstruction(out_dir, quick=quick)
-    with (out_dir / "obstruction_metrics.csv").open("w", newline="") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(["measure", "value"])
-        for k, v in metrics.items():
-            w.writerow([k, f"{v:.4f}"])
-    lines = ["| template from | baseline | BRA II RMS (pps) | TRImed II RMS (pps) |",
-             "|---|---|---:|---:|"]
-    for source in ("measured", "intended"):
-        for base in ("voluntary stop", "unobstructed"):
-            lines.append(f"| {source} motion | {base} | "
-                         f"{metrics[f'{source}/{base}/BRA_ii_rms_pps']:.1f} | "
-                         f"{metrics[f'{source}/{base}/TRImed_ii_rms_pps']:.1f} |")
-    table = "\n".join(lines) + "\n"
-    (out_dir / "obstruction.md").write_text(table)
-    return (f"- forearm stopped at {metrics['max_angle_deg']:.2f} deg (obstacle 70 deg, "
-            f"overshoot {metrics['overshoot_deg']:.2f} deg), contact at "
-            f"{metrics['contact_s']:.2f} s\n"
-            "- II RMS difference of the obstructed run while blocked:\n\n" + table)
-
-
-PACKAGE_STEPS = (
-    Step("human_gains", "Human gains: fusimotor swing with HUMAN and CAT", human_gains_step),
-    Step("ecrb", "Human ECRB wrist protocol (Fig. 6)", ecrb_step),
-    Step("obstruction", "Obstructed movement (Fig. 7)", obstruction_step),
-)
-
-
 def run_steps(steps: Sequence[Step], out_dir: Path, quick: bool = False,
-              progress: bool = True) -> dict[str, str]:
-    """Run ``steps`` into ``out_dir/<step.name>``; write ``summary.md``; return the summaries.
+              progress: bool = True) -> dict[str, Numbers]:
+    """Run ``steps`` into ``out_dir/<step.name>``; write ``summary.md``; return each step's
+    numbers.
 
     A step that raises stops the run (the error names the step; its log is kept)."""
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
     (out_dir / "logs").mkdir(parents=True, exist_ok=True)
-    summaries: dict[str, str] = {}
+    numbers: dict[str, Numbers] = {}
     seconds: dict[str, float] = {}
     bar = tqdm(steps, desc="validation", unit="step", disable=not progress)
     for step in bar:
@@ -134,7 +93,7 @@ def run_steps(steps: Sequence[Step], out_dir: Path, quick: bool = False,
         log = out_dir / "logs" / f"{step.name}.log"
         with log.open("w") as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
             try:
-                summaries[step.name] = step.run(step_dir, quick)
+                numbers[step.name] = step.run(step_dir, quick)
             except Exception as exc:
                 raise RuntimeError(f"validation step {step.name!r} failed ({exc!r}); "
                                    f"see {log}") from exc
@@ -145,7 +104,7 @@ def run_steps(steps: Sequence[Step], out_dir: Path, quick: bool = False,
     parts = [f"# Validation summary ({mode} run)\n"]
     for step in steps:
         files = ", ".join(sorted(p.name for p in (out_dir / step.name).iterdir()))
-        parts.append(f"## {step.title}\n\n{summaries[step.name].rstrip()}\n\n"
+        parts.append(f"## {step.title}\n\n{numbers[step.name].summary_md().rstrip()}\n\n"
                      f"files in `{step.name}/`: {files} ({seconds[step.name]:.1f} s)\n")
     (out_dir / "summary.md").write_text("\n".join(parts))
-    return summaries
+    return numbers

@@ -1,21 +1,16 @@
-"""Soak test: many random-action steps; no NaN/inf in any observation and the state stays
-bounded. Every 1000 steps a NaN action and an out-of-box action are tried: each must raise
-``ValueError`` and leave the state untouched.
-
-    python scripts/soak_env.py --steps 1000000 [--env proprio_env/ElbowReach-v0] [--seed 0]
-        [--max-minutes M]
+"""Soak of the envs: many random-action steps; no NaN/inf in any observation and the state
+stays bounded. Every 1000 steps a NaN action and an out-of-box action are tried: each must
+raise ``ValueError`` and leave the state untouched. Command line: ``python scripts/soak_env.py``.
 
 Bounds checked at every step: elbow angle within the joint range +- 5 deg (soft joint
 limits), |angular velocity| < 5000 deg/s, Ia and II in [0, 1000) pps, gamma drives finite and
->= 0, the spindles' lengths inside their valid range. Prints progress (steps/s, ETA) and a
-summary with the extremes seen; exits non-zero on the first violation.
+>= 0, the spindles' lengths inside their valid range. :func:`soak` prints progress (steps/s,
+ETA), returns the extremes seen and raises :class:`SoakError` on the first violation.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
-import sys
 import time
 from typing import Any
 
@@ -109,42 +104,3 @@ def soak(env_id: str, steps: int, seed: int = 0, report_every: int = 0,
     return {"steps": done, "episodes": episodes, "elapsed_s": elapsed,
             "steps_per_s": done / elapsed, "bad_actions_rejected": rejected,
             "extremes": extremes, "chain_counters_last_episode": counters}
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
-    parser.add_argument("--steps", type=int, default=1_000_000)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--afferent-source", default=None)
-    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
-                        help="spindle chain backend (c: compiled on first use)")
-    parser.add_argument("--report-every", type=int, default=10_000)
-    parser.add_argument("--max-minutes", type=float, default=math.inf,
-                        help="stop (and report the steps done) after this wall time")
-    args = parser.parse_args(argv)
-    if args.steps < 1:
-        parser.error("--steps must be >= 1")
-    kwargs = {"backend": args.backend}
-    if args.afferent_source is not None:
-        kwargs["afferent_source"] = args.afferent_source
-    try:
-        result = soak(args.env, args.steps, args.seed, args.report_every,
-                      args.max_minutes, **kwargs)
-    except SoakError as exc:
-        print(f"SOAK FAILED: {exc}")
-        return 1
-    ex = result["extremes"]
-    if result["steps"] < args.steps:
-        print(f"stopped by --max-minutes after {result['steps']} of {args.steps} steps")
-    print(f"{args.env}: {result['steps']} steps ({result['episodes']} episodes) in "
-          f"{result['elapsed_s'] / 60:.1f} min, {result['steps_per_s']:.1f} steps/s; no "
-          f"NaN/inf, state bounded: angle {ex['angle_deg'][0]:.2f}..{ex['angle_deg'][1]:.2f} "
-          f"deg, Ia {ex['ia_pps'][0]:.1f}..{ex['ia_pps'][1]:.1f} pps, II "
-          f"{ex['ii_pps'][0]:.1f}..{ex['ii_pps'][1]:.1f} pps; "
-          f"{result['bad_actions_rejected']} bad actions rejected")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,24 +1,21 @@
 """Accuracy and stability of the spindle integrators on the Mileusnic (2006) Fig. 3 protocol.
 
-    python scripts/spindle_accuracy.py                 # full sweep, a few minutes on 2 cores
-    python scripts/spindle_accuracy.py --quick         # smoke test: 1 speed, 1 ms steps only
-    python scripts/spindle_accuracy.py --out DIR --jobs 2
+Command line: ``python scripts/spindle_accuracy.py [--quick] [--out DIR] [--jobs N]`` (the
+full sweep takes a few minutes on 2 cores).
 
 The protocol is 9 runs: a ramp-and-hold stretch 0.95 -> 1.08 L0 at 0.11, 0.66 and 1.55 L0/s
 from t = 1.0 s, 3.3 s in all, with (gamma_dyn, gamma_stat) = (0, 0), (70, 0), (0, 70) pps held
 from t = 0. Each method and internal step is run on all 9 at once (n = 9 columns) and compared
-with the stiff reference (scipy Radau, rtol 1e-10) on the sample grid. Writes
-``accuracy_table.md`` and ``fig3_protocol.png`` into DIR (default ``out/spindle_accuracy``).
+with the stiff reference (scipy Radau, rtol 1e-10) on the sample grid. :func:`run` writes
+``accuracy_table.md`` and ``fig3_protocol.png``.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
-import os
+import re
 import sys
-import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -28,9 +25,6 @@ from tqdm import tqdm
 
 import spindle
 from spindle.reference import ramp_and_hold, solve_reference
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO_ROOT / "out" / "spindle_accuracy"
 
 START_L0, END_L0, RAMP_START_S, DURATION_S = 0.95, 1.08, 1.0, 3.3
 SPEEDS_L0_S = (0.11, 0.66, 1.55)
@@ -251,19 +245,23 @@ def figure(path: Path, runs: Sequence[Run], speeds: Sequence[float], ref: tuple,
     plt.close(fig)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
-    ap.add_argument("--quick", action="store_true", help="1 speed, 1 ms steps, no stability "
-                    "search (smoke test)")
-    ap.add_argument("--jobs", type=int, default=min(os.cpu_count() or 1, 4))
-    args = ap.parse_args(argv)
-    t_start = time.perf_counter()
+@dataclasses.dataclass(frozen=True)
+class AccuracyNumbers:
+    """What the experiment reports: worst-run RMS errors (pps) per (method, step in µs) as
+    (Ia per run, II per run), (largest stable, first unstable) step in s per method (empty
+    with ``quick``), and the tables (markdown)."""
 
-    speeds = SPEEDS_L0_S[2:] if args.quick else SPEEDS_L0_S
-    steps_us = (1000,) if args.quick else STEPS_US
-    runs = protocol_runs(speeds)
-    default = (spindle.DEFAULT_METHOD.name, 1000)
+    errors: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]]
+    stability: dict[str, tuple[float | None, float | None]]
+    table_md: str
+
+    def summary_md(self) -> str:
+        return re.sub(r"^## ", "### ", self.table_md, flags=re.MULTILINE)  # nest the headings
+
+
+def sweep_jobs(runs: Sequence[Run], steps_us: Sequence[int],
+               stability: bool) -> dict[object, tuple[Callable, tuple, float]]:
+    """The reference, accuracy and (if ``stability``) stability jobs, each with its cost."""
     n_steps = DURATION_S * len(runs)
     jobs: dict[object, tuple[Callable, tuple, float]] = {
         ("ref", k): (reference_run, (r,), 2e5) for k, r in enumerate(runs)
@@ -272,9 +270,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         for step_us in steps_us:
             jobs[("acc", method, step_us)] = (accuracy_job, (runs, method, step_us),
                                               n_steps / (step_us * 1e-6))
-        if not args.quick:
+        if stability:
             jobs[("stab", method)] = (stability_job, (runs, method, STABILITY_GRID_MS), 3e5)
-    results = run_pool(jobs, args.jobs)
+    return jobs
+
+
+def run(out_dir: Path, quick: bool = False, jobs: int = 1) -> AccuracyNumbers:
+    """Write ``accuracy_table.md`` and ``fig3_protocol.png`` into ``out_dir``; ``jobs`` worker
+    processes (``quick``: 1 speed, 1 ms steps, no stability search)."""
+    out_dir = Path(out_dir)
+    speeds = SPEEDS_L0_S[2:] if quick else SPEEDS_L0_S
+    steps_us = (1000,) if quick else STEPS_US
+    runs = protocol_runs(speeds)
+    default = (spindle.DEFAULT_METHOD.name, 1000)
+    results = run_pool(sweep_jobs(runs, steps_us, stability=not quick), jobs)
 
     ref = tuple(np.column_stack([results[("ref", k)][i] for k in range(len(runs))])
                 for i in (0, 1))
@@ -292,16 +301,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     per_run = (*errors[default], np.abs(sim[0] - ref[0]).max(axis=0),
                np.abs(sim[1] - ref[1]).max(axis=0), ref[0].max(axis=0))
 
-    args.out.mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
     table = markdown(runs, errors, stability, default, per_run)
-    (args.out / "accuracy_table.md").write_text(table)
-    figure(args.out / "fig3_protocol.png", runs, speeds, ref, sim,
+    (out_dir / "accuracy_table.md").write_text(table)
+    figure(out_dir / "fig3_protocol.png", runs, speeds, ref, sim,
            f"{default[0]} {default[1]} µs")
-    print(table)
-    print(f"wrote {args.out / 'accuracy_table.md'} and {args.out / 'fig3_protocol.png'}")
-    print(f"total runtime {time.perf_counter() - t_start:.1f} s")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return AccuracyNumbers(errors, stability, table)

@@ -7,24 +7,18 @@ angles. The score of an episode is its mean |elbow angle - target| over the last
 (hold phase, 50 steps at 50 Hz); the reported figure is the mean over episodes.
 
 Needs the ``train`` extra (stable-baselines3, a CPU torch, matplotlib, tqdm). Runs on one
-core (torch threads = 1, one env in-process).
-
-    python scripts/train.py --timesteps 250000 --max-minutes 80 --out out/train_full \
-        --curve docs/img/train_curve.png          # the documented full run (docs/envs.md)
-    python scripts/train.py --timesteps 256 --smoke --out /tmp/smoke   # seconds
-
-Prints progress lines (steps, steps/s, ETA, training |error|) and at the end one line per
-policy ``<policy> mean_abs_err_deg=<float>``; writes ``eval.json``, ``curve.csv`` and the
-policy (``policy.zip``) into ``--out`` and the learning curve PNG to ``--curve``.
+core (torch threads = 1, one env in-process). :func:`run` prints progress lines (steps,
+steps/s, ETA, training |error|); the command line is ``python scripts/train.py``.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
+import dataclasses
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -107,7 +101,8 @@ def random_policy(obs, env):
     return env.action_space.sample()
 
 
-def build_callback(args, env_id, env_kwargs, curve_rows, start):
+def build_callback(config: TrainConfig, env_kwargs: dict[str, Any], curve_rows: list,
+                   start: float):
     from stable_baselines3.common.callbacks import BaseCallback
 
     class Progress(BaseCallback):
@@ -122,7 +117,7 @@ def build_callback(args, env_id, env_kwargs, curve_rows, start):
             for info in self.locals["infos"]:
                 self._errors.append(abs(info["angle_error_deg"]))
             elapsed = time.perf_counter() - start
-            return elapsed < args.max_minutes * 60
+            return elapsed < config.max_minutes * 60
 
         def _on_rollout_end(self) -> None:
             steps = self.num_timesteps
@@ -133,12 +128,12 @@ def build_callback(args, env_id, env_kwargs, curve_rows, start):
             held = math.nan
             if steps >= self._next_eval:
                 held = evaluate(lambda o, e: self.model.predict(o, deterministic=True)[0],
-                                env_id, env_kwargs, args.curve_episodes, seed=10_000)[
-                    "mean_abs_err_deg"]
-                self._next_eval = steps + args.eval_every
+                                config.env_id, env_kwargs, config.curve_episodes,
+                                seed=10_000)["mean_abs_err_deg"]
+                self._next_eval = steps + config.eval_every
             curve_rows.append((steps, elapsed, train_err, held))
-            eta = (args.timesteps - steps) / max(rate, 1e-9)
-            print(f"steps {steps:7d}/{args.timesteps} | {rate:6.1f} steps/s | "
+            eta = (config.timesteps - steps) / max(rate, 1e-9)
+            print(f"steps {steps:7d}/{config.timesteps} | {rate:6.1f} steps/s | "
                   f"elapsed {elapsed / 60:5.1f} min | ETA {eta / 60:5.1f} min | "
                   f"train |err| {train_err:6.2f} deg"
                   + (f" | held-out |err| {held:6.2f} deg" if not math.isnan(held) else ""),
@@ -174,85 +169,88 @@ def plot_curve(rows, results, path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
-    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
-                        help="spindle chain backend (c: compiled on first use; needs a C "
-                             "compiler)")
-    parser.add_argument("--afferent-source", default=None,
-                        help="exact | reduced | encoder (default: the env's)")
-    parser.add_argument("--timesteps", type=int, default=250_000)
-    parser.add_argument("--max-minutes", type=float, default=80.0,
-                        help="stop training after this wall time (min)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--eval-episodes", type=int, default=30)
-    parser.add_argument("--curve-episodes", type=int, default=6)
-    parser.add_argument("--eval-every", type=int, default=20_000)
-    parser.add_argument("--out", type=Path, default=Path("out/train"))
-    parser.add_argument("--curve", type=Path, default=None,
-                        help="learning-curve PNG (default: <out>/curve.png)")
-    parser.add_argument("--smoke", action="store_true",
-                        help="tiny rollouts and evaluations (tests)")
-    args = parser.parse_args(argv)
-    if args.timesteps < 1 or args.max_minutes <= 0 or args.eval_episodes < 1:
-        parser.error("--timesteps, --max-minutes and --eval-episodes must be positive")
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run: the env, its afferent path, the budget and the evaluation."""
 
+    env_id: str = "proprio_env/ElbowReach-v0"
+    backend: str = "c"
+    afferent_source: str | None = None
+    """exact | reduced | encoder (None: the env's default)"""
+    timesteps: int = 250_000
+    max_minutes: float = 80.0
+    """Training stops after this wall time."""
+    seed: int = 0
+    eval_episodes: int = 30
+    curve_episodes: int = 6
+    eval_every: int = 20_000
+
+    def __post_init__(self) -> None:
+        if self.timesteps < 1 or not self.max_minutes > 0 or self.eval_episodes < 1:
+            raise ValueError(f"timesteps={self.timesteps!r}, max_minutes={self.max_minutes!r} "
+                             f"and eval_episodes={self.eval_episodes!r} must be positive")
+
+    def env_kwargs(self) -> dict[str, Any]:
+        kwargs: dict[str, Any] = {"backend": self.backend}
+        if self.afferent_source is not None:
+            kwargs["afferent_source"] = self.afferent_source
+        return kwargs
+
+
+POLICY_NAMES = ("ppo", "zero", "random")
+
+
+def run(out_dir: Path, quick: bool = False, config: TrainConfig | None = None,
+        curve: Path | None = None) -> dict[str, Any]:
+    """Train PPO, evaluate it and the zero and random policies on the held-out targets; write
+    ``policy.zip``, ``eval.json``, ``curve.csv`` into ``out_dir`` and the learning curve to
+    ``curve`` (default ``out_dir/curve.png``). ``quick``: tiny rollouts and evaluations (the
+    test suite's smoke run). Returns what ``eval.json`` holds."""
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.monitor import Monitor
 
+    config = TrainConfig() if config is None else config
+    if quick:
+        config = dataclasses.replace(config, eval_episodes=3, curve_episodes=3)
+    out_dir = Path(out_dir)
     torch.set_num_threads(1)
-    env_kwargs: dict[str, Any] = {"backend": args.backend}
-    if args.afferent_source is not None:
-        env_kwargs["afferent_source"] = args.afferent_source
-    args.out.mkdir(parents=True, exist_ok=True)
-    curve_path = args.curve if args.curve is not None else args.out / "curve.png"
-    env = Monitor(make_env(args.env, env_kwargs, training_ranges(), seed=args.seed))
+    env_kwargs = config.env_kwargs()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    curve_path = curve if curve is not None else out_dir / "curve.png"
+    env = Monitor(make_env(config.env_id, env_kwargs, training_ranges(), seed=config.seed))
     ppo_kwargs: dict[str, Any] = dict(n_steps=2048, batch_size=64, gamma=0.98,
                                       policy_kwargs=dict(log_std_init=-0.5))
-    if args.smoke:
+    if quick:
         ppo_kwargs.update(n_steps=128, batch_size=32, n_epochs=2)
-        args.eval_episodes, args.curve_episodes = 3, 3
-    model = PPO("MlpPolicy", env, seed=args.seed, verbose=0, device="cpu", **ppo_kwargs)
+    model = PPO("MlpPolicy", env, seed=config.seed, verbose=0, device="cpu", **ppo_kwargs)
     rows: list[tuple[int, float, float, float]] = []
     start = time.perf_counter()
-    print(f"training PPO on {args.env} for up to {args.timesteps} steps or "
-          f"{args.max_minutes:g} min (held-out bands {HELD_OUT_BANDS} deg)", flush=True)
-    model.learn(args.timesteps,
-                callback=build_callback(args, args.env, env_kwargs, rows, start))
+    print(f"training PPO on {config.env_id} for up to {config.timesteps} steps or "
+          f"{config.max_minutes:g} min (held-out bands {HELD_OUT_BANDS} deg)", flush=True)
+    model.learn(config.timesteps, callback=build_callback(config, env_kwargs, rows, start))
     train_s = time.perf_counter() - start
-    model.save(args.out / "policy.zip")
+    model.save(out_dir / "policy.zip")
     env.close()
 
-    results: dict[str, Any] = {}
     policies = {
         "ppo": lambda o, e: model.predict(o, deterministic=True)[0],
         "zero": zero_policy,
         "random": random_policy,
     }
-    for name, policy in policies.items():
-        results[name] = evaluate(policy, args.env, env_kwargs, args.eval_episodes,
-                                 seed=20_000)
+    results: dict[str, Any] = {
+        name: evaluate(policy, config.env_id, env_kwargs, config.eval_episodes, seed=20_000)
+        for name, policy in policies.items()
+    }
     results["train"] = {"timesteps": int(model.num_timesteps), "wall_s": train_s,
-                        "held_out_bands_deg": HELD_OUT_BANDS, "env": args.env,
-                        "afferent_source": args.afferent_source, "backend": args.backend,
-                        "seed": args.seed}
-    (args.out / "eval.json").write_text(json.dumps(results, indent=2))
-    with (args.out / "curve.csv").open("w", newline="") as fh:
+                        "held_out_bands_deg": HELD_OUT_BANDS, "env": config.env_id,
+                        "afferent_source": config.afferent_source, "backend": config.backend,
+                        "seed": config.seed}
+    (out_dir / "eval.json").write_text(json.dumps(results, indent=2))
+    with (out_dir / "curve.csv").open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["timesteps", "elapsed_s", "train_abs_err_deg", "held_out_abs_err_deg"])
         writer.writerows(rows)
     if rows:
         plot_curve(rows, results, curve_path)
-    print(f"trained {model.num_timesteps} steps in {train_s / 60:.1f} min "
-          f"({model.num_timesteps / train_s:.0f} steps/s)")
-    for name in policies:
-        r = results[name]
-        print(f"{name} mean_abs_err_deg={r['mean_abs_err_deg']:.2f} "
-              f"(std {r['std_deg']:.2f}, {r['episodes']} held-out episodes)")
     return results
-
-
-if __name__ == "__main__":
-    main()
