@@ -1,7 +1,7 @@
 """Regenerate the ECRB length table of the wrist, ``models/wrist_ecrb.csv``, with OpenSim.
 
 Needs the optional ``opensim`` package (``pip install -e .[opensim]``); nothing at run time
-does: the table is committed and :mod:`proprio_env.validation.ecrb` reads it. Run::
+does: the table is committed and :mod:`proprio_env.experiments.ecrb` reads it. Run::
 
     python scripts/make_wrist_oracle.py                  # default --osim ../shared/...
     python scripts/make_wrist_oracle.py --osim path/to/wrist.osim --out other.csv

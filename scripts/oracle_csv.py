@@ -1,6 +1,6 @@
 """CSV writing shared by the OpenSim oracle scripts (make_length_oracle, make_wrist_oracle).
 
-The tables are read back by tests and by ``proprio_env.validation.ecrb``: '#' comment lines
+The tables are read back by tests and by ``proprio_env.experiments.ecrb``: '#' comment lines
 (provenance), a header line, then rows at 10 significant digits.
 """
 

@@ -1,14 +1,10 @@
-"""Soak test: many random-action steps; no NaN/inf in any observation and the state stays
-bounded. Every 1000 steps a NaN action and an out-of-box action are tried: each must raise
-``ValueError`` and leave the state untouched.
+"""Soak test of the envs: many random-action steps; no NaN/inf and the state stays bounded.
 
     python scripts/soak_env.py --steps 1000000 [--env proprio_env/ElbowReach-v0] [--seed 0]
         [--max-minutes M]
 
-Bounds checked at every step: elbow angle within the joint range +- 5 deg (soft joint
-limits), |angular velocity| < 5000 deg/s, Ia and II in [0, 1000) pps, gamma drives finite and
->= 0, the spindles' lengths inside their valid range. Prints progress (steps/s, ETA) and a
-summary with the extremes seen; exits non-zero on the first violation.
+Prints progress (steps/s, ETA) and a summary with the extremes seen; exits non-zero on the
+first violation. The checks are :mod:`proprio_env.experiments.soak`'s.
 """
 
 from __future__ import annotations
@@ -16,99 +12,8 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
-from typing import Any
 
-import numpy as np
-
-ANGLE_MARGIN_DEG = 5.0
-MAX_SPEED_DEG_S = 5000.0
-MAX_RATE_PPS = 1000.0
-
-
-class SoakError(AssertionError):
-    """A bound was violated."""
-
-
-def check_step(obs: np.ndarray, info: dict[str, Any], joint_range_deg, step: int) -> None:
-    lo, hi = joint_range_deg
-    problems = []
-    if not np.all(np.isfinite(obs)):
-        problems.append(f"non-finite observation {obs.tolist()}")
-    if not (lo - ANGLE_MARGIN_DEG <= info["angle_deg"] <= hi + ANGLE_MARGIN_DEG):
-        problems.append(f"angle {info['angle_deg']!r} deg outside the joint range")
-    if not abs(info["angular_velocity_deg_s"]) < MAX_SPEED_DEG_S:
-        problems.append(f"angular velocity {info['angular_velocity_deg_s']!r} deg/s")
-    for key in ("ia_pps", "ii_pps"):
-        r = info[key]
-        if not (np.all(np.isfinite(r)) and np.all(r >= 0) and np.all(r < MAX_RATE_PPS)):
-            problems.append(f"{key} {r.tolist()} outside [0, {MAX_RATE_PPS})")
-    for key in ("gamma_static_pps", "gamma_dynamic_pps"):
-        g = info[key]
-        if not (np.all(np.isfinite(g)) and np.all(g >= 0)):
-            problems.append(f"{key} {g.tolist()}")
-    if not (np.all(info["length_L0"] > 0.5) and np.all(info["length_L0"] < 1.5)):
-        problems.append(f"length_L0 {info['length_L0'].tolist()} outside (0.5, 1.5)")
-    if problems:
-        raise SoakError(f"step {step}: " + "; ".join(problems))
-
-
-def soak(env_id: str, steps: int, seed: int = 0, report_every: int = 0,
-         max_minutes: float = math.inf, **env_kwargs: Any) -> dict[str, Any]:
-    """Run ``steps`` random-action steps of ``env_id`` (fewer if ``max_minutes`` of wall time
-    run out first); raise :class:`SoakError` on a bound violation. Returns the number of
-    steps done, the extremes seen and the rate."""
-    import gymnasium as gym
-
-    import proprio_env  # noqa: F401  (registers the envs)
-
-    env = gym.make(env_id, **env_kwargs)
-    base = env.unwrapped
-    space = env.action_space
-    space.seed(seed)
-    n_act = space.shape[0]
-    env.reset(seed=seed)
-    extremes = {"angle_deg": [math.inf, -math.inf], "ia_pps": [math.inf, -math.inf],
-                "ii_pps": [math.inf, -math.inf]}
-    episodes, rejected = 1, 0
-    start = time.perf_counter()
-    done = 0
-    for step in range(1, steps + 1):
-        if step % 1000 == 0 and time.perf_counter() - start > 60 * max_minutes:
-            break
-        if step % 1000 == 0:
-            before = (base.data.time, base.angle_deg)
-            for bad in (np.full(n_act, np.nan), space.high + 1.0):
-                try:
-                    env.step(bad)
-                except ValueError:
-                    rejected += 1
-                else:
-                    raise SoakError(f"step {step}: bad action {bad.tolist()} was accepted")
-            if (base.data.time, base.angle_deg) != before:
-                raise SoakError(f"step {step}: a rejected action changed the state")
-        obs, _, terminated, truncated, info = env.step(space.sample())
-        check_step(obs, info, base.joint_range_deg, step)
-        for key in extremes:
-            v = np.asarray(info[key])
-            extremes[key][0] = min(extremes[key][0], float(v.min()))
-            extremes[key][1] = max(extremes[key][1], float(v.max()))
-        done = step
-        if terminated or truncated:
-            env.reset()
-            episodes += 1
-        if report_every and step % report_every == 0:
-            rate = step / (time.perf_counter() - start)
-            print(f"{step:9d}/{steps} steps | {rate:7.1f} steps/s | ETA "
-                  f"{(steps - step) / rate / 60:7.1f} min | angle "
-                  f"{extremes['angle_deg'][0]:.1f}..{extremes['angle_deg'][1]:.1f} deg",
-                  flush=True)
-    elapsed = time.perf_counter() - start
-    counters = dict(base.afferents.chain.counters)
-    env.close()
-    return {"steps": done, "episodes": episodes, "elapsed_s": elapsed,
-            "steps_per_s": done / elapsed, "bad_actions_rejected": rejected,
-            "extremes": extremes, "chain_counters_last_episode": counters}
+from proprio_env.experiments.soak import SoakError, soak
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,6 +1,7 @@
 """The README's main job runs the whole chain end to end and writes finite signals."""
 
 import csv
+import os
 import re
 import subprocess
 import sys
@@ -11,12 +12,14 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "demo.py"
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "demo.py"
 
 
 def test_demo_runs_the_chain_and_writes_a_figure_and_finite_signals(tmp_path):
     run = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path), "--duration",
-                          "1.5"], capture_output=True, text=True, check=True, timeout=300)
+                          "1.5"], capture_output=True, text=True, check=True, timeout=300,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert (tmp_path / "demo.png").stat().st_size > 10_000
     with (tmp_path / "demo_signals.csv").open() as fh:
         rows = list(csv.DictReader(fh))

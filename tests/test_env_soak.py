@@ -4,13 +4,9 @@ The full 10^6-step soak is ``python scripts/soak_env.py --steps 1000000``."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-import soak_env
+from proprio_env.experiments import soak as soak_env
 
 
 @pytest.mark.slow

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
+from proprio_env.experiments.obstruction import ObstructionSetup, run_experiment
 from proprio_env.model import load_model
-from proprio_env.obstruction import ObstructionSetup, run_experiment
 from proprio_env.servo_motion import drive_servo
 
 pytest.importorskip("mujoco")

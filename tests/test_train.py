@@ -1,5 +1,6 @@
-"""Smoke run of scripts/train.py: PPO trains, the three policies are evaluated on held-out
-targets, and the learning curve and numbers are written."""
+"""Smoke run of scripts/train.py (:mod:`proprio_env.experiments.training`): PPO trains, the
+three policies are evaluated on held-out targets, and the learning curve and numbers are
+written."""
 
 from __future__ import annotations
 
@@ -17,8 +18,8 @@ pytest.importorskip("matplotlib")
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "train.py"
-sys.path.insert(0, str(ROOT / "scripts"))
-import train  # noqa: E402
+
+from proprio_env.experiments import training as train  # noqa: E402
 
 
 def test_held_out_bands_are_never_trained_on():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import spindle
-from proprio_env.validation import ecrb, human_gains
+from proprio_env.experiments import ecrb, human_gains
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_ECRB = REPO_ROOT.parent / "shared" / "reference" / "opensim" / "wrist_ECRB.csv"

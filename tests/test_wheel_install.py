@@ -45,7 +45,7 @@ CHECK = textwrap.dedent(
     import gymnasium as gym
 
     import proprio_env.envs
-    import proprio_env.validation.ecrb as ecrb
+    import proprio_env.experiments.ecrb as ecrb
     from spindle.native import build
 
     assert prefix in Path(proprio_env.envs.__file__).resolve().parents

@@ -24,6 +24,7 @@ naive measure, which mixes in the different muscle lengths) is reported too.
 
 from __future__ import annotations
 
+import csv
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -175,12 +176,52 @@ def plot(result: ObstructionResult, out_dir: Path) -> list[Path]:
     return paths
 
 
-def run_obstruction(out_dir: Path, quick: bool = False) -> dict[str, float]:
-    """The validation entry point: run, write ``obstruction_*.png`` into ``out_dir``, return
-    the measures (``quick`` shortens the hold after the stop)."""
-    setup = ObstructionSetup(duration_s=1.4 if quick else 2.0)
-    result = run_experiment(setup)
+def metrics_table_md(metrics: dict[str, float]) -> str:
+    """II RMS difference of the obstructed run while blocked, per template source and
+    baseline (markdown)."""
+    lines = ["| template from | baseline | BRA II RMS (pps) | TRImed II RMS (pps) |",
+             "|---|---|---:|---:|"]
+    for source in ("measured", "intended"):
+        for base in ("voluntary stop", "unobstructed"):
+            lines.append(f"| {source} motion | {base} | "
+                         f"{metrics[f'{source}/{base}/BRA_ii_rms_pps']:.1f} | "
+                         f"{metrics[f'{source}/{base}/TRImed_ii_rms_pps']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_metrics_csv(metrics: dict[str, float], path: Path) -> Path:
+    with path.open("w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(["measure", "value"])
+        for k, v in metrics.items():
+            w.writerow([k, f"{v:.4f}"])
+    return path
+
+
+@dataclass(frozen=True)
+class ObstructionNumbers:
+    """What the experiment reports: every measure of :func:`run_experiment` and the table of
+    the II RMS differences (markdown)."""
+
+    metrics: dict[str, float]
+    table_md: str
+
+    def summary_md(self) -> str:
+        m = self.metrics
+        return (f"- forearm stopped at {m['max_angle_deg']:.2f} deg (obstacle 70 deg, "
+                f"overshoot {m['overshoot_deg']:.2f} deg), contact at "
+                f"{m['contact_s']:.2f} s\n"
+                "- II RMS difference of the obstructed run while blocked:\n\n" + self.table_md)
+
+
+def run(out_dir: Path, quick: bool = False) -> ObstructionNumbers:
+    """Write ``obstruction_{measured,intended}.png``, ``obstruction_metrics.csv`` and
+    ``obstruction.md`` into ``out_dir`` (``quick`` shortens the hold after the stop)."""
     out_dir = Path(out_dir)
+    result = run_experiment(ObstructionSetup(duration_s=1.4 if quick else 2.0))
     out_dir.mkdir(parents=True, exist_ok=True)
     plot(result, out_dir)
-    return result.metrics
+    write_metrics_csv(result.metrics, out_dir / "obstruction_metrics.csv")
+    table = metrics_table_md(result.metrics)
+    (out_dir / "obstruction.md").write_text(table)
+    return ObstructionNumbers(result.metrics, table)

@@ -236,3 +236,40 @@ def write_csv(result: GainResult, path: Path) -> Path:
         for row in result.table:
             f.write(",".join(row[:5]) + f",{row[5]:.4f}\n")
     return path
+
+
+@dataclass(frozen=True)
+class HumanGainsNumbers:
+    """What the experiment reports (pps): the largest HUMAN swing at rest and during the demo
+    motion, CAT / HUMAN, and the full table (markdown)."""
+
+    static_swing_pps: float
+    motion_swing_pps: float
+    cat_over_human: float
+    table_md: str
+
+    def summary_md(self) -> str:
+        static, motion = self.static_swing_pps, self.motion_swing_pps
+        return (
+            f"- largest fusimotor swing, HUMAN, static over 0-130 deg: **{static:.1f} pps** "
+            f"({'below' if static < HUMAN_LIMIT_PPS else 'ABOVE'} the paper's 30 pps)\n"
+            f"- largest fusimotor swing, HUMAN, during the demo motion: **{motion:.1f} pps** "
+            f"({'below' if motion < HUMAN_LIMIT_PPS else 'above'} 30 pps)\n"
+            f"- CAT / HUMAN: {self.cat_over_human:.2f}\n\n{self.table_md}"
+        )
+
+
+def run(out_dir: Path, quick: bool = False) -> HumanGainsNumbers:
+    """Write ``human_gains.md``, ``.csv`` and ``.png`` into ``out_dir`` (``quick``: 1.5 s of
+    motion and 5 deg static steps instead of 6 s and 1 deg)."""
+    out_dir = Path(out_dir)
+    result = run_human_gains(duration_s=1.5 if quick else 6.0,
+                             angle_step_deg=5.0 if quick else 1.0)
+    table = markdown_table(result)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "human_gains.md").write_text(table)
+    write_csv(result, out_dir / "human_gains.csv")
+    plot(result, out_dir / "human_gains.png")
+    static = result.worst("HUMAN", "static")
+    return HumanGainsNumbers(static, result.worst("HUMAN", "motion"),
+                             result.worst("CAT", "static") / static, table)

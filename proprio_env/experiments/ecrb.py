@@ -310,3 +310,38 @@ def plot_curve(curve: EcrbCurve, path: Path, reference: dict[str, np.ndarray] | 
     fig.savefig(path, dpi=70)
     plt.close(fig)
     return path
+
+
+@dataclass(frozen=True)
+class EcrbNumbers:
+    """What the experiment reports: the largest difference of the curve from the OpenSim
+    reference (L0; None without ``../shared``), the modelled ranges per movement
+    (:func:`ranges`) and their markdown table."""
+
+    reference_diff_L0: float | None
+    ranges: dict[str, dict[str, float]]
+    table_md: str
+
+    def summary_md(self) -> str:
+        if self.reference_diff_L0 is None:
+            check = "OpenSim reference not found (../shared absent): curve not re-checked"
+        else:
+            check = (f"largest difference from the OpenSim reference: "
+                     f"{self.reference_diff_L0:.1e} L0")
+        return f"- ECRB curve: {check}\n\n{self.table_md}"
+
+
+def run(out_dir: Path, quick: bool = False) -> EcrbNumbers:
+    """Write ``ecrb_ranges.md``, ``ecrb_protocol.png`` and ``ecrb_length.png`` into
+    ``out_dir`` (``quick``: the fast ramp and the fast sinusoid only)."""
+    out_dir = Path(out_dir)
+    runs = run_ecrb(PROTOCOLS[1::2] if quick else PROTOCOLS)
+    curve = EcrbCurve.load()
+    reference = read_table(SHARED_REFERENCE) if SHARED_REFERENCE.is_file() else None
+    table = markdown_table(runs)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "ecrb_ranges.md").write_text(table)
+    plot(runs, out_dir / "ecrb_protocol.png")
+    plot_curve(curve, out_dir / "ecrb_length.png", reference)
+    diff = None if reference is None else compare_with_reference(curve, reference)
+    return EcrbNumbers(diff, {r.protocol.name: ranges(r) for r in runs}, table)
