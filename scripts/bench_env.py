@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.steps < 1 or args.repeats < 1:
         parser.error("--steps and --repeats must be >= 1")
     backend = args.backend or ("c" if "c" in BACKENDS else "numpy")
-    note = "" if backend == "c" else " (the C backend is not available in this build)"
+    note = "" if "c" in BACKENDS else " (the C backend is not available in this build)"
     print(f"chain backend: {backend}{note}; available: {BACKENDS}")
 
     reach, prosthesis, vector, raw, myo = [], [], [], [], []
