@@ -2,8 +2,10 @@
 model, measured side by side in one run (medians over interleaved repeats).
 
 The chain backend is ``"c"`` when ``spindle.chain.BACKENDS`` has it, else ``"numpy"`` (the
-script says which). Anchor: MyoSuite's 1-DoF elbow env (no afferents) runs about 5.5k
-steps/s on this machine with 20 ms steps.
+script says which). When MyoSuite is importable, its 1-DoF elbow env (no afferents,
+``myoElbowPose1D6MRandom-v0``) is measured in the same interleaved repeats and the ratio
+printed; otherwise the script says it was not measured. Absolute steps/s move 2-5x between
+machines: compare ratios measured in one run.
 
     python scripts/bench_env.py [--steps 2000] [--repeats 3] [--backend c|numpy]
 
@@ -67,6 +69,33 @@ def bench_env(env_id: str, steps: int, backend: str) -> tuple[float, float]:
     return steps / elapsed, chain_s[0] / elapsed
 
 
+MYOSUITE_ENV_ID = "myoElbowPose1D6MRandom-v0"
+"""MyoSuite's 1-DoF elbow (6 muscles, no afferents): the nearest published elbow env."""
+
+
+def bench_myosuite(steps: int) -> tuple[float, float] | None:
+    """(env steps/s, env step in s) of MyoSuite's 1-DoF elbow with random actions, resetting
+    when an episode ends; None when MyoSuite is not importable."""
+    try:
+        import myosuite  # noqa: F401  (registers its envs)
+        from myosuite.utils import gym as myo_gym
+    except ImportError:
+        return None
+    env = myo_gym.make(MYOSUITE_ENV_ID)
+    env.action_space.seed(0)
+    actions = [env.action_space.sample() for _ in range(steps)]
+    env.reset(seed=0)
+    start = time.perf_counter()
+    for a in actions:
+        out = env.step(a)  # gymnasium's 5-tuple, or old gym's 4-tuple
+        if out[2] or (len(out) == 5 and out[3]):
+            env.reset()
+    elapsed = time.perf_counter() - start
+    dt_s = float(env.unwrapped.dt)
+    env.close()
+    return steps / elapsed, dt_s
+
+
 def bench_vector(env_id: str, n_envs: int, steps: int, backend: str) -> float:
     """Env steps/s (summed over the envs) of a ``SyncVectorEnv`` of ``n_envs``."""
     import gymnasium as gym
@@ -97,10 +126,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.steps < 1 or args.repeats < 1:
         parser.error("--steps and --repeats must be >= 1")
     backend = args.backend or ("c" if "c" in BACKENDS else "numpy")
-    note = "" if backend == "c" else " (the C backend is not available in this build)"
+    note = "" if "c" in BACKENDS else " (the C backend is not available in this build)"
     print(f"chain backend: {backend}{note}; available: {BACKENDS}")
 
-    reach, prosthesis, vector, raw = [], [], [], []
+    reach, prosthesis, vector, raw, myo = [], [], [], [], []
     reach_share, prosthesis_share = [], []
     for _ in range(args.repeats):
         raw.append(bench_raw(10 * args.steps))
@@ -111,6 +140,7 @@ def main(argv: list[str] | None = None) -> None:
         prosthesis.append(rate)
         prosthesis_share.append(share)
         vector.append(bench_vector("proprio_env/ElbowReach-v0", 8, args.steps, backend))
+        myo.append(bench_myosuite(args.steps))
     med = {k: float(np.median(v)) for k, v in (("reach", reach), ("prosthesis", prosthesis),
                                                ("vector", vector), ("raw", raw),
                                                ("reach_share", reach_share),
@@ -122,9 +152,14 @@ def main(argv: list[str] | None = None) -> None:
     print(f"ProsthesisElbow-v0, 1 env (encoder)   : {med['prosthesis']:10.1f} env steps/s, "
           f"{100 * med['prosthesis_share']:.0f} % of it in the spindle chain")
     print(f"ElbowReach-v0, SyncVectorEnv of 8     : {med['vector']:10.1f} env steps/s (total)")
-    print(f"medians of {args.repeats} interleaved repeats of {args.steps} env steps; "
-          f"MyoSuite 1-DoF elbow anchor ~5500 steps/s -> ratio "
-          f"{med['reach'] / 5500:.3f}")
+    print(f"medians of {args.repeats} interleaved repeats of {args.steps} env steps")
+    if myo[0] is None:
+        print(f"MyoSuite {MYOSUITE_ENV_ID}: not measured (myosuite is not importable)")
+    else:
+        myo_rate = float(np.median([rate for rate, _ in myo]))
+        print(f"MyoSuite {MYOSUITE_ENV_ID} (no afferents, {1e3 * myo[0][1]:g} ms steps): "
+              f"{myo_rate:.1f} env steps/s; ElbowReach-v0 / MyoSuite = "
+              f"{med['reach'] / myo_rate:.2f}")
     print(f"env_steps_per_s={med['reach']:.1f} vs_raw_mj_step={med['reach'] / med['raw']:.5f}")
 
 

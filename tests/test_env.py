@@ -363,3 +363,28 @@ print(arm.mean(), changed.mean())
     # the arm covers part of the picture (not blank, not all arm) and moves with the angle
     assert 0.01 < arm_fraction < 0.5
     assert changed_fraction > 0.005
+
+
+def test_render_without_a_gl_backend_says_how_to_get_one():
+    """GLFW without a display cannot make a context: the error names the backend tried and the
+    fix, in place of GLFW's warnings and MuJoCo's FatalError."""
+    code = """
+from proprio_env.envs import ElbowReachEnv
+env = ElbowReachEnv(render_mode="rgb_array", width=32, height=32)
+env.reset(seed=0)
+try:
+    env.render()
+except RuntimeError as exc:
+    print(exc)
+else:
+    raise SystemExit("rendered without a display")
+"""
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env["MUJOCO_GL"] = "glfw"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    message = out.stdout
+    assert "MUJOCO_GL=glfw" in message and "MUJOCO_GL=egl" in message
+    assert "libegl1 libegl-mesa0 libgl1-mesa-dri" in message and "osmesa" in message
+    assert "GLFWError" not in out.stderr  # GLFW's own warnings are folded into the message

@@ -10,6 +10,8 @@ step at the same time. The observation is the chain's output at the end of the s
 from __future__ import annotations
 
 import math
+import os
+import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
@@ -46,6 +48,24 @@ one step."""
 MUSCLE_GROUP_BIT = 1 << 1
 SERVO_GROUP_BIT = 1 << 2
 """``model.opt.disableactuator`` bits: actuator group 1 = muscles, group 2 = servo."""
+
+
+def make_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Renderer:
+    """``mujoco.Renderer``, or a ``RuntimeError`` that names the GL backend tried and how to get
+    a working one, in place of GLFW's warnings and MuJoCo's "OpenGL platform library" error."""
+    backend = os.environ.get("MUJOCO_GL") or "glfw (MUJOCO_GL unset)"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            return mujoco.Renderer(model, height=height, width=width)
+        except Exception as exc:
+            cause = str(caught[0].message) if caught else str(exc)
+            raise RuntimeError(
+                f"render_mode='rgb_array' needs an OpenGL context, and MUJOCO_GL={backend} "
+                f"could not create one ({cause[:200]}). Without a display, install Debian's "
+                "libegl1 libegl-mesa0 libgl1-mesa-dri and run with MUJOCO_GL=egl (or "
+                "MUJOCO_GL=osmesa with libosmesa6) set before mujoco is imported; with a "
+                "display, MUJOCO_GL=glfw needs DISPLAY set.") from exc
 
 
 def check_ranges_deg(name: str, ranges: Any, limits_deg: tuple[float, float]
@@ -263,7 +283,7 @@ class ElbowProprioEnv(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, height=self.height, width=self.width)
+            self._renderer = make_renderer(self.model, self.width, self.height)
         self._renderer.update_scene(self.data, camera=self._camera())
         return self._renderer.render()
 
