@@ -5,7 +5,7 @@
     PYTHONPATH=. python scripts/bench_spindle.py --baseline none  # this tree only
 
 1. spindle-steps per second for n = 1, 64, 4096, 65536 spindles, stepping
-   ``spindle.core.advance`` + ``commit`` + ``_afferents`` in a loop: each spindle follows its
+   ``spindle.core.advance`` + ``commit`` + ``afferents_from_tension`` in a loop: each spindle follows its
    own smooth length trajectory within 0.8-1.2 L0 and its own smooth fusimotor drive, starting
    at rest (``equilibrium_state``) at its first length and drive. Inputs are precomputed; only
    the spindle calls are timed. Median over repeats, of wall time and of this process's CPU
@@ -95,13 +95,15 @@ def run_steps(mod, length, gd, gs) -> tuple[float, float, np.ndarray, float]:
     c = mod.columns(spindle.CAT)
     state = mod.equilibrium_state(length[0], gd[0], gs[0])
     ia0, _ = mod.afferents(state)
+    # the afferents of the new tensions: afferents_from_tension (before the redesign, _afferents)
+    afferents_from_tension = getattr(mod, "afferents_from_tension", None) or mod._afferents
     first = None
     w0, c0 = time.perf_counter(), time.process_time()
     for i in range(1, length.shape[0]):
         L, d, s = length[i], gd[i], gs[i]
         new = mod.advance(state, L, d, s, STEP_S, theta, c)
         mod.commit(state, new, L, d, s)
-        ia, ii = mod._afferents(new[0], L, c)
+        ia, ii = afferents_from_tension(new[0], L, c)
         if first is None:
             first = ia
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from spindle.core import afferents_from_tension, columns
 from spindle.params import CAT, SpindleParams
 
 
@@ -193,7 +194,7 @@ def solve_reference(
     t = np.concatenate(ts)
     T = np.concatenate(Ts)
     L = np.array([stimulus.length_L0(ti) for ti in t])
-    ia, ii = _afferents_from_tension(T, L, params)
+    ia, ii = afferents_from_tension(np.ascontiguousarray(T.T), L, columns(params))
     return ReferenceSolution(t, ia, ii, T, nfev)
 
 
@@ -210,12 +211,6 @@ def _repeat_last(rows: np.ndarray, n: int) -> np.ndarray:
     if n <= rows.shape[0]:
         return rows[:n]
     return np.vstack((rows, np.repeat(rows[-1:], n - rows.shape[0], axis=0)))
-
-
-def _afferents_from_tension(T: np.ndarray, L: np.ndarray, params: SpindleParams):
-    from spindle.core import _afferents, columns
-
-    return _afferents(np.ascontiguousarray(T.T), L, columns(params))
 
 
 def ramp_and_hold(

@@ -19,8 +19,10 @@ from typing import NamedTuple
 import numpy as np
 
 from spindle import core
+from spindle.fibre_constants import step_constants
 from spindle.methods import Method, get_method
 from spindle.params import CAT, SpindleParams
+from spindle.scalar import afferents_one, step_floats
 from spindle.substeps import substep_lengths, substeps
 
 
@@ -155,7 +157,7 @@ def simulate(
     state = core.equilibrium_state(L[0], gd[0], gs[0], params)
     ia = np.empty_like(L)
     ii = np.empty_like(L)
-    ia[0], ii[0] = core._afferents(state.tension_FU.T, state.length_L0, c)
+    ia[0], ii[0] = core.afferents_from_tension(state.tension_FU.T, state.length_L0, c)
     one_spindle = L.shape[1] == 1 and m.implicit
     carry = _float_state(state) if one_spindle else None
     limited = 0
@@ -170,7 +172,7 @@ def simulate(
             for j in range((i - i0) * k, (i - i0 + 1) * k):
                 new = core.advance(state, lengths[j], gd[i], gs[i], h, m.theta, c)
                 core.commit(state, new, lengths[j], gd[i], gs[i])
-            ia[i], ii[i] = core._afferents(new[0], L[i], c)
+            ia[i], ii[i] = core.afferents_from_tension(new[0], L[i], c)
     t = np.arange(shape[0]) * dt
     return SpindleResult(t, ia.reshape(shape), ii.reshape(shape), m.name, h, limited)
 
@@ -198,17 +200,17 @@ def _run_one_spindle(carry, lengths, gd, gs, k, h, theta, c, ia, ii):
     """The per-sample loop of one chunk for one spindle on Python floats (numpy's per-call
     overhead would dominate): the same step as the vectorised loop. ``carry`` is the state
     of :func:`_float_state`; returns the state after the chunk."""
-    constants = core._step_constants(c, h, theta)
+    constants = step_constants(c, h, theta)
     steps = lengths[:, 0].tolist()
     T, v, z, f, L0, gd0, gs0 = carry
     rates_ia, rates_ii = [], []
     j = 0
     for gd1, gs1 in zip(gd[:, 0].tolist(), gs[:, 0].tolist(), strict=True):
         for L1 in steps[j:j + k]:
-            T, v, z, f = core._step_floats(constants, T, v, z, f, L0, gd0, gs0, L1, gd1, gs1)
+            T, v, z, f = step_floats(constants, T, v, z, f, L0, gd0, gs0, L1, gd1, gs1)
             L0, gd0, gs0 = L1, gd1, gs1
         j += k
-        a, b = core._afferents_one(T, L0, c)
+        a, b = afferents_one(T, L0, c)
         rates_ia.append(a)
         rates_ii.append(b)
     ia[:, 0] = rates_ia

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import spindle
-from spindle import core
+from spindle import batched, core
 
 METHODS = sorted(spindle.METHODS)
 
@@ -26,8 +26,7 @@ def test_equilibrium_tension_balances_the_fibre_forces():
     c = core.columns(spindle.CAT)
     T = state.tension_FU.T
     f = state.activation.T
-    force = core._force(T, state.velocity_root.T, state.length_L0,
-                        c.beta0 + c.beta_drive * f, c.Gamma_drive * f, c)
+    force = core.force(T, state.velocity_root.T, state.length_L0, f, c)
     np.testing.assert_allclose(force, 0.0, atol=1e-15)
     # activation g^2 / (g^2 + freq^2): bag1 50 pps / 60, bag2 80 / 60, chain 80 / 90
     np.testing.assert_allclose(f[:, 0], [2500 / 6100, 6400 / 10000, 6400 / 14500])
@@ -222,56 +221,52 @@ def test_params_refuse_invalid_constants():
 
 
 def reference_advance(state, L1, gd1, gs1, h, theta, params=spindle.CAT):
-    """One theta-method step written plainly from the model equations (no rearrangement).
+    """The step written plainly from the model equations (``core.plain_advance``)."""
+    return core.plain_advance(state, L1, gd1, gs1, h, theta, core.columns(params))
 
-    The unknown is z = sgn(v)|v|^(a/3) as in the core; Newton on the step residual
-    M*(v1 - v0)/h - (1 - theta)*F0 - theta*F1 with its analytic derivative, from the previous
-    z, capped steps, to |dz| <= 1e-13 (tighter than the core's 1e-9).
-    """
-    c = core.columns(params)
+
+@pytest.mark.parametrize("theta", [0.0, 0.5, 1.0])
+def test_the_plain_step_solves_the_theta_method_equations(theta):
+    """The plain step's result satisfies the theta-method's equations, term by term:
+    T1 = T0 + KSR*(L1 - L0) - h*KSR*((1 - theta)*v0 + theta*v1), M*(v1 - v0)/h =
+    (1 - theta)*F0 + theta*F1, (f1 - f0)/h = ((1 - theta)*(a0 - f0) + theta*(a1 - f1))/tau
+    (f1 = a1 where tau = 0) and z1 = sgn(v1)|v1|^(a/3)."""
+    n = 40
+    h = 1e-3 if theta else 2e-5
+    state, L1, gd1, gs1 = random_states(n, seed=17)
+    if not theta:
+        L1 = state.length_L0 + (L1 - state.length_L0) * 0.02
+    c = core.columns(spindle.CAT)
+    T1, v1, z1, f1 = core.plain_advance(state, L1, gd1, gs1, h, theta, c)
     T0, v0, z0, f0 = (a.T for a in (state.tension_FU, state.polar_velocity_L0_s,
                                      state.velocity_root, state.activation))
     L0 = state.length_L0
+    np.testing.assert_allclose(
+        T1, T0 + c.KSR * (L1 - L0) - h * c.KSR * ((1 - theta) * v0 + theta * v1),
+        rtol=0, atol=1e-14)
+
+    def force(T, z, L, f):
+        polar = L - c.LSR0 - T / c.KSR
+        damping = np.where(z > 0, c.CL, c.CS) * (c.beta0 + c.beta_drive * f) * z**3
+        return (T - c.Gamma_drive * f - c.KPR * (polar - c.LPR0)
+                - damping * np.maximum(polar - c.R, 0.0))
+
+    np.testing.assert_allclose(
+        c.M * (v1 - v0) / h, (1 - theta) * force(T0, z0, L0, f0) + theta * force(T1, z1, L1, f1),
+        rtol=0, atol=1e-10)
 
     def target(gd, gs):
         g = np.stack((gd, gs, gs)) ** c.p
         return g / (g + c.freq**c.p)
 
     a0, a1 = target(state.gamma_dyn_pps, state.gamma_stat_pps), target(gd1, gs1)
-    rate = h / c.tau_safe
-    f1 = (f0 + rate * ((1 - theta) * (a0 - f0) + theta * a1)) / (1 + theta * rate)
-    f1 = np.where(c.lagged[:, None], f1, a1)
-
-    def force(T, z, L, f):
-        polar = L - c.LSR0 - T / c.KSR
-        damping = np.where(z > 0, c.CL, c.CS) * (c.beta0 + c.beta_drive * f) * z**3
-        return T - c.Gamma_drive * f - c.KPR * (polar - c.LPR0) - damping * (polar - c.R)
-
-    F0 = force(T0, z0, L0, f0)
-    A = T0 + c.KSR * (L1 - L0) - (1 - theta) * h * c.KSR * v0
-    if theta == 0:
-        v1 = v0 + h / c.M * F0
-        T1 = A
-        return T1, v1, np.sign(v1) * np.abs(v1) ** (c.a / 3), f1
-    z = z0.copy()
-    for _ in range(500):
-        v = np.sign(z) * np.abs(z) ** (3 / c.a)
-        dv = (3 / c.a) * np.abs(z) ** (3 / c.a - 1)
-        T1 = A - theta * h * c.KSR * v
-        C_beta = np.where(z > 0, c.CL, c.CS) * (c.beta0 + c.beta_drive * f1)
-        polar = L1 - c.LSR0 - T1 / c.KSR
-        residual = c.M * (v - v0) / h - (1 - theta) * F0 - theta * force(T1, z, L1, f1)
-        dT = -theta * h * c.KSR * dv
-        dF = dT * (1 + c.KPR / c.KSR + C_beta * z**3 / c.KSR) - 3 * C_beta * z**2 * (polar - c.R)
-        slope = c.M / h * dv - theta * dF
-        dz = np.clip(residual / np.maximum(slope, 1e-300), -0.25, 0.25)
-        z = z - dz
-        if np.abs(dz).max() <= 1e-13:
-            break
-    else:
-        raise AssertionError("reference Newton did not converge")
-    v1 = np.sign(z) * np.abs(z) ** (3 / c.a)
-    return A - theta * h * c.KSR * v1, v1, z, f1
+    lagged = c.lagged
+    np.testing.assert_allclose(
+        (f1 - f0)[lagged],
+        (h * ((1 - theta) * (a0 - f0) + theta * (a1 - f1)) / c.tau_safe)[lagged], rtol=0,
+        atol=1e-15)
+    np.testing.assert_array_equal(f1[~lagged], a1[~lagged])
+    np.testing.assert_allclose(np.sign(z1) * np.abs(z1) ** (3 / c.a), v1, rtol=1e-12, atol=0)
 
 
 def random_states(n, seed):
@@ -293,7 +288,7 @@ def random_states(n, seed):
 
 
 @pytest.mark.parametrize("theta", [0.5, 1.0, 0.0])
-@pytest.mark.parametrize("n", [1, 3, 6, core.CHUNK_SPINDLES + 37])
+@pytest.mark.parametrize("n", [1, 3, 6, batched.CHUNK_SPINDLES + 37])
 @pytest.mark.parametrize("h", [1e-3, 1e-4])
 def test_optimised_step_matches_the_plain_reference_step(theta, n, h):
     state, L1, gd1, gs1 = random_states(n, seed=n)
@@ -307,8 +302,8 @@ def test_optimised_step_matches_the_plain_reference_step(theta, n, h):
     np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
     np.testing.assert_allclose(np.sign(z1) * np.abs(z1) ** 10, v1, rtol=1e-13, atol=0)
     np.testing.assert_allclose(z1, z_ref, rtol=0, atol=1e-9 if theta else 1e-12)
-    ia, ii = core._afferents(T1, L1, c)
-    ia_ref, ii_ref = core._afferents(T_ref, L1, c)
+    ia, ii = core.afferents_from_tension(T1, L1, c)
+    ia_ref, ii_ref = core.afferents_from_tension(T_ref, L1, c)
     np.testing.assert_allclose(ia, ia_ref, rtol=0, atol=1e-9)
     np.testing.assert_allclose(ii, ii_ref, rtol=0, atol=1e-9)
 
@@ -359,10 +354,10 @@ def test_extrapolated_guess_survives_a_state_changed_between_steps(monkeypatch):
     over two blocks and a remainder."""
     # This motion's first extrapolated step needs more than EXTRAPOLATE_MAX_ITER iterations,
     # which would switch extrapolation off for the rest of the test: keep it on.
-    monkeypatch.setattr(core, "EXTRAPOLATE_COOLDOWN", 0)
+    monkeypatch.setattr(batched, "EXTRAPOLATE_COOLDOWN", 0)
     rng = np.random.default_rng(21)
-    n = core.EXTRAPOLATE_SPINDLES + 37
-    assert n > core.CHUNK_SPINDLES
+    n = batched.EXTRAPOLATE_SPINDLES + 37
+    assert n > batched.CHUNK_SPINDLES
     steps = 24
     t = np.arange(steps + 1)[:, None] * 1e-3
     L = 1.0 + 0.08 * np.sin(2 * np.pi * rng.uniform(1, 4, n) * t + rng.uniform(0, 6, n))
@@ -397,7 +392,7 @@ def test_noisy_lengths_send_the_guess_back_to_the_frozen_factor():
     then need more than EXTRAPOLATE_MAX_ITER Newton iterations, and the workspace returns to
     the frozen-factor guess for a while. Either way the result is the reference step's."""
     rng = np.random.default_rng(5)
-    n = core.EXTRAPOLATE_SPINDLES
+    n = batched.EXTRAPOLATE_SPINDLES
     steps = 6
     L = 1.0 + rng.normal(0.0, 1e-4, (steps + 1, n))
     gd, gs = np.full(n, 40.0), np.full(n, 40.0)
@@ -427,8 +422,9 @@ def test_few_spindle_float_path_equals_the_vectorised_path(theta):
         small = core.advance(sub, L1[cols], gd1[cols], gs1[cols], 1e-3, theta, c)
         for got, want in zip(small, vectorised, strict=True):
             np.testing.assert_allclose(got, want[:, cols], rtol=1e-12, atol=1e-14)
-        for got, want in zip(core._afferents(small[0], L1[cols], c),
-                             core._afferents(vectorised[0][:, cols], L1[cols], c), strict=True):
+        rates = core.afferents_from_tension(small[0], L1[cols], c)
+        rates_vectorised = core.afferents_from_tension(vectorised[0][:, cols], L1[cols], c)
+        for got, want in zip(rates, rates_vectorised, strict=True):
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
 
 
@@ -446,8 +442,8 @@ def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch
     state.polar_velocity_L0_s[fast] = 1.5
     state.velocity_root[fast] = 1.5**0.1
     calls = []
-    finish_tail = core._Workspace._finish_tail
-    monkeypatch.setattr(core._Workspace, "_finish_tail",
+    finish_tail = batched.Workspace._finish_tail
+    monkeypatch.setattr(batched.Workspace, "_finish_tail",
                         lambda self, tail, **kw: calls.append(len(tail))
                         or finish_tail(self, tail, **kw))
     c = core.columns(spindle.CAT)
@@ -518,14 +514,14 @@ def reference_afferents(T, L, params):
     return ia, ii
 
 
-@pytest.mark.parametrize("n", [1, 4, 5, core.AFFERENT_CHUNK + 11])
+@pytest.mark.parametrize("n", [1, 4, 5, 8203])
 @pytest.mark.parametrize("params", [spindle.CAT, spindle.HUMAN])
 def test_afferents_match_the_model_definitions(n, params):
     rng = np.random.default_rng(n)
     # tensions from slack (negative potentials, clipped) to well stretched
     T = rng.uniform(-0.05, 0.5, (3, n))
     L = rng.uniform(0.5, 1.5, n)
-    ia, ii = core._afferents(T, L, core.columns(params))
+    ia, ii = core.afferents_from_tension(T, L, core.columns(params))
     ia_ref, ii_ref = reference_afferents(T, L, params)
     assert ia.shape == ii.shape == (n,)
     np.testing.assert_allclose(ia, ia_ref, rtol=0, atol=1e-9)

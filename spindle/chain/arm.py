@@ -377,7 +377,7 @@ class ArmChain:
             previous = Ls
         new = core.advance(self._state, x1, gd, gs, h, theta, c)
         core.commit(self._state, new, x1, gd, gs)
-        return core._afferents(new[0], x1, c)
+        return core.afferents_from_tension(new[0], x1, c)
 
     # -- checks ----------------------------------------------------------------------------
     def _time(self, t_s: float) -> float | None:

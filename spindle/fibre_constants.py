@@ -1,0 +1,224 @@
+"""The spindle's constants in the shapes the step uses, and the implicit step's settings.
+
+:func:`columns` gives a parameter set's fibre constants as (3, 1) columns (rows bag1, bag2,
+chain) that broadcast against the fibre-major (3, n) working arrays; :func:`step_constants`
+gives, per fibre, the constants of one implicit step of size h and weight theta
+(:class:`FibreStepConstants`), which both fast implementations of the step
+(:mod:`spindle.batched` and :mod:`spindle.scalar`) read.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from spindle.params import FibreParams, SpindleParams
+
+NEWTON_MAX_ITER = 60
+NEWTON_FULL_ITER = 3
+NEWTON_TOL_Z = 1e-9
+NEWTON_MAX_DZ = 0.25
+
+MAX_DRIVE_POWER = float(np.finfo(float).max)
+"""g^p is capped here: a drive so large that g^p overflows (g > 1.3e154 pps for p = 2) has
+activation exactly 1 (g^p / (g^p + freq^p) rounds to 1 long before), as in the C port,
+instead of inf/inf = NaN."""
+
+
+class Columns:
+    """Fibre constants as (3, 1) columns, computed once per parameter set."""
+
+    def __init__(self, params: SpindleParams):
+        col = params.column
+        self.KSR = col("KSR_FU_L0")
+        self.KPR = col("KPR_FU_L0")
+        self.M = col("M_FU_s2_L0")
+        self.beta0 = col("beta0_FU_s_L0")
+        self.beta_drive = col("beta_drive_FU_s_L0")
+        self.Gamma_drive = col("Gamma_drive_FU")
+        self.CL = col("CL")
+        self.CS = col("CS")
+        self.R = col("R_L0")
+        self.a = col("a")
+        self.LSR0 = col("LSR0_L0")
+        self.LPR0 = col("LPR0_L0")
+        self.freq = col("freq_pps")
+        self.p = col("p")
+        self.tau = col("tau_s")
+        self.lagged = self.tau[:, 0] > 0
+        self.tau_safe = np.where(self.tau > 0, self.tau, 1.0)
+        self.k1 = 1.0 + self.KPR / self.KSR
+        # With a = 0.3, v = z^10 * sgn(z): a polynomial, many times cheaper than a power.
+        self.a_is_03 = bool(np.all(self.a == 0.3))
+        self.step_constants: StepConstants | None = None
+        self.fibre_params = params.fibres
+        self.S = float(params.S)
+        self.primary_lin = tuple(_primary_linear(f) for f in params.fibres)
+        self.secondary_lin = tuple(_secondary_linear(f) for f in params.fibres[1:])
+
+
+def _primary_linear(f: FibreParams) -> tuple[float, float]:
+    """(g, n) with the primary potential G*(T/KSR - (LNSR - LSR0)) = T*g - n."""
+    return f.G_primary_pps_L0 / f.KSR_FU_L0, f.G_primary_pps_L0 * (f.LNSR_L0 - f.LSR0_L0)
+
+
+def _secondary_linear(f: FibreParams) -> tuple[float, float, float]:
+    """(a, b, c) with the secondary potential G2*(X*Lsec/LSR0*(T/KSR - (LNSR - LSR0))
+    + (1 - X)*Lsec/LPR0*(L - T/KSR - LSR0 - LNPR)) = T*a + L*b + c."""
+    G2, X, Lsec = f.G_secondary_pps_L0, f.X, f.Lsec_L0
+    return (G2 * (X * Lsec / f.LSR0_L0 - (1.0 - X) * Lsec / f.LPR0_L0) / f.KSR_FU_L0,
+            G2 * (1.0 - X) * Lsec / f.LPR0_L0,
+            -G2 * (X * Lsec / f.LSR0_L0 * (f.LNSR_L0 - f.LSR0_L0)
+                   + (1.0 - X) * Lsec / f.LPR0_L0 * (f.LSR0_L0 + f.LNPR_L0)))
+
+
+_COLUMNS_CACHE: dict[int, tuple[SpindleParams, Columns]] = {}
+
+
+def columns(params: SpindleParams) -> Columns:
+    """The :class:`Columns` of ``params`` (cached by identity)."""
+    key = id(params)
+    hit = _COLUMNS_CACHE.get(key)
+    if hit is None or hit[0] is not params:
+        hit = (params, Columns(params))
+        if len(_COLUMNS_CACHE) > 64:
+            _COLUMNS_CACHE.clear()
+        _COLUMNS_CACHE[key] = hit
+    return hit[1]
+
+
+class FibreStepConstants(NamedTuple):
+    """One fibre's constants of one implicit step (floats, or (3, 1) columns of all three).
+
+    The theta-method's equation for the new z (see :func:`spindle.batched.newton_loop`)
+    needs, from the start of the step, with q0 = L0 - LSR0 - R - T0/KSR (the polar length
+    minus R):
+
+        A   = T0 + KSR*(L1 - L0) - (1 - theta)*h*KSR*v0          (T1 = A - theta*h*KSR*v1)
+        p0  = q0 + (1 - theta)*h*v0                               (= L1 - LSR0 - R - A/KSR)
+        rhs = (M/h)*v0 + theta*(k1*A - Gamma1 - KPR*(L1 - LSR0 - LPR0)) + (1 - theta)*F0
+            = T0 + rhs_v0*v0 + rhs_dL*(L1 - L0) + rhs_f1*f1 + rhs_f0*f0 + rhs_const
+              - (KPR + D0)*q0
+
+    with F0 the force at the start and D0 = (1 - theta)*C(z0)*beta(f0)*z0^3 its damping
+    factor; the second form is the first multiplied out, one pass per input. Newton solves
+    the equation divided by a2 = M/h + theta^2*h*k1*KSR, so the constants that enter rhs and
+    the damping coefficients (and KPR) carry that 1/a2.
+    """
+
+    keep: float  # f1 = keep*f0 + from_a0*a0 + from_a1*a1 (instantaneous fibres: f1 = a1)
+    from_a0: float
+    from_a1: float
+    KSR: float
+    inv_KSR: float
+    A_v0: float
+    p0_v0: float
+    LR: float  # LSR0 + R
+    KPR: float  # / a2
+    rhs_v0: float
+    rhs_dL: float
+    rhs_f0: float
+    rhs_f1: float
+    rhs_const: float
+    c_mid: float  # damping C(z)*beta*z^3 = (c_mid*z + c_half*|z|)*beta*z^2 (times a2)
+    c_half: float
+    beta0_old: float  # (1 - theta)*beta: the start of the step's damping
+    beta_drive_old: float
+    cM0: float  # the new damping coefficient theta*C*beta1/a2 = cM + cD*sgn(z),
+    cMd: float  # cM = cM0 + cMd*f1, cD = cD0 + cDd*f1
+    cD0: float
+    cDd: float
+    inv_a2: float
+    th_h_KSR: float
+    blend_exp: float  # exponent of |z| in the frozen factor |v|/|z|^3, (3/a - 3)/3
+    freq_p: float
+    three_over_a: float
+
+
+def _fibre_step_constants(f: FibreParams, h: float, theta: float) -> FibreStepConstants:
+    lagged = f.tau_s > 0
+    rate = h / (f.tau_s if lagged else 1.0)
+    den = 1.0 + theta * rate
+    KSR, KPR, M = f.KSR_FU_L0, f.KPR_FU_L0, f.M_FU_s2_L0
+    k1 = 1.0 + KPR / KSR
+    inv_a2 = 1.0 / (M / h + (theta * theta * h) * k1 * KSR)
+    c_mid = 0.5 * (f.CL + f.CS) * inv_a2
+    c_half = 0.5 * (f.CL - f.CS) * inv_a2
+    three_over_a = 3.0 / f.a
+    constants = FibreStepConstants(
+        keep=(1.0 - (1.0 - theta) * rate) / den if lagged else 0.0,
+        from_a0=(1.0 - theta) * rate / den if lagged else 0.0,
+        from_a1=theta * rate / den if lagged else 1.0,
+        KSR=KSR,
+        inv_KSR=1.0 / KSR,
+        A_v0=(1.0 - theta) * h * KSR,
+        p0_v0=(1.0 - theta) * h,
+        LR=f.LSR0_L0 + f.R_L0,
+        KPR=KPR * inv_a2,
+        rhs_v0=(M / h - theta * (1.0 - theta) * h * k1 * KSR) * inv_a2,
+        rhs_dL=theta * (k1 * KSR - KPR) * inv_a2,
+        rhs_f0=-(1.0 - theta) * f.Gamma_drive_FU * inv_a2,
+        rhs_f1=-theta * f.Gamma_drive_FU * inv_a2,
+        rhs_const=KPR * (f.LPR0_L0 - f.R_L0) * inv_a2,
+        c_mid=c_mid,
+        c_half=c_half,
+        beta0_old=(1.0 - theta) * f.beta0_FU_s_L0,
+        beta_drive_old=(1.0 - theta) * f.beta_drive_FU_s_L0,
+        cM0=theta * c_mid * f.beta0_FU_s_L0,
+        cMd=theta * c_mid * f.beta_drive_FU_s_L0,
+        cD0=theta * c_half * f.beta0_FU_s_L0,
+        cDd=theta * c_half * f.beta_drive_FU_s_L0,
+        inv_a2=inv_a2,
+        th_h_KSR=theta * h * KSR,
+        blend_exp=(three_over_a - 3.0) / 3.0,
+        freq_p=f.freq_pps**f.p,
+        three_over_a=three_over_a,
+    )
+    return FibreStepConstants(*(float(x) for x in constants))
+
+
+class StepConstants:
+    """The constants of one implicit step (step h, weight theta): per fibre as floats
+    (``fibre``) and, on demand, all three as (3, 1) columns (``fibre_columns``)."""
+
+    def __init__(self, c: Columns, h: float, theta: float):
+        # Python floats throughout: a step with a new h (a streaming chain's jittery sample
+        # interval) rebuilds these, and numpy's per-call overhead would cost ~0.5 ms.
+        self.h, self.theta = h, theta
+        self.th_h = theta * h
+        self.a_is_03 = c.a_is_03
+        fibres = c.fibre_params
+        self.fibre = tuple(_fibre_step_constants(f, h, theta) for f in fibres)
+        self.lagged = tuple(f.tau_s > 0 for f in fibres)
+        self.p = tuple(float(f.p) for f in fibres)
+        # the chain shares bag2's g^p when their p agree (it has the same static drive)
+        self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
+        self._columns: FibreStepConstants | None = None
+
+    @property
+    def fibre_columns(self) -> FibreStepConstants:
+        """The constants of the three fibres as (3, 1) columns."""
+        if self._columns is None:
+            self._columns = FibreStepConstants(
+                *(np.array([[x] for x in values]) for values in zip(*self.fibre, strict=True)))
+        return self._columns
+
+
+def step_constants(c: Columns, h: float, theta: float) -> StepConstants:
+    """The :class:`StepConstants` of ``c`` for (h, theta), kept until either changes."""
+    hit = c.step_constants
+    if hit is None or hit.h != h or hit.theta != theta:
+        hit = c.step_constants = StepConstants(c, h, theta)
+    return hit
+
+
+def check_finite(T1: np.ndarray, v1: np.ndarray, h: float) -> None:
+    """Raise ``FloatingPointError`` if the step's new tension or velocity is not finite."""
+    # A sum is finite only if every term is (the values are far below overflow).
+    if not math.isfinite(float(T1.sum()) + float(v1.sum())):
+        raise FloatingPointError(
+            "the spindle step produced a non-finite tension or velocity; state left unchanged "
+            f"(step {h!r} s)"
+        )
