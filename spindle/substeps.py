@@ -2,7 +2,7 @@
 
 A sample interval ``dt`` is split into the fewest equal internal steps no longer than the
 integrator's step (:func:`substeps`). The length between samples follows a Hermite curve
-through the samples and their derivatives (:func:`hermite_weights`), held inside the spindle's
+through the samples and their derivatives (:func:`hermite_curve`), held inside the spindle's
 valid range and speed limit (:func:`substep_lengths`). ``spindle.simulate`` (numpy and C) and
 the prosthesis chain use these.
 """
@@ -49,12 +49,7 @@ def substep_lengths(L: np.ndarray, derivatives: list[np.ndarray], k: int, dt: fl
     previous = start
     changed = 0
     for j in range(1, k):
-        w = hermite_weights(j / k, len(pairs))
-        value = w[0] * start + w[1] * end
-        scale = dt
-        for q, (d0, d1) in enumerate(pairs):
-            value = value + scale * (w[2 + 2 * q] * d0 + w[3 + 2 * q] * d1)
-            scale *= dt
+        value = hermite_curve(j / k, start, end, pairs, dt)
         left = reach * (k - j)  # what the remaining sub-steps can still cover
         lo = np.maximum(np.maximum(previous - reach, end - left), lo_range)
         hi = np.minimum(np.minimum(previous + reach, end + left), hi_range)
@@ -63,6 +58,20 @@ def substep_lengths(L: np.ndarray, derivatives: list[np.ndarray], k: int, dt: fl
         out[:, j - 1] = clipped
         previous = clipped
     return out.reshape(-1, L.shape[1]), changed
+
+
+def hermite_curve(s: float, start: np.ndarray, end: np.ndarray,
+                  derivatives: list[tuple[np.ndarray, np.ndarray]], dt: float) -> np.ndarray:
+    """The Hermite curve of an interval of ``dt`` at fraction ``s``: through the values
+    ``start`` and ``end`` and, for each pair (at start, at end) in ``derivatives``, the first
+    (then second) derivatives; linear without them."""
+    w = hermite_weights(s, len(derivatives))
+    value = w[0] * start + w[1] * end
+    scale = dt
+    for q, (d0, d1) in enumerate(derivatives):
+        value = value + scale * (w[2 + 2 * q] * d0 + w[3 + 2 * q] * d1)
+        scale *= dt
+    return value
 
 
 def hermite_weights(s: float, order: int) -> np.ndarray:

@@ -79,7 +79,11 @@ from spindle.chain.fusimotor import Fusimotor
 from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.chain.sensor import MedianFilter, is_valid_reading
 from spindle.methods import get_method
-from spindle.substeps import hermite_weights, substeps
+from spindle.substeps import hermite_curve, substeps
+
+LENGTH_RANGE_POINTS = 1301
+"""Points of the angle grid over the fitted range on which each muscle's length range (the
+fusimotor's h(x) and g(x) span) is taken; ``FIT_RANGE_POINTS`` in ``chain.c`` is the same."""
 
 
 class ArmChain:
@@ -102,7 +106,7 @@ class ArmChain:
             raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
         lo_rad, hi_rad = self.fits.valid_range_rad
         self.angle_range_deg = (math.degrees(lo_rad), math.degrees(hi_rad))
-        span = self.fits.length_L0(np.linspace(lo_rad, hi_rad, 1301))
+        span = self.fits.length_L0(np.linspace(lo_rad, hi_rad, LENGTH_RANGE_POINTS))
         self.length_min_L0 = span.min(axis=0)
         self.length_max_L0 = span.max(axis=0)
         self._method = get_method(self.config.method)
@@ -363,8 +367,7 @@ class ArmChain:
         reach = self.config.max_speed_L0_s * h
         previous = x0
         for j in range(1, k):
-            w = hermite_weights(j / k, 1)
-            Ls = w[0] * x0 + w[1] * x1 + dt * (w[2] * v0 + w[3] * v1)
+            Ls = hermite_curve(j / k, x0, x1, [(v0, v1)], dt)
             # Within the spindle's range, a slew-limited step from the previous sub-step, and
             # still able to reach x1 at that speed (a bridge whose end velocities disagree
             # would otherwise overshoot both).
