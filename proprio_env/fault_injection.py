@@ -168,30 +168,135 @@ def fault_stream(rng: np.random.Generator, n_samples: int, fits: LengthFits,
     ``fits`` turns angles into the lengths of ``push_lengths`` runs. Deterministic for a
     seeded ``rng``.
     """
-    calibration = Calibration()
-    encoder = Encoder(AX12, calibration, rng=rng)
-    motion = ServoMotion(rng)
-    clock = 0.0          # the true time of the last sample delivered
-    last_t: float = 0.0  # the last time pushed (a corrupted one included)
+    stream = _StreamWriter(rng, fits)
     entry, run_left, done = "counts", 0, 0
+    while done < n_samples:
+        if run_left <= 0:
+            entry = str(rng.choice(ENTRIES, p=[0.8, 0.1, 0.1]))
+            run_left = int(rng.integers(100, 1500))
+        fault = _draw_fault(rng, fault_probability)
+        stream.start_segment()
+        if not fault:
+            stream.add_clean(entry, int(rng.integers(1, 65)))
+            single = bool(rng.random() < 0.25)
+        else:
+            single, fault = stream.add_fault(entry, fault)
+        ts, values = stream.ts, stream.values
+        if any(isinstance(x, int) and abs(x) > 2**53 for x in ts + _flat(values)):
+            single = True  # a Python int beyond float cannot go into a float block
+        if any(isinstance(v, complex) for v in _flat(values)):
+            single = True
+        if entry == "lengths" and any(len(v) != 2 for v in values):
+            single = True
+        done += len(ts)
+        run_left -= len(ts)
+        yield Segment(entry, ts, values, stream.clean, stream.true_t, stream.true_a, single,
+                      fault)
 
-    def lengths(angle: float) -> list[float]:
-        return [float(v) for v in fits.length_L0(math.radians(angle))]
 
-    def value_of(kind: str, angle: float) -> object:
+def _draw_fault(rng: np.random.Generator, fault_probability: float) -> str:
+    """The fault of the next segment ("" for none)."""
+    if not rng.random() < fault_probability:
+        return ""
+    fault = str(rng.choice(list(_FAULT_WEIGHTS), p=list(_FAULT_WEIGHTS.values())))
+    if fault == "time":
+        return str(rng.choice(_TIME_FAULTS))
+    if fault == "value":
+        return str(rng.choice(_VALUE_FAULTS))
+    return fault
+
+
+class _StreamWriter:
+    """The servo, its encoder and clock, and the segment being written by :func:`fault_stream`:
+    times pushed, values, whether each is clean, the true time and angle."""
+
+    def __init__(self, rng: np.random.Generator, fits: LengthFits):
+        self.rng = rng
+        self.fits = fits
+        self.encoder = Encoder(AX12, Calibration(), rng=rng)
+        self.motion = ServoMotion(rng)
+        self.clock = 0.0   # the true time of the last sample delivered
+        self.last_t = 0.0  # the last time pushed (a corrupted one included)
+        self.start_segment()
+
+    def start_segment(self) -> None:
+        self.ts, self.values, self.clean, self.true_t, self.true_a = [], [], [], [], []
+
+    def add(self, t: object, value: object, ok: bool, t_true: float, a_true: float) -> None:
+        for column, item in zip((self.ts, self.values, self.clean, self.true_t, self.true_a),
+                                (t, value, ok, t_true, a_true), strict=True):
+            column.append(item)
+        if ok:
+            self.last_t = t_true
+
+    def sample(self) -> tuple[float, float]:
+        """The next sample's true time and angle."""
+        self.clock = self.encoder.next_sample_time_s(self.clock)
+        return self.clock, self.motion.angle_deg(self.clock)
+
+    def add_clean(self, entry: str, n: int) -> None:
+        """``n`` samples as the servo delivers them."""
+        for _ in range(n):
+            t, a = self.sample()
+            v = self.value_of(entry, a)
+            self.add(t, v, entry != "counts" or is_valid_reading(v, AX12.max_count), t, a)
+
+    def lengths(self, angle: float) -> list[float]:
+        return [float(v) for v in self.fits.length_L0(math.radians(angle))]
+
+    def value_of(self, kind: str, angle: float) -> object:
         if kind == "counts":
-            return encoder.read(angle)
-        return angle if kind == "angle" else lengths(angle)
+            return self.encoder.read(angle)
+        return angle if kind == "angle" else self.lengths(angle)
 
-    def clean_value(kind: str, value: object) -> bool:
-        return kind != "counts" or is_valid_reading(value, AX12.max_count)
+    def add_fault(self, entry: str, fault: str) -> tuple[bool, str]:
+        """The fault, with a few clean samples around it when it goes in a block; returns
+        (whether the segment is pushed sample by sample, the fault's name)."""
+        rng = self.rng
+        single = bool(rng.random() < 0.5)
+        self.add_clean(entry, 0 if single else int(rng.integers(0, 8)))
+        if fault in ("dropout", "clock_jump"):
+            fault = self.add_gap(entry, fault)
+        elif fault == "dead_encoder":
+            for _ in range(int(rng.integers(2, 200))):
+                t, a = self.sample()
+                dead = {"counts": -1, "angle": math.nan}.get(entry, [math.nan] * 2)
+                self.add(t, dead, False, t, a)
+        elif fault.startswith("time_"):
+            t, a = self.sample()
+            bad_t = self.corrupt_time(fault, t)
+            if fault == "time_tiny_step":
+                self.clock = bad_t  # the true clock: a sample 1 ns after the last
+            self.add(bad_t, self.value_of(entry, a), False, t, a)
+        else:
+            t, a = self.sample()
+            self.add(t, self.corrupt_value(entry, fault, a), False, t, a)
+        self.add_clean(entry, 0 if single else int(rng.integers(0, 8)))
+        return single, fault
 
-    def sample() -> tuple[float, float]:
-        nonlocal clock
-        clock = encoder.next_sample_time_s(clock)
-        return clock, motion.angle_deg(clock)
+    def add_gap(self, entry: str, fault: str) -> str:
+        """A dropout or a clock jump, then one sample; returns the fault's name (a dropout
+        is "dropout_moving" or "dropout_rest")."""
+        lo, hi = DROPOUT_RANGE_S if fault == "dropout" else CLOCK_JUMP_RANGE_S
+        motion = self.motion
+        if fault == "dropout":
+            # Half during a movement (above 40 deg/s), half at rest: clean samples until the
+            # motion is so (a hold lasts at most 1.5 s).
+            moving = bool(self.rng.random() < 0.5)
+            if moving and motion.speed_deg_s(self.clock) <= 40.0:
+                motion.start_move(self.clock)
+            for _ in range(2000):
+                if (motion.speed_deg_s(self.clock) > 40.0) == moving:
+                    break
+                self.add_clean(entry, 1)
+            fault = ("dropout_moving" if motion.speed_deg_s(self.clock) > 40.0
+                     else "dropout_rest")
+        self.clock += math.exp(self.rng.uniform(math.log(lo), math.log(hi)))
+        self.add_clean(entry, 1)
+        return fault
 
-    def corrupt_value(kind: str, fault: str, angle: float) -> object:
+    def corrupt_value(self, kind: str, fault: str, angle: float) -> object:
+        rng = self.rng
         if fault == "value_nan":
             return math.nan if kind != "lengths" else [math.nan, 1.0]
         if fault == "value_inf":
@@ -214,102 +319,19 @@ def fault_stream(rng: np.random.Generator, n_samples: int, fits: LengthFits,
             return [float(rng.choice([0.2, 0.49, 1.51, 3.0])), 1.0]
         if fault == "value_non_integer":
             if kind == "counts":
-                return float(encoder.read(angle)) + float(rng.choice([0.5, 0.25, -0.1]))
+                return float(self.encoder.read(angle)) + float(rng.choice([0.5, 0.25, -0.1]))
             if kind == "angle" or rng.random() < 0.5:  # a complex number
-                return complex(angle, 1.0) if kind == "angle" else [complex(*lengths(angle)), 1.0]
-            return lengths(angle)[:1]  # the wrong shape
+                return (complex(angle, 1.0) if kind == "angle"
+                        else [complex(*self.lengths(angle)), 1.0])
+            return self.lengths(angle)[:1]  # the wrong shape
         raise AssertionError(fault)
 
-    def corrupt_time(fault: str, t: float) -> object:
+    def corrupt_time(self, fault: str, t: float) -> object:
+        rng, last_t = self.rng, self.last_t
         return {"time_repeat": last_t, "time_backwards": last_t - float(rng.uniform(1e-4, 10)),
                 "time_nan": math.nan, "time_inf": math.inf, "time_neg_inf": -math.inf,
                 "time_1e9": 1e9, "time_jump_1e9": t + 1e9, "time_1e308": 1e308,
                 "time_pyint": 10**400, "time_tiny_step": last_t + 1e-9}[fault]
-
-    buf: tuple[list, ...] = ()
-
-    def add(t: object, value: object, ok: bool, t_true: float, a_true: float) -> None:
-        nonlocal last_t
-        for column, item in zip(buf, (t, value, ok, t_true, a_true), strict=True):
-            column.append(item)
-        if ok:
-            last_t = t_true
-
-    while done < n_samples:
-        if run_left <= 0:
-            entry = str(rng.choice(ENTRIES, p=[0.8, 0.1, 0.1]))
-            run_left = int(rng.integers(100, 1500))
-        fault = ""
-        if rng.random() < fault_probability:
-            fault = str(rng.choice(list(_FAULT_WEIGHTS), p=list(_FAULT_WEIGHTS.values())))
-            if fault == "time":
-                fault = str(rng.choice(_TIME_FAULTS))
-            elif fault == "value":
-                fault = str(rng.choice(_VALUE_FAULTS))
-        buf = ts, values, clean, true_t, true_a = [], [], [], [], []
-        if not fault:
-            n = int(rng.integers(1, 65))
-            for _ in range(n):
-                t, a = sample()
-                v = value_of(entry, a)
-                add(t, v, clean_value(entry, v), t, a)
-            single = bool(rng.random() < 0.25)
-        else:
-            # The fault, with a few clean samples around it when it goes in a block.
-            single = bool(rng.random() < 0.5)
-            before = 0 if single else int(rng.integers(0, 8))
-            for _ in range(before):
-                t, a = sample()
-                v = value_of(entry, a)
-                add(t, v, clean_value(entry, v), t, a)
-            if fault in ("dropout", "clock_jump"):
-                lo, hi = DROPOUT_RANGE_S if fault == "dropout" else CLOCK_JUMP_RANGE_S
-                if fault == "dropout":
-                    # Half during a movement (above 40 deg/s), half at rest: clean samples
-                    # until the motion is so (a hold lasts at most 1.5 s).
-                    moving = bool(rng.random() < 0.5)
-                    if moving and motion.speed_deg_s(clock) <= 40.0:
-                        motion.start_move(clock)
-                    for _ in range(2000):
-                        if (motion.speed_deg_s(clock) > 40.0) == moving:
-                            break
-                        t, a = sample()
-                        v = value_of(entry, a)
-                        add(t, v, clean_value(entry, v), t, a)
-                    fault = ("dropout_moving" if motion.speed_deg_s(clock) > 40.0
-                             else "dropout_rest")
-                clock += math.exp(rng.uniform(math.log(lo), math.log(hi)))
-                t, a = sample()
-                v = value_of(entry, a)
-                add(t, v, clean_value(entry, v), t, a)
-            elif fault == "dead_encoder":
-                for _ in range(int(rng.integers(2, 200))):
-                    t, a = sample()
-                    dead = {"counts": -1, "angle": math.nan}.get(entry, [math.nan] * 2)
-                    add(t, dead, False, t, a)
-            elif fault.startswith("time_"):
-                t, a = sample()
-                bad_t = corrupt_time(fault, t)
-                if fault == "time_tiny_step":
-                    clock = bad_t  # the true clock: a sample 1 ns after the last
-                add(bad_t, value_of(entry, a), False, t, a)
-            else:
-                t, a = sample()
-                add(t, corrupt_value(entry, fault, a), False, t, a)
-            after = 0 if single else int(rng.integers(0, 8))
-            for _ in range(after):
-                t, a = sample()
-                v = value_of(entry, a)
-                add(t, v, clean_value(entry, v), t, a)
-        if any(isinstance(x, int) and abs(x) > 2**53 for x in ts + _flat(values)):
-            single = True  # a Python int beyond float cannot go into a float block
-        if any(isinstance(v, complex) for v in _flat(values)):
-            single = True
-        if entry == "lengths" and any(len(v) != 2 for v in values):
-            single = True
-        done += len(ts)
-        run_left -= len(ts)
-        yield Segment(entry, ts, values, clean, true_t, true_a, single, fault)
 
 
 def _flat(values: list) -> list:
@@ -539,75 +561,12 @@ def run_soak(n_samples: int, seed: int = 0, config: ChainConfig | None = None,
                     c.reset(seg.true_angle_deg[k], seg.true_t_s[k] - 1e-3)
                 report.resyncs += 1
                 failing = dict.fromkeys(BACKENDS, 0)
-                need_resync = False
             report.calls += 1
             if seg.fault:
                 report.faults[seg.fault] += 1
-            outputs, deltas, timed_out = {}, {}, False
-            for b, c in chains.items():
-                before = dict(c.counters)
-                t0 = time.perf_counter()
-                try:
-                    dog.arm()
-                    try:
-                        outputs[b] = _push(c, seg)
-                    finally:
-                        dog.disarm()
-                except CallTimeout:
-                    report.timeouts[b] += 1
-                    timed_out = need_resync = True
-                except Exception as exc:  # a push must not raise: record and go on
-                    key = (b, seg.fault or "clean", type(exc).__name__)
-                    report.errors[key] += 1
-                    report.error_examples.setdefault(key, str(exc)[:160])
-                    failing[b] += 1
-                    if failing[b] >= STUCK_AFTER:
-                        report.stuck[b] += 1
-                        need_resync = True
-                else:
-                    failing[b] = 0
-                elapsed = time.perf_counter() - t0
-                report.wall_s[b] += elapsed
-                report.max_call_s[b] = max(report.max_call_s[b], elapsed)
-                after = c.counters
-                deltas[b] = Counter({k: after[k] - before.get(k, 0) for k in after})
-            if timed_out:  # the stopped chain's state is undefined: not compared
-                deltas = {b: Counter() for b in BACKENDS}
-            for b in BACKENDS:
-                report.counters[b].update(deltas[b])
-            if deltas["numpy"] != deltas["c"]:
-                report.counter_mismatches += 1
-                if not report.first_mismatch:
-                    diff = {k: (deltas["numpy"][k], deltas["c"][k])
-                            for k in set(deltas["numpy"]) | set(deltas["c"])
-                            if deltas["numpy"][k] != deltas["c"][k]}
-                    report.first_mismatch = (f"call {report.calls} ({seg.fault or 'clean'}, "
-                                             f"{seg.entry}): numpy, c = {diff}")
-            for b, outs in outputs.items():
-                for s in outs:
-                    _check_output(s, b, report)
-            if len(outputs) == 2:
-                for sn, sc in zip(outputs["numpy"], outputs["c"], strict=True):
-                    diff = max(float(np.max(np.abs(sn.ia_pps - sc.ia_pps))),
-                               float(np.max(np.abs(sn.ii_pps - sc.ii_pps))))
-                    report.max_rate_diff_pps = max(report.max_rate_diff_pps,
-                                                   diff if math.isfinite(diff) else math.inf)
-                    report.compared_outputs += 1
-            # Recovery: clean samples rejected after a fault (on either chain), until the next
-            # fault, which would otherwise be blamed on this one.
-            if seg.fault:
-                for w in watching:
-                    report.recovery.setdefault(w[0], []).append(w[2])
-                watching = [[seg.fault, 0, 0]]
-            else:
-                n_clean = sum(seg.clean)
-                accepted = min(deltas[b].get("accepted", 0) for b in BACKENDS)
-                for w in watching:
-                    w[1] += n_clean
-                    w[2] += max(0, n_clean - accepted)
-                for w in [w for w in watching if w[1] >= RECOVERY_WINDOW]:
-                    report.recovery.setdefault(w[0], []).append(w[2])
-                    watching.remove(w)
+            outputs, deltas, need_resync = _push_to_both(chains, seg, dog, report, failing)
+            _compare_backends(report, seg, outputs, deltas)
+            watching = _track_recovery(report, watching, seg, deltas)
             before_n = report.samples
             report.samples += len(seg.t_s)
             if before_n < ten_percent <= report.samples:
@@ -621,3 +580,83 @@ def run_soak(n_samples: int, seed: int = 0, config: ChainConfig | None = None,
     if math.isnan(report.rss_10_MB):
         report.rss_10_MB = report.rss_end_MB
     return report
+
+
+def _push_to_both(chains, seg: Segment, dog: _Watchdog, report: SoakReport,
+                  failing: dict[str, int]):
+    """Push ``seg`` into each chain, timed and watched; returns (outputs by backend, counter
+    changes by backend, whether the chains must be resynchronised)."""
+    outputs, deltas, timed_out, need_resync = {}, {}, False, False
+    for b, c in chains.items():
+        before = dict(c.counters)
+        t0 = time.perf_counter()
+        try:
+            dog.arm()
+            try:
+                outputs[b] = _push(c, seg)
+            finally:
+                dog.disarm()
+        except CallTimeout:
+            report.timeouts[b] += 1
+            timed_out = need_resync = True
+        except Exception as exc:  # a push must not raise: record and go on
+            key = (b, seg.fault or "clean", type(exc).__name__)
+            report.errors[key] += 1
+            report.error_examples.setdefault(key, str(exc)[:160])
+            failing[b] += 1
+            if failing[b] >= STUCK_AFTER:
+                report.stuck[b] += 1
+                need_resync = True
+        else:
+            failing[b] = 0
+        elapsed = time.perf_counter() - t0
+        report.wall_s[b] += elapsed
+        report.max_call_s[b] = max(report.max_call_s[b], elapsed)
+        after = c.counters
+        deltas[b] = Counter({k: after[k] - before.get(k, 0) for k in after})
+    if timed_out:  # the stopped chain's state is undefined: not compared
+        deltas = {b: Counter() for b in BACKENDS}
+    return outputs, deltas, need_resync
+
+
+def _compare_backends(report: SoakReport, seg: Segment, outputs, deltas) -> None:
+    """Count the counters' changes, check each output and compare the two backends'."""
+    for b in BACKENDS:
+        report.counters[b].update(deltas[b])
+    if deltas["numpy"] != deltas["c"]:
+        report.counter_mismatches += 1
+        if not report.first_mismatch:
+            diff = {k: (deltas["numpy"][k], deltas["c"][k])
+                    for k in set(deltas["numpy"]) | set(deltas["c"])
+                    if deltas["numpy"][k] != deltas["c"][k]}
+            report.first_mismatch = (f"call {report.calls} ({seg.fault or 'clean'}, "
+                                     f"{seg.entry}): numpy, c = {diff}")
+    for b, outs in outputs.items():
+        for s in outs:
+            _check_output(s, b, report)
+    if len(outputs) == 2:
+        for sn, sc in zip(outputs["numpy"], outputs["c"], strict=True):
+            diff = max(float(np.max(np.abs(sn.ia_pps - sc.ia_pps))),
+                       float(np.max(np.abs(sn.ii_pps - sc.ii_pps))))
+            report.max_rate_diff_pps = max(report.max_rate_diff_pps,
+                                           diff if math.isfinite(diff) else math.inf)
+            report.compared_outputs += 1
+
+
+def _track_recovery(report: SoakReport, watching: list[list], seg: Segment,
+                    deltas) -> list[list]:
+    """Recovery: clean samples rejected after a fault (on either chain), until the next
+    fault, which would otherwise be blamed on this one; returns the open windows."""
+    if seg.fault:
+        for w in watching:
+            report.recovery.setdefault(w[0], []).append(w[2])
+        return [[seg.fault, 0, 0]]
+    n_clean = sum(seg.clean)
+    accepted = min(deltas[b].get("accepted", 0) for b in BACKENDS)
+    for w in watching:
+        w[1] += n_clean
+        w[2] += max(0, n_clean - accepted)
+    for w in [w for w in watching if w[1] >= RECOVERY_WINDOW]:
+        report.recovery.setdefault(w[0], []).append(w[2])
+        watching.remove(w)
+    return watching

@@ -90,35 +90,97 @@ def solve_reference(
     :func:`spindle.core.equilibrium_state` does).
     """
     solve_ivp = _require_scipy()
+    t_eval_s = _checked_eval_times(t_eval_s, stimulus.duration_s)
+    model = _SecondOrderModel(stimulus, params, eps_L0_s)
+    y = model.rest_state()
+    edges = sorted({0.0, stimulus.duration_s, *(b for b in stimulus.breakpoints_s
+                                                if 0 < b < stimulus.duration_s)})
+    ts, Ts = [], []
+    nfev = 0
+    for t0, t1 in itertools.pairwise(edges):
+        if t0 > 0:
+            y = model.across_breakpoint(y, t0)
+        # The segment's inputs are its one-sided limits at t0 and t1 (see the module docstring).
+        inside = (t0 + min(_one_side_s(t0), (t1 - t0) / 4),
+                  t1 - min(_one_side_s(t1), (t1 - t0) / 4))
+        mask = (t_eval_s >= t0) & ((t1 == edges[-1]) | (t_eval_s < t1))
+        # t1 is appended so that the segment's end state is exact for the next restart.
+        t_seg = np.append(np.minimum(t_eval_s[mask], t1), t1)
+        t_seg = t_seg[np.r_[np.diff(t_seg) > 0, True]]
+        sol = solve_ivp(model.rhs, (t0, t1), y, method="Radau", rtol=rtol, atol=atol,
+                        t_eval=t_seg, jac=model.jac, args=inside)
+        if not sol.success:
+            raise RuntimeError(f"reference solver failed on [{t0}, {t1}] s: {sol.message}")
+        nfev += sol.nfev
+        ts.append(t_eval_s[mask])
+        Ts.append(_repeat_last(sol.y[0:3].T, int(mask.sum())))
+        y = sol.y[:, -1]
+    t = np.concatenate(ts)
+    T = np.concatenate(Ts)
+    L = np.array([stimulus.length_L0(ti) for ti in t])
+    ia, ii = afferents_from_tension(np.ascontiguousarray(T.T), L, columns(params))
+    return ReferenceSolution(t, ia, ii, T, nfev)
+
+
+def _checked_eval_times(t_eval_s, duration_s: float) -> np.ndarray:
     t_eval_s = np.asarray(t_eval_s, dtype=float)
     if t_eval_s.ndim != 1 or t_eval_s.size == 0:
         raise ValueError(f"t_eval_s must be a non-empty 1-D array, got shape {t_eval_s.shape}")
-    if t_eval_s.min() < 0 or t_eval_s.max() > stimulus.duration_s * (1 + 1e-12):
+    if t_eval_s.min() < 0 or t_eval_s.max() > duration_s * (1 + 1e-12):
         raise ValueError(
             f"t_eval_s spans [{t_eval_s.min()}, {t_eval_s.max()}] s, outside the stimulus' "
-            f"[0, {stimulus.duration_s}] s"
+            f"[0, {duration_s}] s"
         )
-    fib = params.fibres
-    drive = (stimulus.gamma_dyn_pps, stimulus.gamma_stat_pps, stimulus.gamma_stat_pps)
-    target = [g**f.p / (g**f.p + f.freq_pps**f.p) for g, f in zip(drive, fib, strict=True)]
-    # Plain floats: the solver calls these functions ~1e5 times with 8 states, where numpy's
-    # per-call overhead would dominate.
-    consts = [
-        (f.KSR_FU_L0, f.KPR_FU_L0, f.M_FU_s2_L0, f.beta0_FU_s_L0, f.beta_drive_FU_s_L0,
-         f.Gamma_drive_FU, f.CL, f.CS, f.R_L0, f.a, f.LSR0_L0, f.LPR0_L0)
-        for f in fib
-    ]
-    tau = (fib[0].tau_s, fib[1].tau_s)
-    eps2 = eps_L0_s * eps_L0_s
+    return t_eval_s
 
-    def rhs(t, y, t_lo, t_hi):
+
+class _SecondOrderModel:
+    """The published second-order form: y = (T of each fibre, dT/dt of each fibre, bag1 and
+    bag2 activation); the chain fibre's activation sits at its target."""
+
+    def __init__(self, stimulus: Stimulus, params: SpindleParams, eps_L0_s: float):
+        fib = params.fibres
+        drive = (stimulus.gamma_dyn_pps, stimulus.gamma_stat_pps, stimulus.gamma_stat_pps)
+        self.stimulus = stimulus
+        self.target = [g**f.p / (g**f.p + f.freq_pps**f.p)
+                       for g, f in zip(drive, fib, strict=True)]
+        # Plain floats: the solver calls rhs ~1e5 times with 8 states, where numpy's
+        # per-call overhead would dominate.
+        self.consts = [
+            (f.KSR_FU_L0, f.KPR_FU_L0, f.M_FU_s2_L0, f.beta0_FU_s_L0, f.beta_drive_FU_s_L0,
+             f.Gamma_drive_FU, f.CL, f.CS, f.R_L0, f.a, f.LSR0_L0, f.LPR0_L0)
+            for f in fib
+        ]
+        self.tau = (fib[0].tau_s, fib[1].tau_s)
+        self.eps2 = eps_L0_s * eps_L0_s
+
+    def rest_state(self) -> np.ndarray:
+        """Equilibrium at rest at the stimulus' start: v = 0, so dT/dt = KSR * dL."""
+        L_start = self.stimulus.length_L0(0.0)
+        dL_start = self.stimulus.velocity_L0_s(0.0)
+        return np.array(
+            [(c[5] * ft + c[1] * (L_start - c[10] - c[11])) / (1 + c[1] / c[0])
+             for c, ft in zip(self.consts, self.target, strict=True)]
+            + [c[0] * dL_start for c in self.consts] + self.target[:2]
+        )
+
+    def across_breakpoint(self, y: np.ndarray, t0: float) -> np.ndarray:
+        """dT/dt jumps with dL/dt at a breakpoint (v, the polar velocity, is continuous)."""
+        velocity = self.stimulus.velocity_L0_s
+        jump = velocity(t0 + _one_side_s(t0)) - velocity(t0 - _one_side_s(t0))
+        y = y.copy()
+        y[3:6] += np.array([c[0] for c in self.consts]) * jump
+        return y
+
+    def rhs(self, t, y, t_lo, t_hi):
+        stimulus, eps2 = self.stimulus, self.eps2
         L = stimulus.length_L0(t)
         t_in = min(max(t, t_lo), t_hi)
         dL = stimulus.velocity_L0_s(t_in)
         ddL = stimulus.acceleration_L0_s2(t_in)
-        f = (y[6], y[7], target[2])
+        f = (y[6], y[7], self.target[2])
         out = np.empty(8)
-        for i, (KSR, KPR, M, b0, bd, Gd, CL, CS, R, a, LSR0, LPR0) in enumerate(consts):
+        for i, (KSR, KPR, M, b0, bd, Gd, CL, CS, R, a, LSR0, LPR0) in enumerate(self.consts):
             T, Td = y[i], y[3 + i]
             v = dL - Td / KSR
             damp = (CL if v > 0 else CS) * (b0 + bd * f[i]) * v * (v * v + eps2) ** ((a - 1) / 2)
@@ -126,23 +188,23 @@ def solve_reference(
             out[i] = Td
             out[3 + i] = (KSR / M) * (damp * (polar - R) + KPR * (polar - LPR0) + M * ddL
                                       + Gd * f[i] - T)
-        out[6] = (target[0] - y[6]) / tau[0]
-        out[7] = (target[1] - y[7]) / tau[1]
+        out[6] = (self.target[0] - y[6]) / self.tau[0]
+        out[7] = (self.target[1] - y[7]) / self.tau[1]
         return out
 
-    def jac(t, y, t_lo, t_hi):
-        L = stimulus.length_L0(t)
-        dL = stimulus.velocity_L0_s(min(max(t, t_lo), t_hi))
-        f = (y[6], y[7], target[2])
+    def jac(self, t, y, t_lo, t_hi):
+        L = self.stimulus.length_L0(t)
+        dL = self.stimulus.velocity_L0_s(min(max(t, t_lo), t_hi))
+        f = (y[6], y[7], self.target[2])
         J = np.zeros((8, 8))
-        for i, (KSR, KPR, M, b0, bd, Gd, CL, CS, R, a, LSR0, _LPR0) in enumerate(consts):
+        for i, (KSR, KPR, M, b0, bd, Gd, CL, CS, R, a, LSR0, _LPR0) in enumerate(self.consts):
             T, Td = y[i], y[3 + i]
             v = dL - Td / KSR
             C = CL if v > 0 else CS
-            s2 = v * v + eps2
+            s2 = v * v + self.eps2
             shape = v * s2 ** ((a - 1) / 2)
             damp = C * (b0 + bd * f[i]) * shape
-            d_shape_dv = s2 ** ((a - 3) / 2) * (eps2 + a * v * v)
+            d_shape_dv = s2 ** ((a - 3) / 2) * (self.eps2 + a * v * v)
             polar = L - LSR0 - T / KSR
             k = KSR / M
             J[i, 3 + i] = 1.0
@@ -150,52 +212,9 @@ def solve_reference(
             J[3 + i, 3 + i] = k * C * (b0 + bd * f[i]) * d_shape_dv * (-1.0 / KSR) * (polar - R)
             if i < 2:
                 J[3 + i, 6 + i] = k * (C * bd * shape * (polar - R) + Gd)
-        J[6, 6] = -1.0 / tau[0]
-        J[7, 7] = -1.0 / tau[1]
+        J[6, 6] = -1.0 / self.tau[0]
+        J[7, 7] = -1.0 / self.tau[1]
         return J
-
-    # Equilibrium at rest: v = 0, so dT/dt = KSR * dL.
-    L_start = stimulus.length_L0(0.0)
-    dL_start = stimulus.velocity_L0_s(0.0)
-    y = np.array(
-        [(c[5] * ft + c[1] * (L_start - c[10] - c[11])) / (1 + c[1] / c[0])
-         for c, ft in zip(consts, target, strict=True)]
-        + [c[0] * dL_start for c in consts] + target[:2]
-    )
-
-    edges = sorted({0.0, stimulus.duration_s, *(b for b in stimulus.breakpoints_s
-                                                if 0 < b < stimulus.duration_s)})
-    ts, Ts = [], []
-    nfev = 0
-    for t0, t1 in itertools.pairwise(edges):
-        if t0 > 0:
-            # dT/dt jumps with dL/dt at a breakpoint (v, the polar velocity, is continuous).
-            jump = (stimulus.velocity_L0_s(t0 + _one_side_s(t0))
-                    - stimulus.velocity_L0_s(t0 - _one_side_s(t0)))
-            y = y.copy()
-            y[3:6] += np.array([c[0] for c in consts]) * jump
-        # The segment's inputs are its one-sided limits at t0 and t1 (see the module docstring).
-        inside = (t0 + min(_one_side_s(t0), (t1 - t0) / 4),
-                  t1 - min(_one_side_s(t1), (t1 - t0) / 4))
-        last = t1 == edges[-1]
-        mask = (t_eval_s >= t0) & (last | (t_eval_s < t1))
-        # t1 is appended so that the segment's end state is exact for the next restart.
-        t_seg = np.append(np.minimum(t_eval_s[mask], t1), t1)
-        t_seg = t_seg[np.r_[np.diff(t_seg) > 0, True]]
-        sol = solve_ivp(rhs, (t0, t1), y, method="Radau", rtol=rtol, atol=atol, t_eval=t_seg,
-                        jac=jac, args=inside)
-        if not sol.success:
-            raise RuntimeError(f"reference solver failed on [{t0}, {t1}] s: {sol.message}")
-        nfev += sol.nfev
-        n_keep = int(mask.sum())
-        ts.append(t_eval_s[mask])
-        Ts.append(_repeat_last(sol.y[0:3].T, n_keep))
-        y = sol.y[:, -1]
-    t = np.concatenate(ts)
-    T = np.concatenate(Ts)
-    L = np.array([stimulus.length_L0(ti) for ti in t])
-    ia, ii = afferents_from_tension(np.ascontiguousarray(T.T), L, columns(params))
-    return ReferenceSolution(t, ia, ii, T, nfev)
 
 
 def _one_side_s(t_s: float) -> float:

@@ -136,6 +136,38 @@ class ElbowProprioEnv(gym.Env):
     ) -> None:
         # Every argument is checked before anything is built (arguments.py: no bool as a
         # number, no string as a bool, no complex; numpy scalars welcome).
+        control_hz, source, backend, model_file = self._check_arguments(
+            render_mode, control_hz, afferent_source, backend, chain_config, encoder_params,
+            include_fusimotor, clip_actions, distance_reward_weight, control_cost_weight,
+            xml_file)
+        self._load_model(model_file, width, height, control_hz)
+        self.target_ranges_deg = check_ranges_deg("target_ranges_deg", target_ranges_deg,
+                                                  self.joint_range_deg)
+        self.initial_angle_ranges_deg = check_ranges_deg(
+            "initial_angle_ranges_deg", initial_angle_ranges_deg, self.joint_range_deg)
+        self._geometries = tuple(muscle_geometry(self.model, m) for m in MUSCLES)
+        self._tendon_ids = np.array([self.model.tendon(m).id for m in MUSCLES])
+        config = replace(ChainConfig() if chain_config is None else chain_config,
+                         backend=backend)
+        self.length_fits = self._length_fits(model_file, config)
+        self.afferents = AfferentReadout(source, config, encoder_params, self.length_fits)
+        self.afferent_source = source
+        self.backend = backend
+        self.observation_space = self._make_observation_space()
+        self.action_space = self._make_action_space()
+
+        self._target_deg = 0.5 * sum(self.joint_range_deg)
+        self._sample: ArmSample | None = None
+        self._renderer: mujoco.Renderer | None = None
+        self._t_buf = np.empty(self.frame_skip)
+        self._angle_buf = np.empty(self.frame_skip)
+        self._mtu_buf = np.empty((self.frame_skip, 2))
+
+    def _check_arguments(self, render_mode, control_hz, afferent_source, backend, chain_config,
+                         encoder_params, include_fusimotor, clip_actions,
+                         distance_reward_weight, control_cost_weight, xml_file):
+        """Check the arguments that need no model and keep the plain settings; returns the
+        checked (control_hz, afferent source, backend, model file)."""
         if render_mode is not None:
             check_str("render_mode", render_mode, tuple(self.metadata["render_modes"]))
         self.render_mode = render_mode
@@ -154,7 +186,11 @@ class ElbowProprioEnv(gym.Env):
         self.control_cost_weight = check_real("control_cost_weight", control_cost_weight,
                                               low=0.0)
         model_file = model_path() if xml_file is None else check_path("xml_file", xml_file)
+        return control_hz, source, backend, model_file
 
+    def _load_model(self, model_file: Path, width, height, control_hz: float) -> None:
+        """The MuJoCo model and data, the render size, the physics steps per env step and
+        the elbow joint's addresses and range."""
         self.model = load_model(model_file)
         self.width = check_positive_int("width", width,
                                         high=int(self.model.vis.global_.offwidth))
@@ -162,7 +198,18 @@ class ElbowProprioEnv(gym.Env):
                                          high=int(self.model.vis.global_.offheight))
         self.model.opt.disableactuator = self.disabled_groups
         self.data = mujoco.MjData(self.model)
-        timestep = float(self.model.opt.timestep)
+        self.frame_skip = self._frames_per_step(control_hz, float(self.model.opt.timestep))
+        self.control_hz = control_hz
+        self.metadata = {**self.metadata, "render_fps": self.control_hz}
+        joint_id = self.model.joint(JOINT).id
+        self._qadr = int(self.model.jnt_qposadr[joint_id])
+        self._vadr = int(self.model.jnt_dofadr[joint_id])
+        lo, hi = (math.degrees(x) for x in self.model.jnt_range[joint_id])
+        self.joint_range_deg = (lo, hi)
+
+    @staticmethod
+    def _frames_per_step(control_hz: float, timestep: float) -> int:
+        """Physics steps of ``timestep`` per env step of 1/control_hz (a whole number)."""
         if not MIN_CONTROL_HZ <= control_hz <= 1.0 / timestep:
             raise ValueError(f"control_hz={control_hz!r} must lie in [{MIN_CONTROL_HZ:g}, "
                              f"{1.0 / timestep:g}] Hz (one physics step of {timestep:g} s)")
@@ -171,40 +218,14 @@ class ElbowProprioEnv(gym.Env):
             raise ValueError(
                 f"control_hz={control_hz!r}: the env step 1/control_hz must be a whole number "
                 f"of physics steps of {timestep:g} s (e.g. 50, 100, 125, 250, 500 Hz)")
-        self.frame_skip = frames
-        self.control_hz = control_hz
-        self.metadata = {**self.metadata, "render_fps": self.control_hz}
+        return frames
 
-        self._qadr = int(self.model.jnt_qposadr[self.model.joint(JOINT).id])
-        self._vadr = int(self.model.jnt_dofadr[self.model.joint(JOINT).id])
-        lo, hi = (math.degrees(x) for x in self.model.jnt_range[self.model.joint(JOINT).id])
-        self.joint_range_deg = (lo, hi)
-        self.target_ranges_deg = check_ranges_deg("target_ranges_deg", target_ranges_deg,
-                                                  self.joint_range_deg)
-        self.initial_angle_ranges_deg = check_ranges_deg(
-            "initial_angle_ranges_deg", initial_angle_ranges_deg, self.joint_range_deg)
-        self._geometries = tuple(muscle_geometry(self.model, m) for m in MUSCLES)
-        self._tendon_ids = np.array([self.model.tendon(m).id for m in MUSCLES])
-        config = replace(ChainConfig() if chain_config is None else chain_config,
-                         backend=backend)
-        self.length_fits = self._length_fits(model_file, config)
-        self.afferents = AfferentReadout(source, config, encoder_params, self.length_fits)
-        self.afferent_source = source
-        self.backend = backend
-
+    def _make_observation_space(self) -> spaces.Box:
         n_obs = 5 + (4 if self.include_fusimotor else 0)
         low = np.zeros(n_obs, dtype=np.float32)
         high = np.full(n_obs, np.inf, dtype=np.float32)
-        low[4], high[4] = 0.0, math.radians(hi)
-        self.observation_space = spaces.Box(low, high, dtype=np.float32)
-        self.action_space = self._make_action_space()
-
-        self._target_deg = 0.5 * (lo + hi)
-        self._sample: ArmSample | None = None
-        self._renderer: mujoco.Renderer | None = None
-        self._t_buf = np.empty(self.frame_skip)
-        self._angle_buf = np.empty(self.frame_skip)
-        self._mtu_buf = np.empty((self.frame_skip, 2))
+        low[4], high[4] = 0.0, math.radians(self.joint_range_deg[1])
+        return spaces.Box(low, high, dtype=np.float32)
 
     # -- subclass hooks ---------------------------------------------------------------------
     def _make_action_space(self) -> spaces.Box:
