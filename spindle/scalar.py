@@ -78,11 +78,13 @@ def step_floats(k: StepConstants, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
     dL = L1 - L0
     T1, v1, z1, f1 = [], [], [], []
     for i, fc in enumerate(k.fibre):
-        if k.lagged[i]:
-            fn = _lagged_activation(f0[i], power[i], None if power_old is None else power_old[i],
-                                    fc, old and same_drive)
+        g = power[i]
+        if not k.lagged[i]:
+            fn = g / (g + fc.freq_p)
+        elif old and same_drive:
+            fn = f0[i] * fc.keep + g / (g + fc.freq_p) * (fc.from_a0 + fc.from_a1)
         else:
-            fn = power[i] / (power[i] + fc.freq_p)
+            fn = _lagged_activation(f0[i], g, None if power_old is None else power_old[i], fc)
         A, p0, rhs, cM, cD = _known_terms(T0[i], v0[i], z0[i], f0[i], fn, L0, dL, fc, old)
         z = _guess(z0[i], p0, rhs, cM, cD, fc, k)
         # Where the new polar region may end up no longer than R, the damping's clip at 0 is
@@ -93,12 +95,19 @@ def step_floats(k: StepConstants, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
             if not abs(z) <= bound:  # also a NaN guess (no slope at v = 0, p0 <= 0)
                 z = math.copysign(bound, rhs)
         z = newton_float(z, p0, rhs, cM, cD, k, fc.three_over_a, clip)
-        v = _velocity(z, fc.three_over_a, k.a_is_03)
+        abs_z = abs(z)
+        if k.a_is_03:
+            sq = z * z
+            t = sq * sq
+            v = t * t * abs_z * z
+        else:
+            v = abs_z ** (fc.three_over_a - 1.0) * z
         T1.append(A - v * fc.th_h_KSR)
         v1.append(v)
         z1.append(z)
         f1.append(fn)
-    if not all(math.isfinite(x) for x in T1 + v1):
+    # A sum is finite only if every term is (the values are far below overflow).
+    if not math.isfinite(sum(T1) + sum(v1)):
         raise FloatingPointError(
             "the spindle step produced a non-finite tension or velocity; state left unchanged "
             f"(step {k.h!r} s)"
@@ -106,13 +115,12 @@ def step_floats(k: StepConstants, T0, v0, z0, f0, L0, gd0, gs0, L1, gd1, gs1):
     return T1, v1, z1, f1
 
 
-def _lagged_activation(f: float, g: float, g_old: float | None, fc: FibreStepConstants,
-                       same_target: bool) -> float:
-    """f1 = keep*f0 + from_a0*a0 + from_a1*a1 from the drive powers g (new), g_old (old)."""
+def _lagged_activation(f: float, g: float, g_old: float | None,
+                       fc: FibreStepConstants) -> float:
+    """f1 = keep*f0 + from_a0*a0 + from_a1*a1 from the drive powers g (new), g_old (old;
+    None for theta = 1)."""
     target = g / (g + fc.freq_p)
     fn = f * fc.keep
-    if same_target:
-        return fn + target * (fc.from_a0 + fc.from_a1)
     if g_old is not None:
         fn = fn + g_old / (g_old + fc.freq_p) * fc.from_a0
     return fn + target * fc.from_a1
@@ -156,18 +164,6 @@ def _guess(z0: float, p0: float, rhs: float, cM: float, cD: float, fc: FibreStep
     blend = frozen * fc.blend_exp
     blend = blend / (slope + blend)
     return guess + (z0 - guess) * blend if z0 * guess > 0.0 else guess
-
-
-def _velocity(z: float, three_over_a: float, a_is_03: bool) -> float:
-    """v = sgn(z)|z|^(3/a) (z^9*|z| for a = 0.3)."""
-    abs_z = abs(z)
-    if a_is_03:
-        sq = z * z
-        t = sq * sq
-        t = t * t * abs_z
-    else:
-        t = abs_z ** (three_over_a - 1.0)
-    return t * z
 
 
 def newton_float(z, p0, rhs, cM, cD, k, three_over_a, clip=False):
