@@ -3,13 +3,14 @@
     PYTHONPATH=. python scripts/bench_spindle.py                  # ~3 min, with the baseline
     PYTHONPATH=. python scripts/bench_spindle.py --quick          # smoke variant, seconds
     PYTHONPATH=. python scripts/bench_spindle.py --baseline none  # this tree only
+    PYTHONPATH=. python scripts/bench_spindle.py --paths          # the step's implementations
 
 1. spindle-steps per second for n = 1, 64, 4096, 65536 spindles, stepping
-   ``spindle.core.advance`` + ``commit`` + ``afferents_from_tension`` in a loop: each spindle follows its
-   own smooth length trajectory within 0.8-1.2 L0 and its own smooth fusimotor drive, starting
-   at rest (``equilibrium_state``) at its first length and drive. Inputs are precomputed; only
-   the spindle calls are timed. Median over repeats, of wall time and of this process's CPU
-   time (the machine may be shared; CPU time is what one core spends).
+   ``spindle.core.advance`` + ``commit`` + ``afferents_from_tension`` in a loop: each spindle
+   follows its own smooth length trajectory within 0.8-1.2 L0 and its own smooth fusimotor
+   drive, starting at rest (``equilibrium_state``) at its first length and drive. Inputs are
+   precomputed; only the spindle calls are timed. Median over repeats, of wall time and of
+   this process's CPU time (the machine may be shared; CPU time is what one core spends).
 2. wall time per simulated second of one spindle through ``spindle.simulate`` at default
    settings (1 s of a smooth trajectory sampled at 1 ms).
 
@@ -17,6 +18,13 @@ With ``--baseline REV`` (default e4a47d8, the core before the throughput work) t
 measurements run on ``spindle/core.py`` and ``spindle/simulate.py`` of that git revision,
 loaded into temporary modules, interleaved repeat by repeat with this tree's, and the ratios
 are printed together with the largest difference in Ia/II between the two (same inputs).
+
+With ``--paths`` it instead times this tree's implementations of the step side by side, CPU
+time per step (advance + commit) on the same trajectories, best of 5:
+``spindle.core.plain_advance`` (the step written plainly), ``spindle.scalar.advance_small``
+(Python floats) and ``spindle.batched.advance_batched`` (numpy blocks), and the afferent
+rates on numpy and on floats for a few spindles. These figures back the comments that keep
+the second implementations (``spindle.core.advance``, ``spindle.core.afferents_from_tension``).
 
 Compared with myogen (a faithful Cython Mileusnic implementation: ~19 simulated
 spindle-seconds per wall second, i.e. 52 ms per simulated second for one spindle at 25 us
@@ -32,6 +40,7 @@ import statistics
 import subprocess
 import sys
 import time
+import timeit
 import types
 from collections.abc import Sequence
 from pathlib import Path
@@ -40,7 +49,8 @@ import numpy as np
 
 import spindle
 import spindle.simulate  # the module (the package attribute is the function)
-from spindle import core
+from spindle import batched, core, scalar
+from spindle.fibre_constants import step_constants
 
 STEP_S = 1e-3
 MYOGEN_MS_PER_SIMULATED_S = 52.0
@@ -120,13 +130,58 @@ def ms_per_simulated_second(sim) -> tuple[float, float]:
     return 1e3 * (time.perf_counter() - w0), 1e3 * (time.process_time() - c0)
 
 
+def per_step_us(advance, n: int, steps: int) -> float:
+    """CPU us per step of ``advance(state, L, gd, gs)`` + commit on :func:`trajectories`."""
+    length, gd, gs = trajectories(n, steps)
+    state = core.equilibrium_state(length[0], gd[0], gs[0])
+    c0 = time.process_time()
+    for i in range(1, steps + 1):
+        core.commit(state, advance(state, length[i], gd[i], gs[i]), length[i], gd[i], gs[i])
+    return (time.process_time() - c0) / steps * 1e6
+
+
+def compare_paths() -> None:
+    """The step's and the afferent rates' implementations side by side (``--paths``)."""
+    theta = spindle.DEFAULT_METHOD.theta
+    c = core.columns(spindle.CAT)
+    k = step_constants(c, STEP_S, theta)
+    paths = {
+        "plain": lambda st, L, d, s: core.plain_advance(st, L, d, s, STEP_S, theta, c),
+        "scalar": lambda st, L, d, s: scalar.advance_small(st, L, d, s, k),
+        "batched": lambda st, L, d, s: batched.advance_batched(st, L, d, s, k),
+    }
+    for n, steps in ((1, 400), (2, 400), (8, 400), (64, 300), (4096, 60), (65536, 12)):
+        names = [p for p in paths if p != "scalar" or n <= scalar.SMALL_N]
+        us = {p: min(per_step_us(paths[p], n, steps) for _ in range(5)) for p in names}
+        ratios = " ".join(f"plain/{p} = {us['plain'] / us[p]:.1f}x" for p in names[1:])
+        print(f"n = {n:>5}: " + ", ".join(f"{p} {us[p]:.1f} us" for p in names) + f"; {ratios}")
+    rng = np.random.default_rng(0)
+    for n in (1, 2, scalar.SMALL_N):
+        T, L = rng.uniform(0.0, 0.3, (3, n)), np.ones(n)
+        floats = min(timeit.repeat(lambda T=T, L=L: core._afferents_floats(T, L, c),
+                                   number=2000, repeat=5)) / 2000 * 1e6
+        saved, core.SMALL_N = core.SMALL_N, 0  # the numpy form at any n
+        try:
+            array = min(timeit.repeat(lambda T=T, L=L: core.afferents_from_tension(T, L, c),
+                                      number=2000, repeat=5)) / 2000 * 1e6
+        finally:
+            core.SMALL_N = saved
+        print(f"afferents n = {n}: numpy {array:.1f} us, floats {floats:.1f} us "
+              f"(floats {array / floats:.1f}x faster)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="few steps and repeats (smoke test)")
     ap.add_argument("--baseline", default=DEFAULT_BASELINE,
                     help="git revision to compare with, or 'none' (default %(default)s)")
     ap.add_argument("--repeats", type=int, default=None, help="repeats per size (default 5)")
+    ap.add_argument("--paths", action="store_true",
+                    help="time this tree's implementations of the step side by side instead")
     args = ap.parse_args(argv)
+    if args.paths:
+        compare_paths()
+        return 0
     sizes = (1, 64, 4096, 65536)
     repeats = args.repeats or (1 if args.quick else 5)
     max_steps = 20 if args.quick else 2000

@@ -537,54 +537,17 @@ def newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
     fibres whose v reverses need more iterations than the rest); else None once all have
     converged. The second value returned is the number of iterations.
     """
-    mul, add = np.multiply, np.add
-    # 12 arrays in all, so that a block's stay in the core's cache
-    v_slope, v, abs_z, damping, step, g_slope, p0_x3 = (s[name] for name in (
-        "v_slope", "v", "abs_z", "damping", "newton_step", "g_slope", "p0_x3"))
-    th_h = k.th_h
-    dv_factor = 10.0 if k.a_is_03 else s["three_over_a"]
-    power = None if k.a_is_03 else s["power"]
     # g' = v'(z)*(1 + theta*h*phi) + 3*damping*q with phi = damping*z and
     # v' = (3/a)|z|^(3/a - 1), so phi*v' = (3/a)*damping*v and
     # g' = v' + damping*(3*p0 + (3 + 3/a)*theta*h*v); 3*p0 is fixed.
-    mul(p0, 3.0, out=p0_x3)
-    v_coef = s["v_coef"] if not k.a_is_03 else 13.0 * th_h
+    np.multiply(p0, 3.0, out=s["p0_x3"])
     for iteration in range(NEWTON_MAX_ITER):
-        velocity_into(z, abs_z, v_slope, v, k, power)
-        # damping = Cb*z^2 with Cb = theta*C*beta1 (C = CL for z > 0, CS else)
-        mul(cM, z, out=damping)
-        mul(cD, abs_z, out=g_slope)
-        add(damping, g_slope, out=damping)
-        mul(damping, z, out=damping)
-        # g = v + damping*z*q - rhs with q = p0 + theta*h*v, into step
-        mul(v, th_h, out=step)
-        add(step, p0, out=step)
-        if clip:
-            undamped = step <= 0.0
-            np.maximum(step, 0.0, out=step)
-        mul(step, damping, out=step)
-        mul(step, z, out=step)
-        add(step, v, out=step)
-        np.subtract(step, rhs, out=step)
-        mul(v_slope, dv_factor, out=v_slope)  # now v'(z)
-        mul(v, v_coef, out=g_slope)
-        add(g_slope, p0_x3, out=g_slope)
-        mul(g_slope, damping, out=g_slope)
-        add(g_slope, v_slope, out=g_slope)
-        if clip:
-            np.copyto(g_slope, v_slope, where=undamped)
-        np.maximum(g_slope, 1e-300, out=g_slope)
-        np.divide(step, g_slope, out=step)  # now dz
-        hi = step.max()
-        lo = step.min()
-        if hi > NEWTON_MAX_DZ or lo < -NEWTON_MAX_DZ:
-            np.clip(step, -NEWTON_MAX_DZ, NEWTON_MAX_DZ, out=step)
-        np.subtract(z, step, out=z)
+        hi, lo = _newton_iteration(z, p0, rhs, cM, cD, k, s, clip)
         if hi <= NEWTON_TOL_Z and lo >= -NEWTON_TOL_Z:
             return None, iteration + 1
         if moving is not None and iteration >= first:
-            np.abs(step, out=g_slope)
-            np.greater(g_slope, NEWTON_TOL_Z, out=moving)
+            np.abs(s["newton_step"], out=s["g_slope"])
+            np.greater(s["g_slope"], NEWTON_TOL_Z, out=moving)
             left = np.flatnonzero(moving)
             if left.size <= moving.size // TAIL_FRACTION:
                 # none left: the only fibres not converged are NaN, which the finite check
@@ -594,3 +557,43 @@ def newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
         f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
         f"(last change in z {max(hi, -lo):.3g}); state left unchanged"
     )
+
+
+def _newton_iteration(z, p0, rhs, cM, cD, k, s, clip):
+    """One Newton step on g(z) (see :func:`newton_loop`), in place in ``z``; returns the
+    largest and smallest step taken (before the cap)."""
+    mul, add = np.multiply, np.add
+    # 12 arrays in all, so that a block's stay in the core's cache
+    v_slope, v, abs_z, damping, step, g_slope, p0_x3 = (s[name] for name in (
+        "v_slope", "v", "abs_z", "damping", "newton_step", "g_slope", "p0_x3"))
+    velocity_into(z, abs_z, v_slope, v, k, None if k.a_is_03 else s["power"])
+    # damping = Cb*z^2 with Cb = theta*C*beta1 (C = CL for z > 0, CS else)
+    mul(cM, z, out=damping)
+    mul(cD, abs_z, out=g_slope)
+    add(damping, g_slope, out=damping)
+    mul(damping, z, out=damping)
+    # g = v + damping*z*q - rhs with q = p0 + theta*h*v, into step
+    mul(v, k.th_h, out=step)
+    add(step, p0, out=step)
+    if clip:
+        undamped = step <= 0.0
+        np.maximum(step, 0.0, out=step)
+    mul(step, damping, out=step)
+    mul(step, z, out=step)
+    add(step, v, out=step)
+    np.subtract(step, rhs, out=step)
+    mul(v_slope, 10.0 if k.a_is_03 else s["three_over_a"], out=v_slope)  # now v'(z)
+    mul(v, 13.0 * k.th_h if k.a_is_03 else s["v_coef"], out=g_slope)
+    add(g_slope, p0_x3, out=g_slope)
+    mul(g_slope, damping, out=g_slope)
+    add(g_slope, v_slope, out=g_slope)
+    if clip:
+        np.copyto(g_slope, v_slope, where=undamped)
+    np.maximum(g_slope, 1e-300, out=g_slope)
+    np.divide(step, g_slope, out=step)  # now dz
+    hi = step.max()
+    lo = step.min()
+    if hi > NEWTON_MAX_DZ or lo < -NEWTON_MAX_DZ:
+        np.clip(step, -NEWTON_MAX_DZ, NEWTON_MAX_DZ, out=step)
+    np.subtract(z, step, out=z)
+    return hi, lo
