@@ -168,6 +168,22 @@ def compare_paths() -> None:
             core.SMALL_N = saved
         print(f"afferents n = {n}: numpy {array:.1f} us, floats {floats:.1f} us "
               f"(floats {array / floats:.1f}x faster)")
+    # the afferents in blocks or in one pass, where they run: after each step, whose arrays
+    # have filled the cache (run_steps at n = 65536, CPU time, best of 4, interleaved)
+    n = 65536
+    length, gd, gs = trajectories(n, 128)
+    times: dict[int, list[float]] = {core.AFFERENT_CHUNK: [], n: []}
+    saved = core.AFFERENT_CHUNK
+    try:
+        for _ in range(4):
+            for chunk, out in times.items():
+                core.AFFERENT_CHUNK = chunk  # n: one pass
+                out.append(run_steps(core, length, gd, gs)[1] / 128 * 1e3)
+    finally:
+        core.AFFERENT_CHUNK = saved
+    blocked, one_pass = (min(x) for x in times.values())
+    print(f"step + afferents n = {n}: afferents in blocks {blocked:.2f} ms per step, in one "
+          f"pass {one_pass:.2f} ms ({one_pass / blocked:.3f}x)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

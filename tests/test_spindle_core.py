@@ -514,7 +514,7 @@ def reference_afferents(T, L, params):
     return ia, ii
 
 
-@pytest.mark.parametrize("n", [1, 4, 5, 8203])
+@pytest.mark.parametrize("n", [1, 4, 5, core.AFFERENT_CHUNK + 11])
 @pytest.mark.parametrize("params", [spindle.CAT, spindle.HUMAN])
 def test_afferents_match_the_model_definitions(n, params):
     rng = np.random.default_rng(n)
