@@ -36,9 +36,13 @@ of this tree).
 from __future__ import annotations
 
 import argparse
+import importlib
+import io
 import statistics
 import subprocess
 import sys
+import tarfile
+import tempfile
 import time
 import timeit
 import types
@@ -83,19 +87,28 @@ def trajectories(n: int, n_steps: int, seed: int = 0) -> tuple[np.ndarray, ...]:
 
 
 def load_baseline(rev: str) -> tuple[types.ModuleType, types.ModuleType]:
-    """``spindle/core.py`` and ``spindle/simulate.py`` of git revision ``rev`` as temporary
-    modules (the simulate module calls the baseline core)."""
-    modules = []
-    for name in ("core", "simulate"):
-        source = subprocess.run(["git", "-C", str(REPO), "show", f"{rev}:spindle/{name}.py"],
-                                check=True, capture_output=True, text=True).stdout
-        module = types.ModuleType(f"baseline_{name}")
-        module.__file__ = f"<{rev}:spindle/{name}.py>"
-        sys.modules[module.__name__] = module  # dataclasses look their module up
-        exec(compile(source, module.__file__, "exec"), module.__dict__)
-        modules.append(module)
-    modules[1].core = modules[0]
-    return modules[0], modules[1]
+    """``spindle.core`` and ``spindle.simulate`` of git revision ``rev``, imported from that
+    revision's whole ``spindle`` package (extracted to a temporary folder), so a core split
+    over several modules is measured as it was. This tree's modules are put back afterwards;
+    the baseline's keep their own references to each other."""
+    folder = Path(tempfile.mkdtemp(prefix=f"bench_spindle_{rev}_"))
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", rev, "spindle"],
+                             check=True, capture_output=True).stdout
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        tar.extractall(folder, filter="data")
+    ours = {name: m for name, m in sys.modules.items() if name.split(".")[0] == "spindle"}
+    for name in ours:
+        del sys.modules[name]
+    sys.path.insert(0, str(folder))
+    try:
+        core_mod = importlib.import_module("spindle.core")
+        simulate_mod = importlib.import_module("spindle.simulate")
+    finally:
+        sys.path.remove(str(folder))
+        for name in [n for n in sys.modules if n.split(".")[0] == "spindle"]:
+            del sys.modules[name]
+        sys.modules.update(ours)
+    return core_mod, simulate_mod
 
 
 def run_steps(mod, length, gd, gs) -> tuple[float, float, np.ndarray, float]:
