@@ -9,7 +9,10 @@
  *   that depends only on (params, h, theta) precomputed by ps_plan_init (no divide left but
  *   one per Newton iteration), optionally a fixed Newton iteration count (PS_NEWTON_ITER) and
  *   a polynomial cube root;
- * - ps_spindle_step_fx, the int32 Q24 step for cores without an FPU.
+ * - ps_spindle_step_fx, the int32 Q24 step for cores without an FPU: 8,612 instructions per
+ *   step on the Cortex-M0+ at 5 ms (1.72 MIPS per muscle, scripts/bench_embedded.py --quick)
+ *   against 36,389 for the float plan step with every lever (7.28 MIPS, docs/c_port.md), at
+ *   the same accuracy (1.42 pps RMS against the stiff reference).
  * The pieces they share (activation target, force, Newton start and solve, the combination of
  * the potentials into Ia and II, commit) are the small static functions of the first section.
  *
@@ -77,14 +80,14 @@ static ps_real activation_target(ps_real drive, ps_real freq, ps_real p, int p_i
                              p_is_2 ? freq * freq : ps_pow(freq, p));
 }
 
-/* M dv/dt of a fibre (spindle.core._force) at tension T, z = sgn(v)|v|^(a/3), polar length
- * `polar`, drive terms beta and Gamma: the damping C*beta*sgn(v)|v|^a is C*beta*z^3, times
- * the polar length beyond R clipped at 0 (no damping, never a negative one, where the polar
- * region is not longer than R). */
-static ps_real force(ps_real T, ps_real z, ps_real polar, ps_real beta, ps_real Gamma,
-                     ps_real KPR, ps_real LPR0, ps_real R, ps_real CL, ps_real CS)
+/* M dv/dt of a fibre (spindle.core._force) at tension T, z = sgn(v)|v|^(a/3) (z3 = z^3,
+ * which the caller may need too), polar length `polar`, drive terms beta and Gamma: the
+ * damping C*beta*sgn(v)|v|^a is C*beta*z^3, times the polar length beyond R clipped at 0 (no
+ * damping, never a negative one, where the polar region is not longer than R). */
+static ps_real force(ps_real T, ps_real z, ps_real z3, ps_real polar, ps_real beta,
+                     ps_real Gamma, ps_real KPR, ps_real LPR0, ps_real R, ps_real CL, ps_real CS)
 {
-    ps_real damping = (z > R_(0) ? CL : CS) * beta * (z * z * z);
+    ps_real damping = (z > R_(0) ? CL : CS) * beta * z3;
     return T - Gamma - KPR * (polar - LPR0) - damping * max_r(polar - R, R_(0));
 }
 
@@ -357,8 +360,8 @@ static ps_real activation_step(const ps_params *p, int i, const ps_spindle *s, p
 /* The force of fibre i at the start of the step (the explicit part of the theta-method). */
 static ps_real start_force(const ps_params *p, int i, const ps_spindle *s)
 {
-    const ps_real f0 = s->f[i];
-    return force(s->T[i], s->z[i], s->L - p->LSR0[i] - s->T[i] / p->KSR[i],
+    const ps_real f0 = s->f[i], z0 = s->z[i];
+    return force(s->T[i], z0, z0 * z0 * z0, s->L - p->LSR0[i] - s->T[i] / p->KSR[i],
                  p->beta0[i] + p->beta_drive[i] * f0, p->Gamma_drive[i] * f0, p->KPR[i],
                  p->LPR0[i], p->R[i], p->CL[i], p->CS[i]);
 }
@@ -507,13 +510,13 @@ int ps_spindle_run(ps_spindle *s, const ps_params *p, const ps_real *L, const ps
 
 /* ---- embedded fast path ---------------------------------------------------------------
  * ps_spindle_step_plan is a second implementation of the float step, kept because it pays on
- * the FPU-less target: on the Cortex-M0+ (scripts/bench_embedded.py, trapezoidal, 1 ms,
- * float32) it takes 41,554 instructions per step against ps_spindle_step's 63,795 (41.6 vs
- * 63.8 MIPS per muscle, -35 %; docs/c_port.md) with the same accuracy (0.064 pps RMS), and
- * its levers (PS_FAST_CBRT, PS_NEWTON_TOL_Z, the plan in flash) build on it. It shares the
- * shared pieces above (activation target, force, cube-root start, the Newton solve for
- * a != 0.3, the rate combination, commit); what differs is arithmetic the plan precomputes
- * and, for a = 0.3, Newton in y = |z| from a bound above the root (solve_03). */
+ * the FPU-less target: on the Cortex-M0+ (scripts/bench_embedded.py --only 1 2, trapezoidal,
+ * 1 ms, float32) it takes 41,825 instructions per step against ps_spindle_step's 62,910
+ * (41.8 vs 62.9 MIPS per muscle, -34 %) at the same accuracy (0.064 pps RMS), and the
+ * embedded levers (PS_FAST_CBRT, PS_NEWTON_TOL_Z, the plan in flash) build on it. It uses the
+ * shared pieces above (activation target, force, Newton start, the solve for a != 0.3, the
+ * rate combination, commit); what differs is the arithmetic the plan precomputes and, for
+ * a = 0.3, Newton in y = |z| from a bound above the root (solve_03). */
 
 /* Fibre i's activation filter: f1 = c_f0 f0 + c_a0 a*(g0) + c_a1 a*(g1) (the theta-method on
  * df/dt = (a* - f)/tau; without lag f is the target itself). */
@@ -698,10 +701,10 @@ static ps_real plan_activation(const ps_plan *q, int i, const ps_spindle *s, ps_
     return f;
 }
 
-static ps_real plan_start_force(const ps_plan *q, int i, const ps_spindle *s)
+static ps_real plan_start_force(const ps_plan *q, int i, const ps_spindle *s, ps_real z03)
 {
     const ps_real f0 = s->f[i];
-    return force(s->T[i], s->z[i], s->L - q->LSR0[i] - s->T[i] * q->inv_KSR[i],
+    return force(s->T[i], s->z[i], z03, s->L - q->LSR0[i] - s->T[i] * q->inv_KSR[i],
                  q->beta0[i] + q->beta_drive[i] * f0, q->Gamma_drive[i] * f0, q->KPR[i],
                  q->LPR0[i], q->R[i], q->CL[i], q->CS[i]);
 }
@@ -711,9 +714,9 @@ static ps_real plan_start_force(const ps_plan *q, int i, const ps_spindle *s)
 static int plan_fibre(const ps_plan *q, int i, const ps_spindle *s, ps_real L1, ps_real f1,
                       ps_real *T1, ps_real *v1, ps_real *z1)
 {
-    const ps_real v0 = s->v[i], z0 = s->z[i];
+    const ps_real v0 = s->v[i], z0 = s->z[i], z02 = z0 * z0, z03 = z02 * z0;
     const ps_real beta1 = q->beta0[i] + q->beta_drive[i] * f1;
-    const ps_real F0 = q->uses_F0 ? plan_start_force(q, i, s) : R_(0);
+    const ps_real F0 = q->uses_F0 ? plan_start_force(q, i, s, z03) : R_(0);
     ps_real A = s->T[i] + q->KSR[i] * (L1 - s->L);
     ps_real p0, rhs, cS, dC, z0_7, z;
     int status;
@@ -729,8 +732,8 @@ static int plan_fibre(const ps_plan *q, int i, const ps_spindle *s, ps_real L1, 
           - q->th_KPR[i] * (L1 - q->LSR0_LPR0[i]) + q->one_minus_theta * F0;
     cS = q->th_CS[i] * beta1;
     dC = q->th_dC[i] * beta1;
-    z0_7 = q->a_is_03 ? (z0 * z0 * z0) * (z0 * z0 * z0) * ps_fabs(z0)
-                      : (z0 * z0) * ps_pow(ps_fabs(z0), R_(3) / q->a[i] - R_(3));
+    z0_7 = q->a_is_03 ? z03 * z03 * ps_fabs(z0)
+                      : z02 * ps_pow(ps_fabs(z0), R_(3) / q->a[i] - R_(3));
     z = newton_start(z0_7, q->a2[i], rhs, cS, dC, p0);
     if (q->a_is_03) {
         status = solve_03(&z, v1, q->a2[i], q->inv_a2[i], p0, rhs, rhs > R_(0) ? cS + dC : cS,
