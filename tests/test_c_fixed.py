@@ -9,8 +9,8 @@ z). Measured maxima of |dIa|, |dII|: HUMAN 0.0016 / 0.0037 pps on Fig. 3 at 5 / 
 pps on the random trajectories at 5 and 2 ms; CAT (5x the gains) 0.0082 / 0.019 and 0.0031
 pps. Documented tolerance: 0.02 pps x (bag1 G_pri / 4000
 pps/L0), i.e. 0.02 pps for HUMAN and 0.1 pps for CAT (~5x the measured maxima). The
-Cortex-M0+ build computes the same integers as this host build (scripts/bench_embedded.py:
-emulator vs host 0 pps).
+Cortex-M0+ build computes the same integers as this host build (spindle.native.m0plus, run by
+scripts/bench_embedded.py: emulator vs host 0 pps).
 
 The sanitizer fuzz (spindle/native/c/fuzz/fuzz_fixed.c, ASan + UBSan, which abort on any signed
 int32 overflow) checks the overflow guarantee of ps_plan_fx_init's bound analysis on random
@@ -21,10 +21,8 @@ codes and the untouched state on failure.
 from __future__ import annotations
 
 import ctypes
-import importlib.util
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +30,7 @@ import pytest
 from sanitized_build import SANITIZER_REPORT, build
 
 import spindle
-from spindle.native import abi
+from spindle.native import abi, fixed
 from spindle.native import build as native_build
 from spindle.native.abi import Status
 
@@ -40,14 +38,6 @@ try:
     native_build.find_compiler()
 except native_build.CBackendError as exc:  # pragma: no cover - depends on the machine
     pytest.skip(str(exc), allow_module_level=True)
-
-BENCH = native_build.SOURCE_DIR.parents[2] / "scripts" / "bench_embedded.py"
-if not BENCH.exists():  # pragma: no cover - an installed wheel has no scripts/
-    pytest.skip(f"{BENCH} not found (run from a source checkout)", allow_module_level=True)
-_spec = importlib.util.spec_from_file_location("bench_embedded", BENCH)
-bench = importlib.util.module_from_spec(_spec)
-sys.modules["bench_embedded"] = bench
-_spec.loader.exec_module(bench)
 
 PRESETS = {"HUMAN": spindle.HUMAN, "CAT": spindle.CAT}
 SPEEDS = (0.11, 0.66, 1.55)
@@ -70,7 +60,7 @@ def tolerance_pps(params) -> float:
 @pytest.fixture(scope="module")
 def lib() -> ctypes.CDLL:
     out = native_build.load("double")
-    bench.declare_fixed(out, "double")
+    fixed.declare_fixed(out, "double")
     _, PsSpindle = abi.structs("double")
     PsParams, _ = abi.structs("double")
     P, d = ctypes.POINTER, ctypes.c_double
@@ -81,8 +71,32 @@ def lib() -> ctypes.CDLL:
     return out
 
 
+def test_q_scales_and_layouts_match_the_header(tmp_path):
+    """The binding's Q scales and ps_plan_fx / ps_spindle_fx mirrors are the header's."""
+    header = abi.header_constants()
+    assert (header["PS_FX_ONE"], header["PS_FX_DRIVE_ONE"], header["PS_FX_RATE_ONE"],
+            header["PS_FX_ROOT_TABLE"]) == (fixed.FX_Q24, fixed.FX_DRIVE, fixed.FX_RATE,
+                                            abi.FX_ROOT_TABLE)
+    PsPlanFx, PsSpindleFx = abi.fixed_structs()
+    checks = [("ps_plan_fx", PsPlanFx, "dg_shift"), ("ps_plan_fx", PsPlanFx, "sec_off"),
+              ("ps_plan_fx", PsPlanFx, "root10"), ("ps_spindle_fx", PsSpindleFx, "target"),
+              ("ps_spindle_fx", PsSpindleFx, "gs")]
+    lines = "".join(f'printf("%lu %lu\\n", (unsigned long)sizeof({c}), '
+                    f"(unsigned long)offsetof({c}, {field}));\n" for c, _, field in checks)
+    src = tmp_path / "layout_fx.c"
+    src.write_text('#include <stdio.h>\n#include <stddef.h>\n#include "proprio.h"\n'
+                   f"int main(void) {{\n{lines}return 0;\n}}\n")
+    subprocess.run([*native_build.compiler_command(), *native_build.WARNING_FLAGS, "-I",
+                    str(native_build.SOURCE_DIR), str(src), "-o", str(tmp_path / "layout_fx")],
+                   check=True)
+    out = subprocess.run([str(tmp_path / "layout_fx")], capture_output=True, text=True,
+                         check=True).stdout.split()
+    got = [(ctypes.sizeof(py), getattr(py, field).offset) for _, py, field in checks]
+    assert got == [(int(out[2 * k]), int(out[2 * k + 1])) for k in range(len(checks))]
+
+
 def make_plan(lib, params, h: float, theta: float = 0.5):
-    PsPlanFx, _ = bench.fixed_structs()
+    PsPlanFx, _ = abi.fixed_structs()
     plan = PsPlanFx()
     code = lib.ps_plan_fx_init(ctypes.byref(plan),
                                ctypes.byref(abi.params_struct(params, "double")), h, theta)
@@ -114,14 +128,14 @@ def double_rates(lib, params, L, gd, gs, h: float, theta: float = 0.5):
 
 def as_q(L, gd, gs):
     """The samples as the fixed-point step sees them (Q24 lengths, Q8 drives)."""
-    return (np.round(L * bench.FX_Q24) / bench.FX_Q24, np.round(gd * bench.FX_DRIVE)
-            / bench.FX_DRIVE, np.round(gs * bench.FX_DRIVE) / bench.FX_DRIVE)
+    return (np.round(L * fixed.FX_Q24) / fixed.FX_Q24, np.round(gd * fixed.FX_DRIVE)
+            / fixed.FX_DRIVE, np.round(gs * fixed.FX_DRIVE) / fixed.FX_DRIVE)
 
 
 def compare(lib, params, L, gd, gs, h, theta=0.5) -> float:
     L, gd, gs = as_q(np.asarray(L, float), np.broadcast_to(gd, np.shape(L)).astype(float),
                      np.broadcast_to(gs, np.shape(L)).astype(float))
-    fia, fii, fcode = bench.fixed_rates(lib, make_plan(lib, params, h, theta), L, gd, gs)
+    fia, fii, fcode = fixed.fixed_rates(lib, make_plan(lib, params, h, theta), L, gd, gs)
     dia, dii, dcode = double_rates(lib, params, L, gd, gs, h, theta)
     assert fcode == PS_OK and dcode == PS_OK
     return float(max(np.max(np.abs(fia - dia)), np.max(np.abs(fii - dii))))
@@ -187,7 +201,7 @@ def test_accuracy_against_stiff_reference(lib):
     for v in (0.66, 1.55):
         for gd, gs in DRIVES:
             L, dgd, dgs = as_q(fig3_length(v, h), np.full(len(t), gd), np.full(len(t), gs))
-            ia, ii, code = bench.fixed_rates(lib, plan, L, dgd, dgs)
+            ia, ii, code = fixed.fixed_rates(lib, plan, L, dgd, dgs)
             assert code == PS_OK
             dia, dii, _ = double_rates(lib, spindle.HUMAN, L, dgd, dgs, h)
             ref = solve_reference(ramp_and_hold(speed_L0_s=v, gamma_dyn_pps=gd,
@@ -199,9 +213,9 @@ def test_accuracy_against_stiff_reference(lib):
 
 
 def test_status_codes_and_untouched_state(lib):
-    _, PsSpindleFx = bench.fixed_structs()
+    _, PsSpindleFx = abi.fixed_structs()
     plan = make_plan(lib, spindle.HUMAN, 5e-3)
-    one = bench.FX_Q24
+    one = fixed.FX_Q24
     s = PsSpindleFx()
     assert lib.ps_spindle_fx_init(ctypes.byref(s), ctypes.byref(plan), one, 0, 0) == PS_OK
     before = bytes(s)
@@ -230,7 +244,7 @@ def test_status_codes_and_untouched_state(lib):
 
 
 def test_plan_refuses_what_it_cannot_represent(lib):
-    PsPlanFx, _ = bench.fixed_structs()
+    PsPlanFx, _ = abi.fixed_structs()
     plan = PsPlanFx()
 
     def init(params, h=5e-3, theta=0.5):

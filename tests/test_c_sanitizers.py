@@ -21,7 +21,8 @@ from spindle.native import build as native_build
 FUZZ_SOURCE = native_build.SOURCE_DIR / "fuzz" / "fuzz_spindle.c"
 
 
-# the embedded options too (scripts/bench_embedded.py): no libm cube root, fixed iterations
+# the embedded options too (the levers of spindle.native.m0plus.measure): no libm cube root,
+# fixed iterations
 BUILDS = {"double": ("double", ()), "float": ("float", ()),
           "float-embedded": ("float", ("-DPS_FAST_CBRT", "-DPS_CBRT_REFINE=0",
                                        "-DPS_NEWTON_ITER=2"))}

@@ -1,9 +1,10 @@
 """The C interface as Python sees it: ``proprio.h``'s status codes and ctypes struct mirrors.
 
 One mirror of the header for every binding (:mod:`spindle.native.spindle`,
-:mod:`spindle.native.chain`, the fixed-point bench): :class:`Status` (``enum ps_status``),
-``ps_real`` per build variant, and the spindle section's structs (``ps_params``,
-``ps_spindle``, ``ps_plan``). The chain section's structs live beside their only user,
+:mod:`spindle.native.chain`, :mod:`spindle.native.fixed`, the Cortex-M0+ bench in
+:mod:`spindle.native.m0plus`): :class:`Status` (``enum ps_status``), ``ps_real`` per build
+variant, and the spindle section's structs (``ps_params``, ``ps_spindle``, ``ps_plan``,
+``ps_plan_fx``, ``ps_spindle_fx``). The chain section's structs live beside their only user,
 :mod:`spindle.native.chain`. :func:`header_status_codes` and :func:`header_constants` read
 the header itself, so the tests compare these mirrors with it rather than trust them.
 """
@@ -155,3 +156,33 @@ def _plan_struct(variant: str) -> type:
                     + [(name, real * 3) for name in PLAN_FIBRE_FIELDS[1]])
 
     return PsPlan
+
+
+# ps_plan_fx and ps_spindle_fx of proprio.h (the fixed-point step), field by field.
+FX_ROOT_TABLE = 31
+"""``PS_FX_ROOT_TABLE``: entries of ``ps_plan_fx.root10``."""
+PLAN_FX_SCALARS = ("max_dL", "theta", "one_minus_theta", "th_h", "S", "tol", "y_max", "v_max",
+                   "dg_shift")
+PLAN_FX_FIBRE_FIELDS = (
+    "KSR", "inv_KSR", "inv_k1", "c_f0", "c_a0", "c_a1", "freq", "beta0", "beta_drive",
+    "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R", "LSR0", "LSR0_R", "LSR0_LPR0", "c_Av", "a2",
+    "inv_a2", "r_cap", "M_h", "th_h_KSR", "th_k1", "th_KPR", "th_CL", "th_CS", "stretch0",
+    "G_pri", "c_sec1", "c_sec2", "sec_off")
+
+
+@cache
+def fixed_structs() -> tuple[type, type]:
+    """ctypes mirrors of (``ps_plan_fx``, ``ps_spindle_fx``): all int32, one layout for both
+    variants (the fixed-point step has no ``ps_real``)."""
+    i32 = ctypes.c_int32
+
+    class PsPlanFx(ctypes.Structure):
+        _fields_ = ([(name, i32) for name in PLAN_FX_SCALARS]
+                    + [(name, i32 * 3) for name in PLAN_FX_FIBRE_FIELDS]
+                    + [("root10", i32 * FX_ROOT_TABLE)])
+
+    class PsSpindleFx(ctypes.Structure):
+        _fields_ = ([(name, i32 * 3) for name in ("T", "v", "z", "f", "target")]
+                    + [(name, i32) for name in ("L", "gd", "gs")])
+
+    return PsPlanFx, PsSpindleFx

@@ -25,13 +25,6 @@
 #define DEG_TO_RAD (PS_PI / 180.0)
 #define FIT_RANGE_POINTS 1301 /* ArmChain's grid for each muscle's length range */
 
-static int is_finite(double x)
-{
-    /* x - x is NaN for both NaN and infinities; avoids depending on C99 isfinite macros
-     * the float/double build would instantiate differently. */
-    return x == x && (x - x) == (x - x);
-}
-
 /* ======================================================================================
  * sensor.py
  * ====================================================================================== */
@@ -80,7 +73,7 @@ ps_real ps_median_push(ps_median *m, ps_real value)
 
 int ps_is_valid_reading(ps_real counts, ps_real max_count)
 {
-    return is_finite((double)counts) && counts == (ps_real)floor((double)counts)
+    return isfinite(counts) && counts == (ps_real)floor((double)counts)
            && counts >= 0 && counts <= max_count;
 }
 
@@ -281,98 +274,90 @@ static void fusimotor_rates(const ps_arm_chain *c, const ps_predictor *pr, ps_ti
  * arm.py
  * ====================================================================================== */
 
-static int config_ok(const ps_chain_config *cfg)
+/* The encoder, f(x) and the median filter (sensor.py's EncoderParams, Calibration,
+ * MedianFilter). */
+static int sensor_ok(const ps_chain_config *cfg)
 {
-    int k, i, keep;
-    ps_real dt, a, b;
-    const ps_params *p = &cfg->params;
-    if (!is_finite((double)p->S)) {
-        return 0;
-    }
-    for (k = 0; k < PS_NFIBRES; ++k) {
-        const ps_real fibre[] = {
-            p->KSR[k], p->KPR[k], p->M[k], p->beta0[k], p->beta_drive[k], p->Gamma_drive[k],
-            p->CL[k], p->CS[k], p->R[k], p->a[k], p->LSR0[k], p->LPR0[k], p->LNSR[k],
-            p->LNPR[k], p->X[k], p->Lsec[k], p->G_pri[k], p->G_sec[k], p->freq[k], p->p[k],
-            p->tau[k]};
-        for (i = 0; i < (int)(sizeof(fibre) / sizeof(fibre[0])); ++i) {
-            if (!is_finite((double)fibre[i])) {
-                return 0;
-            }
-        }
-        /* FibreParams' own rules: these divide or exponentiate in the spindle. */
-        if (!(p->KSR[k] > 0 && p->M[k] > 0 && p->freq[k] > 0 && p->p[k] > 0 && p->a[k] > 0
-              && p->CL[k] > 0 && p->CS[k] > 0 && p->tau[k] >= 0)) {
-            return 0;
-        }
-    }
-    if (!(cfg->max_count >= 1 && is_finite((double)cfg->max_count)
-          && (cfg->count_sign == 1 || cfg->count_sign == -1)
-          && cfg->deg_per_count > 0 && is_finite((double)cfg->deg_per_count)
-          && is_finite((double)cfg->zero_count))) {
-        return 0;
-    }
-    if (cfg->median_window < 1 || cfg->median_window > PS_MEDIAN_MAX_WINDOW
-        || cfg->median_window % 2 != 1) {
-        return 0;
-    }
+    return cfg->max_count >= 1 && isfinite(cfg->max_count)
+           && (cfg->count_sign == 1 || cfg->count_sign == -1)
+           && cfg->deg_per_count > 0 && isfinite(cfg->deg_per_count)
+           && isfinite(cfg->zero_count)
+           && cfg->median_window >= 1 && cfg->median_window <= PS_MEDIAN_MAX_WINDOW
+           && cfg->median_window % 2 == 1;
+}
+
+/* The fitted length model (length_model.py's LengthFits). */
+static int fits_ok(const ps_chain_config *cfg)
+{
+    int k, i;
     for (k = 0; k < PS_MUSCLES; ++k) {
         if (cfg->n_coefficients[k] < 1 || cfg->n_coefficients[k] > PS_FIT_MAX_COEFFS) {
             return 0;
         }
         for (i = 0; i < cfg->n_coefficients[k]; ++i) {
-            if (!is_finite((double)cfg->coefficients[k][i])) {
+            if (!isfinite(cfg->coefficients[k][i])) {
                 return 0;
             }
         }
     }
     /* An elbow range in rad: bounded, so its conversion to degrees cannot overflow. */
-    if (!(cfg->fit_lo_rad >= -2 * PS_PI && cfg->fit_hi_rad <= 2 * PS_PI
-          && cfg->fit_lo_rad < cfg->fit_hi_rad)) {
-        return 0;
-    }
-    if (!(cfg->lowpass_rad_s >= 0 && is_finite((double)cfg->lowpass_rad_s)
-          && cfg->gap_s > 0 && is_finite(cfg->gap_s)
-          && cfg->max_bridge_s > 0 && is_finite(cfg->max_bridge_s)
-          && cfg->resync_after_samples >= 1 && cfg->resync_after_samples <= PS_CHAIN_MAX_RESYNC
-          && cfg->max_speed_deg_s > 0 && is_finite((double)cfg->max_speed_deg_s)
-          && cfg->max_speed_L0_s > 0 && cfg->max_speed_L0_s <= PS_MAX_SPEED_L0_S)) {
-        return 0;
-    }
-    if (!(cfg->gamma_static_min_pps >= 0 && is_finite((double)cfg->gamma_static_min_pps)
+    return cfg->fit_lo_rad >= -2 * PS_PI && cfg->fit_hi_rad <= 2 * PS_PI
+           && cfg->fit_lo_rad < cfg->fit_hi_rad;
+}
+
+/* The conditioning filter and the handling rules (ChainConfig). */
+static int handling_ok(const ps_chain_config *cfg)
+{
+    return cfg->lowpass_rad_s >= 0 && isfinite(cfg->lowpass_rad_s)
+           && cfg->gap_s > 0 && isfinite(cfg->gap_s)
+           && cfg->max_bridge_s > 0 && isfinite(cfg->max_bridge_s)
+           && cfg->resync_after_samples >= 1
+           && cfg->resync_after_samples <= PS_CHAIN_MAX_RESYNC
+           && cfg->max_speed_deg_s > 0 && isfinite(cfg->max_speed_deg_s)
+           && cfg->max_speed_L0_s > 0 && cfg->max_speed_L0_s <= PS_MAX_SPEED_L0_S;
+}
+
+/* FusimotorParams' own rules, its PI loop's stability (Jury's test of the discrete loop) and
+ * a template history that fits the predictor. */
+static int fusimotor_ok(const ps_chain_config *cfg)
+{
+    double dt, a, b;
+    int keep = 0;
+    if (!(cfg->gamma_static_min_pps >= 0 && isfinite(cfg->gamma_static_min_pps)
           && cfg->gamma_static_max_pps >= cfg->gamma_static_min_pps
-          && is_finite((double)cfg->gamma_static_max_pps)
-          && cfg->gamma_dynamic_pps >= 0 && is_finite((double)cfg->gamma_dynamic_pps)
-          && cfg->delay_s >= 0 && is_finite(cfg->delay_s)
-          && cfg->shortening_threshold_L0 >= 0
-          && is_finite((double)cfg->shortening_threshold_L0)
+          && isfinite(cfg->gamma_static_max_pps)
+          && cfg->gamma_dynamic_pps >= 0 && isfinite(cfg->gamma_dynamic_pps)
+          && cfg->delay_s >= 0 && isfinite(cfg->delay_s)
+          && cfg->shortening_threshold_L0 >= 0 && isfinite(cfg->shortening_threshold_L0)
           && cfg->predictor_rate_hz >= 1e-3 && cfg->predictor_rate_hz <= 1e6)) {
         return 0;
     }
-    /* FusimotorParams' stability condition (Jury's test of the discrete PI loop). */
     dt = 1 / cfg->predictor_rate_hz;
     a = cfg->predictor_kp_1_s * dt;
     b = cfg->predictor_ki_1_s2 * dt * dt;
     if (!(a > 0 && b > 0 && a < 2 && 2 * a + b < 4)) {
         return 0;
     }
-    keep = 0;
     if (cfg->delay_s * cfg->predictor_rate_hz < PS_PREDICTOR_MAX_SEGMENTS) {
         keep = (int)ceil(cfg->delay_s * (double)cfg->predictor_rate_hz) + 2;
     }
-    if (keep < 2 || keep > PS_PREDICTOR_MAX_SEGMENTS) {
-        return 0;
-    }
-    if (!(cfg->theta >= 0 && cfg->theta <= 1 && cfg->step_s > 0 && cfg->step_s <= 1)) {
-        return 0;
-    }
-    /* ChainConfig's bound on the work of one bridged interval. */
-    if (!(cfg->max_bridge_s / cfg->step_s <= (double)PS_CHAIN_MAX_BRIDGE_UPDATES
-          && cfg->max_bridge_s * (double)cfg->predictor_rate_hz
-                 <= (double)PS_CHAIN_MAX_BRIDGE_UPDATES)) {
-        return 0;
-    }
-    return 1;
+    return keep >= 2 && keep <= PS_PREDICTOR_MAX_SEGMENTS;
+}
+
+/* The spindle's sub-steps, and ChainConfig's bound on the work of one bridged interval. */
+static int substeps_ok(const ps_chain_config *cfg)
+{
+    return cfg->theta >= 0 && cfg->theta <= 1 && cfg->step_s > 0 && cfg->step_s <= 1
+           && cfg->max_bridge_s / cfg->step_s <= (double)PS_CHAIN_MAX_BRIDGE_UPDATES
+           && cfg->max_bridge_s * (double)cfg->predictor_rate_hz
+                  <= (double)PS_CHAIN_MAX_BRIDGE_UPDATES;
+}
+
+/* The spindle constants by the spindle's own check (spindle.c), then each stage's rules. */
+static int config_ok(const ps_chain_config *cfg)
+{
+    return ps_params_check(&cfg->params) == PS_OK && sensor_ok(cfg) && fits_ok(cfg)
+           && handling_ok(cfg) && fusimotor_ok(cfg) && substeps_ok(cfg);
 }
 
 int ps_chain_init(ps_arm_chain *c, const ps_chain_config *config)
@@ -425,7 +410,7 @@ int ps_chain_length_L0(const ps_arm_chain *c, ps_real angle_rad, ps_real length_
     if (c->stage < 1) {
         return PS_ERR_NOT_RESET;
     }
-    if (!is_finite((double)angle_rad)) {
+    if (!isfinite(angle_rad)) {
         return PS_ERR_NONFINITE;
     }
     fit_lengths(&c->config, angle_rad, length_L0);
@@ -436,7 +421,7 @@ static int lengths_ok(const ps_real *L)
 {
     int k;
     for (k = 0; k < PS_MUSCLES; ++k) {
-        if (!(is_finite((double)L[k]) && L[k] >= PS_LENGTH_MIN_L0 && L[k] <= PS_LENGTH_MAX_L0)) {
+        if (!(isfinite(L[k]) && L[k] >= PS_LENGTH_MIN_L0 && L[k] <= PS_LENGTH_MAX_L0)) {
             return 0;
         }
     }
@@ -512,40 +497,55 @@ static int rest(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real an
     return PS_OK;
 }
 
+/* The lengths a reset starts at: length_L0 (checked) if given, else the fitted lengths at
+ * the angle, clamped to the fits' range (*clamped = 1 then); *recorded is the angle used. */
+static int reset_lengths(const ps_arm_chain *c, ps_real angle_deg, const ps_real *length_L0,
+                         ps_real L[PS_MUSCLES], ps_real *recorded, int *clamped)
+{
+    int k;
+    *recorded = angle_deg;
+    *clamped = 0;
+    if (length_L0 == NULL) {
+        if (!(c->angle_min_deg <= angle_deg && angle_deg <= c->angle_max_deg)) {
+            *clamped = 1;
+            *recorded = clamp_angle(c, angle_deg);
+        }
+        fit_lengths(&c->config, (ps_real)((double)*recorded * DEG_TO_RAD), L);
+        return PS_OK;
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        if (!isfinite(length_L0[k])) {
+            return PS_ERR_NONFINITE;
+        }
+    }
+    if (!lengths_ok(length_L0)) {
+        return PS_ERR_LENGTH_RANGE;
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        L[k] = length_L0[k];
+    }
+    return PS_OK;
+}
+
 int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_real *length_L0,
                    ps_arm_sample *out)
 {
     ps_chain_state st;
-    ps_real L[PS_MUSCLES], recorded = angle_deg;
+    ps_real L[PS_MUSCLES], recorded;
     ps_chain_counters zero = {0}; /* the universal zero initializer: every counter */
-    int k, status, clamped = 0;
+    int k, status, clamped;
     if (c == NULL) {
         return PS_ERR_NULL;
     }
     if (c->stage < 1) {
         return PS_ERR_NOT_RESET;
     }
-    if (!is_finite(t_s) || !is_finite((double)angle_deg)) {
+    if (!isfinite(t_s) || !isfinite(angle_deg)) {
         return PS_ERR_NONFINITE;
     }
-    if (length_L0 == NULL) {
-        if (!(c->angle_min_deg <= angle_deg && angle_deg <= c->angle_max_deg)) {
-            clamped = 1;
-            recorded = clamp_angle(c, angle_deg);
-        }
-        fit_lengths(&c->config, (ps_real)((double)recorded * DEG_TO_RAD), L);
-    } else {
-        for (k = 0; k < PS_MUSCLES; ++k) {
-            if (!is_finite((double)length_L0[k])) {
-                return PS_ERR_NONFINITE;
-            }
-        }
-        if (!lengths_ok(length_L0)) {
-            return PS_ERR_LENGTH_RANGE;
-        }
-        for (k = 0; k < PS_MUSCLES; ++k) {
-            L[k] = length_L0[k];
-        }
+    status = reset_lengths(c, angle_deg, length_L0, L, &recorded, &clamped);
+    if (status != PS_OK) {
+        return status;
     }
     st.has_intended = 0;
     for (k = 0; k < PS_MUSCLES; ++k) {
@@ -579,7 +579,7 @@ int ps_chain_set_intended_angle(ps_arm_chain *c, const ps_real *angle_deg)
         return PS_OK;
     }
     angle = *angle_deg;
-    if (!is_finite((double)angle)) {
+    if (!isfinite(angle)) {
         return PS_ERR_NONFINITE;
     }
     if (angle < c->angle_min_deg) {
@@ -598,7 +598,7 @@ int ps_chain_set_intended_angle(ps_arm_chain *c, const ps_real *angle_deg)
  * accepted sample. */
 static int time_ok(const ps_chain_config *cfg, ps_chain_state *st, ps_time t)
 {
-    if (!is_finite(t)) {
+    if (!isfinite(t)) {
         st->counters.bad_time += 1;
         return 0;
     }
@@ -702,6 +702,49 @@ static int restarts(const ps_arm_chain *c, const ps_chain_state *st, ps_time t)
     return t < st->t_s || t - st->t_s > c->config.max_bridge_s;
 }
 
+/* ArmChain's slew limit: L_in is L_given with every change since the last input u limited
+ * to max_speed_L0_s * dt; 1 if any was limited. */
+static int slew_limit(const ps_chain_config *cfg, const ps_chain_state *st,
+                      const ps_real *L_given, ps_real dt, ps_real L_in[PS_MUSCLES])
+{
+    const ps_real limit = cfg->max_speed_L0_s * dt;
+    ps_real change[PS_MUSCLES];
+    int k, limited = 0;
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        L_in[k] = L_given[k];
+        change[k] = L_in[k] - st->u[k];
+        if (fabs((double)change[k]) > (double)limit) {
+            limited = 1;
+        }
+    }
+    if (limited) {
+        for (k = 0; k < PS_MUSCLES; ++k) {
+            ps_real clipped = change[k] < -limit ? -limit : (change[k] > limit ? limit
+                                                                                : change[k]);
+            L_in[k] = L_in[k] - change[k] + clipped;
+        }
+    }
+    return limited;
+}
+
+/* The conditioning stage: (L, dL/dt, d2L/dt2) after dt from the tracking low-pass, or from
+ * differences when it is off (lowpass_rad_s = 0). */
+static void condition(const ps_chain_config *cfg, const ps_chain_state *st,
+                      const ps_real *L_in, ps_real dt, ps_real *x1, ps_real *v1, ps_real *a1)
+{
+    int k;
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        if (cfg->lowpass_rad_s > 0) {
+            ps_tracking_step(st->x[k], st->v[k], st->u[k], L_in[k], dt, cfg->lowpass_rad_s,
+                             &x1[k], &v1[k], &a1[k]);
+        } else {
+            x1[k] = L_in[k];
+            v1[k] = (x1[k] - st->x[k]) / dt;
+            a1[k] = (v1[k] - st->v[k]) / dt;
+        }
+    }
+}
+
 /* ArmChain._length_stage on a working copy of the state. `given_angle` is the sample's angle
  * before the slew limit and clamp (the median's reading after a restart). */
 static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
@@ -710,12 +753,11 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
 {
     const ps_chain_config *cfg = &c->config;
     ps_time dt_time = t - st->t_s;
-    ps_real dt, limit;
-    ps_real L_in[PS_MUSCLES], change[PS_MUSCLES], x1[PS_MUSCLES], v1[PS_MUSCLES],
-        a1[PS_MUSCLES], tmpl[PS_MUSCLES], gs[PS_MUSCLES], gd[PS_MUSCLES], ia[PS_MUSCLES],
-        ii[PS_MUSCLES];
+    ps_real dt;
+    ps_real L_in[PS_MUSCLES], x1[PS_MUSCLES], v1[PS_MUSCLES], a1[PS_MUSCLES],
+        tmpl[PS_MUSCLES], gs[PS_MUSCLES], gd[PS_MUSCLES], ia[PS_MUSCLES], ii[PS_MUSCLES];
     const ps_real *template_in;
-    int k, limited = 0, status;
+    int k, status;
     if (dt_time > cfg->gap_s) {
         st->counters.gaps += 1;
     }
@@ -730,32 +772,10 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
         return PS_ERR_INTERVAL;
     }
     dt = (ps_real)dt_time;
-    limit = cfg->max_speed_L0_s * dt;
-    for (k = 0; k < PS_MUSCLES; ++k) {
-        L_in[k] = L_given[k];
-        change[k] = L_in[k] - st->u[k];
-        if (fabs((double)change[k]) > (double)limit) {
-            limited = 1;
-        }
-    }
-    if (limited) {
+    if (slew_limit(cfg, st, L_given, dt, L_in)) {
         st->counters.slew_limited += 1;
-        for (k = 0; k < PS_MUSCLES; ++k) {
-            ps_real clipped = change[k] < -limit ? -limit : (change[k] > limit ? limit
-                                                                                : change[k]);
-            L_in[k] = L_in[k] - change[k] + clipped;
-        }
     }
-    for (k = 0; k < PS_MUSCLES; ++k) {
-        if (cfg->lowpass_rad_s > 0) {
-            ps_tracking_step(st->x[k], st->v[k], st->u[k], L_in[k], dt, cfg->lowpass_rad_s,
-                             &x1[k], &v1[k], &a1[k]);
-        } else {
-            x1[k] = L_in[k];
-            v1[k] = (x1[k] - st->x[k]) / dt;
-            a1[k] = (v1[k] - st->v[k]) / dt;
-        }
-    }
+    condition(cfg, st, L_in, dt, x1, v1, a1);
     template_in = st->has_intended ? st->intended_L0 : x1;
     status = predictor_update(&st->predictor, c, t, template_in, tmpl);
     if (status != PS_OK) {
@@ -843,7 +863,7 @@ static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
                 accepted = 1;
             }
         } else if (kind == PUSH_ANGLE) {
-            if (!is_finite((double)value)) {
+            if (!isfinite(value)) {
                 st.counters.invalid_angle += 1;
             } else {
                 status = angle_stage(c, &st, t, value, -1, -1);
@@ -853,7 +873,7 @@ static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
             if (!lengths_ok(lengths)) {
                 st.counters.invalid_length += 1;
             } else {
-                ps_real angle = (angle_deg == NULL || !is_finite((double)*angle_deg))
+                ps_real angle = (angle_deg == NULL || !isfinite(*angle_deg))
                                     ? st.angle_deg : *angle_deg;
                 status = length_stage(c, &st, t, lengths, angle, -1, -1, angle);
                 accepted = 1;

@@ -1,12 +1,20 @@
 /*
  * spindle.c -- the Mileusnic (2006) spindle of spindle/core.py in C99.
  *
- * ps_spindle_step follows spindle.core.advance operation by operation (same state, same
- * theta-method, same Newton iteration in z = sgn(v)|v|^(a/3), same starting guess), so the
- * double build matches the numpy core to round-off. ps_spindle_step_plan is the embedded
- * variant: the same equations with every constant that depends only on (params, h, theta)
- * precomputed by ps_plan_init (no divide left but one per Newton iteration), optionally a
- * fixed Newton iteration count (PS_NEWTON_ITER) and a polynomial cube root.
+ * Three steps, each kept because it is what one target needs (the figures below):
+ * - ps_spindle_step follows spindle.core.advance operation by operation (same state, same
+ *   theta-method, same Newton iteration in z = sgn(v)|v|^(a/3), same starting guess), so the
+ *   double build matches the numpy core to round-off;
+ * - ps_spindle_step_plan, the embedded float step: the same equations with every constant
+ *   that depends only on (params, h, theta) precomputed by ps_plan_init (no divide left but
+ *   one per Newton iteration), optionally a fixed Newton iteration count (PS_NEWTON_ITER) and
+ *   a polynomial cube root;
+ * - ps_spindle_step_fx, the int32 Q24 step for cores without an FPU: 8,612 instructions per
+ *   step on the Cortex-M0+ at 5 ms (1.72 MIPS per muscle, scripts/bench_embedded.py --quick)
+ *   against 36,389 for the float plan step with every lever (7.28 MIPS, docs/c_port.md), at
+ *   the same accuracy (1.42 pps RMS against the stiff reference).
+ * The pieces they share (activation target, force, Newton start and solve, the combination of
+ * the potentials into Ia and II, commit) are the small static functions of the first section.
  *
  * No heap, no globals, no input is modified; on failure nothing is written.
  */
@@ -45,26 +53,59 @@
 
 /* ---- shared small pieces ------------------------------------------------------------ */
 
-static int is_finite(ps_real x) { return isfinite(x); }
-
 static ps_real max_r(ps_real a, ps_real b) { return a < b ? b : a; }
 
 static ps_real min_r(ps_real a, ps_real b) { return b < a ? b : a; }
 
 static ps_real sign_r(ps_real x) { return x > R_(0) ? R_(1) : (x < R_(0) ? R_(-1) : R_(0)); }
 
-/* g^p / (g^p + freq^p): spindle.core.activation_target. */
+static ps_real fibre_drive(int i, ps_real gd, ps_real gs) { return i == 0 ? gd : gs; }
+
+static ps_real drive_power(ps_real drive, ps_real p, int p_is_2)
+{
+    return p_is_2 ? drive * drive : ps_pow(drive, p);
+}
+
+/* g^p / (g^p + freq^p) from gp = g^p (spindle.core.activation_target). A drive so large that
+ * g^p overflows is saturated (numpy would give inf/inf = NaN). */
+static ps_real target_from_power(ps_real gp, ps_real freq_p)
+{
+    if (!isfinite(gp)) return R_(1);
+    return gp / (gp + freq_p);
+}
+
 static ps_real activation_target(ps_real drive, ps_real freq, ps_real p, int p_is_2)
 {
-    ps_real gp;
-    if (p_is_2) {
-        gp = drive * drive;
-    } else {
-        gp = ps_pow(drive, p);
-    }
-    /* A drive so large that g^p overflows is saturated (numpy would give inf/inf = NaN). */
-    if (!is_finite(gp)) return R_(1);
-    return p_is_2 ? gp / (gp + freq * freq) : gp / (gp + ps_pow(freq, p));
+    return target_from_power(drive_power(drive, p, p_is_2),
+                             p_is_2 ? freq * freq : ps_pow(freq, p));
+}
+
+/* M dv/dt of a fibre (spindle.core._force) at tension T, z = sgn(v)|v|^(a/3) (z3 = z^3,
+ * which the caller may need too), polar length `polar`, drive terms beta and Gamma: the
+ * damping C*beta*sgn(v)|v|^a is C*beta*z^3, times the polar length beyond R clipped at 0 (no
+ * damping, never a negative one, where the polar region is not longer than R). */
+static ps_real force(ps_real T, ps_real z, ps_real z3, ps_real polar, ps_real beta,
+                     ps_real Gamma, ps_real KPR, ps_real LPR0, ps_real R, ps_real CL, ps_real CS)
+{
+    ps_real damping = (z > R_(0) ? CL : CS) * beta * z3;
+    return T - Gamma - KPR * (polar - LPR0) - damping * max_r(polar - R, R_(0));
+}
+
+/* z = sgn(v)|v|^(a/3) of the explicit step. */
+static ps_real root_of_velocity(ps_real v, ps_real a)
+{
+    return sign_r(v) * ps_pow(ps_fabs(v), a / R_(3));
+}
+
+/* Ia and II from the fibres' primary and secondary potentials (pps): each clipped at 0, the
+ * dynamic (bag1) and static (bag2 + chain) primaries combined with occlusion S. */
+static void combine_rates(const ps_real primary[PS_NFIBRES], const ps_real sec[PS_NFIBRES],
+                          ps_real S, ps_real *ia, ps_real *ii)
+{
+    ps_real a_dyn = primary[0];
+    ps_real b_stat = primary[1] + primary[2];
+    if (ia != NULL) *ia = max_r(a_dyn, b_stat) + S * min_r(a_dyn, b_stat);
+    if (ii != NULL) *ii = max_r(sec[1], R_(0)) + max_r(sec[2], R_(0));
 }
 
 /* Straight-line on purpose: gcc -Os turns a copy loop into a memcpy call (~80 instructions
@@ -76,12 +117,20 @@ static void copy3(ps_real dst[PS_NFIBRES], const ps_real src[PS_NFIBRES])
     dst[2] = src[2];
 }
 
-/* The end of a successful step: the state takes the new values only once all are known to
- * be finite, so a failed step leaves it as it was. */
-static void commit(ps_spindle *s, const ps_real T1[PS_NFIBRES], const ps_real v1[PS_NFIBRES],
-                   const ps_real z1[PS_NFIBRES], const ps_real f1[PS_NFIBRES], ps_real L1,
-                   ps_real gd1, ps_real gs1)
+static int fibre_finite(ps_real T, ps_real v, ps_real z, ps_real f)
 {
+    return isfinite(T) && isfinite(v) && isfinite(z) && isfinite(f);
+}
+
+/* The end of a step whose fibres are all finite: the state takes the new values only once
+ * the rates are known to be finite too (a tension so large that they overflow, in float, is
+ * a failure), so a failed step leaves it as it was. */
+static int finish_step(ps_spindle *s, const ps_real T1[PS_NFIBRES],
+                       const ps_real v1[PS_NFIBRES], const ps_real z1[PS_NFIBRES],
+                       const ps_real f1[PS_NFIBRES], ps_real L1, ps_real gd1, ps_real gs1,
+                       ps_real r_ia, ps_real r_ii, ps_real *ia, ps_real *ii)
+{
+    if (!isfinite(r_ia) || !isfinite(r_ii)) return PS_ERR_NONFINITE;
     copy3(s->T, T1);
     copy3(s->v, v1);
     copy3(s->z, z1);
@@ -89,6 +138,9 @@ static void commit(ps_spindle *s, const ps_real T1[PS_NFIBRES], const ps_real v1
     s->L = L1;
     s->gd = gd1;
     s->gs = gs1;
+    if (ia != NULL) *ia = r_ia;
+    if (ii != NULL) *ii = r_ii;
+    return PS_OK;
 }
 
 static int all_equal(const ps_real x[PS_NFIBRES], ps_real value)
@@ -99,13 +151,11 @@ static int all_equal(const ps_real x[PS_NFIBRES], ps_real value)
 /* The inputs of a step or of an equilibrium, checked in the order of spindle.core. */
 static int check_inputs(ps_real L, ps_real gd, ps_real gs)
 {
-    if (!is_finite(L) || !is_finite(gd) || !is_finite(gs)) return PS_ERR_NONFINITE;
+    if (!isfinite(L) || !isfinite(gd) || !isfinite(gs)) return PS_ERR_NONFINITE;
     if (L < R_(PS_LENGTH_MIN_L0) || L > R_(PS_LENGTH_MAX_L0)) return PS_ERR_LENGTH_RANGE;
     if (gd < R_(0) || gs < R_(0)) return PS_ERR_NEGATIVE_DRIVE;
     return PS_OK;
 }
-
-static ps_real fibre_drive(int i, ps_real gd, ps_real gs) { return i == 0 ? gd : gs; }
 
 /* Cube root of the Newton starting guess. PS_FAST_CBRT: a bit-level estimate (exponent / 3
  * by shifts, ~3 % off) and PS_CBRT_REFINE Newton steps y <- (2y + x/y^2)/3; the result only
@@ -161,7 +211,7 @@ int ps_spindle_init(ps_spindle *s, const ps_params *p, ps_real L, ps_real gd, ps
     out.gd = gd;
     out.gs = gs;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        if (!is_finite(out.T[i]) || !is_finite(out.f[i])) return PS_ERR_CONFIG;
+        if (!isfinite(out.T[i]) || !isfinite(out.f[i])) return PS_ERR_CONFIG;
     }
     *s = out;
     return PS_OK;
@@ -171,21 +221,18 @@ static void afferents(const ps_real T[PS_NFIBRES], ps_real L, const ps_params *p
                       ps_real *ii)
 {
     ps_real stretch[PS_NFIBRES], primary[PS_NFIBRES], sec[PS_NFIBRES];
-    ps_real a_dyn, b_stat;
     int i;
     for (i = 0; i < PS_NFIBRES; ++i) {
         stretch[i] = T[i] / p->KSR[i] - (p->LNSR[i] - p->LSR0[i]);
         primary[i] = max_r(p->G_pri[i] * stretch[i], R_(0));
     }
-    a_dyn = primary[0];
-    b_stat = primary[1] + primary[2];
+    sec[0] = R_(0); /* bag1 has no secondary ending */
     for (i = 1; i < PS_NFIBRES; ++i) {
         sec[i] = p->G_sec[i] * (p->X[i] * (p->Lsec[i] / p->LSR0[i]) * stretch[i]
                                 + (R_(1) - p->X[i]) * (p->Lsec[i] / p->LPR0[i])
                                   * (L - T[i] / p->KSR[i] - p->LSR0[i] - p->LNPR[i]));
     }
-    if (ia != NULL) *ia = max_r(a_dyn, b_stat) + p->S * min_r(a_dyn, b_stat);
-    if (ii != NULL) *ii = max_r(sec[1], R_(0)) + max_r(sec[2], R_(0));
+    combine_rates(primary, sec, p->S, ia, ii);
 }
 
 void ps_spindle_afferents(const ps_spindle *s, const ps_params *p, ps_real *ia, ps_real *ii)
@@ -212,18 +259,6 @@ static void velocity_from_z(ps_real z, ps_real a, int a_is_03, ps_real *w, ps_re
         *w = z * az_pow;
         if (dw != NULL) *dw = three_over_a * az_pow;
     }
-}
-
-/* M dv/dt of fibre i (spindle.core._force); the damping C*beta*sgn(v)|v|^a is C*beta*z^3,
- * times the polar length beyond R clipped at 0 (no damping, never a negative one, where the
- * polar region is not longer than R). */
-static ps_real force(const ps_params *p, int i, ps_real T, ps_real z, ps_real L, ps_real beta,
-                     ps_real Gamma)
-{
-    ps_real polar = L - p->LSR0[i] - T / p->KSR[i];
-    ps_real damping = (z > R_(0) ? p->CL[i] : p->CS[i]) * beta * (z * z * z);
-    return T - Gamma - p->KPR[i] * (polar - p->LPR0[i])
-           - damping * max_r(polar - p->R[i], R_(0));
 }
 
 /* Where the new polar region may end no longer than R (p0 <= theta*h*|w| with |w| <= |rhs|/a2
@@ -286,92 +321,135 @@ static int newton(ps_real *z, ps_real a2, ps_real p0, ps_real rhs, ps_real cS, p
 #endif
 }
 
+/* The linearised starting guess of Newton (spindle.core): z^3 times the slope of g near the
+ * previous z, equal to rhs. */
+static ps_real newton_start(ps_real z0_7, ps_real a2, ps_real rhs, ps_real cS, ps_real dC,
+                            ps_real p0)
+{
+    ps_real slope = a2 * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
+    return cube_root(rhs / slope);
+}
+
+/* The root z of g from the guess in *z (bounded first), and v = sgn(z)|z|^(3/a). */
+static int solve_z(ps_real *z, ps_real *v, ps_real a2, ps_real p0, ps_real rhs, ps_real cS,
+                   ps_real dC, ps_real th_h, ps_real a, int a_is_03)
+{
+    int status;
+    *z = bound_guess(*z, p0, rhs, a2, th_h, a);
+    status = newton(z, a2, p0, rhs, cS, dC, th_h, a, a_is_03);
+    if (status != PS_OK) return status;
+    velocity_from_z(*z, a, a_is_03, v, NULL);
+    return PS_OK;
+}
+
+/* The activation of fibre i after the step: the theta-method on df/dt = (a* - f)/tau, or the
+ * target a* itself when there is no lag (tau = 0). */
+static ps_real activation_step(const ps_params *p, int i, const ps_spindle *s, ps_real drive1,
+                               ps_real h, ps_real theta, int p_is_2)
+{
+    const ps_real f0 = s->f[i];
+    const ps_real a1 = activation_target(drive1, p->freq[i], p->p[i], p_is_2);
+    ps_real rate, a0;
+    if (!(p->tau[i] > R_(0))) return a1;
+    rate = h / p->tau[i];
+    if (!(theta < R_(1))) return (f0 + rate * a1) / (R_(1) + rate);
+    a0 = activation_target(fibre_drive(i, s->gd, s->gs), p->freq[i], p->p[i], p_is_2);
+    return (f0 + rate * ((R_(1) - theta) * (a0 - f0) + theta * a1)) / (R_(1) + theta * rate);
+}
+
+/* The force of fibre i at the start of the step (the explicit part of the theta-method). */
+static ps_real start_force(const ps_params *p, int i, const ps_spindle *s)
+{
+    const ps_real f0 = s->f[i], z0 = s->z[i];
+    return force(s->T[i], z0, z0 * z0 * z0, s->L - p->LSR0[i] - s->T[i] / p->KSR[i],
+                 p->beta0[i] + p->beta_drive[i] * f0, p->Gamma_drive[i] * f0, p->KPR[i],
+                 p->LPR0[i], p->R[i], p->CL[i], p->CS[i]);
+}
+
+/* Forward Euler (theta = 0) of fibre i. */
+static void explicit_fibre(const ps_params *p, int i, const ps_spindle *s, ps_real L1,
+                           ps_real h, ps_real *T1, ps_real *v1, ps_real *z1)
+{
+    const ps_real KSR = p->KSR[i];
+    const ps_real A = s->T[i] + KSR * (L1 - s->L); /* the exact integral of dL over the step */
+    *T1 = A - (h * KSR) * s->v[i];
+    *v1 = s->v[i] + (h / p->M[i]) * start_force(p, i, s);
+    *z1 = root_of_velocity(*v1, p->a[i]);
+}
+
+/* The implicit theta-method (theta > 0) of fibre i with its new activation f1: Newton on
+ * z = sgn(v)|v|^(a/3) for the new velocity (spindle.core._implicit_solve), then the tension. */
+static int implicit_fibre(const ps_params *p, int i, const ps_spindle *s, ps_real L1,
+                          ps_real f1, ps_real h, ps_real theta, int a_is_03, ps_real *T1,
+                          ps_real *v1, ps_real *z1)
+{
+    const ps_real KSR = p->KSR[i], v0 = s->v[i], z0 = s->z[i];
+    const ps_real k1 = R_(1) + p->KPR[i] / KSR;
+    const ps_real beta1 = p->beta0[i] + p->beta_drive[i] * f1;
+    const ps_real th_h = theta * h;
+    ps_real A = s->T[i] + KSR * (L1 - s->L); /* the exact integral of dL over the step */
+    ps_real F0 = R_(0), a2, p0, rhs, cS, dC, z0_7, z;
+    int status;
+    if (theta < R_(1)) {
+        F0 = start_force(p, i, s);
+        A = A - ((R_(1) - theta) * h) * KSR * v0;
+    }
+    a2 = p->M[i] / h + (theta * theta * h) * k1 * KSR;
+    p0 = L1 - p->LSR0[i] - p->R[i] - A / KSR;
+    rhs = (p->M[i] / h) * v0
+          + theta * (k1 * A - p->Gamma_drive[i] * f1
+                     - p->KPR[i] * (L1 - p->LSR0[i] - p->LPR0[i]));
+    if (theta < R_(1)) rhs += (R_(1) - theta) * F0;
+    cS = (theta * p->CS[i]) * beta1;
+    dC = (theta * (p->CL[i] - p->CS[i])) * beta1;
+    /* Starting guess as in spindle.core (for a != 0.3 it also keeps its exponent). */
+    z0_7 = z0 * z0;
+    z0_7 *= a_is_03 ? z0_7 * z0_7 * ps_fabs(z0) : ps_pow(ps_fabs(z0), R_(3) / p->a[i] - R_(3));
+    z = newton_start(z0_7, a2, rhs, cS, dC, p0);
+    status = solve_z(&z, v1, a2, p0, rhs, cS, dC, th_h, p->a[i], a_is_03);
+    if (status != PS_OK) return status;
+    *T1 = A - th_h * KSR * *v1;
+    *z1 = z;
+    return PS_OK;
+}
+
+/* The checks of ps_spindle_step, in the order of spindle.core.advance. */
+static int check_step(const ps_spindle *s, ps_real L1, ps_real gd1, ps_real gs1, ps_real h,
+                      ps_real theta)
+{
+    int status;
+    if (!(theta >= R_(0) && theta <= R_(1))) return PS_ERR_METHOD;
+    if (!(isfinite(h) && h > R_(0))) return PS_ERR_STEP;
+    status = check_inputs(L1, gd1, gs1);
+    if (status != PS_OK) return status;
+    if (ps_fabs(L1 - s->L) / h > R_(PS_MAX_SPEED_L0_S)) return PS_ERR_SPEED;
+    return PS_OK;
+}
+
 int ps_spindle_step(ps_spindle *s, const ps_params *p, ps_real L1, ps_real gd1, ps_real gs1,
                     ps_real h, ps_real theta, ps_real *ia, ps_real *ii)
 {
-    ps_real T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES];
-    ps_real dL, r_ia, r_ii;
+    ps_real T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES], r_ia, r_ii;
     int i, status, p_is_2, a_is_03;
 
     if (s == NULL || p == NULL) return PS_ERR_NULL;
-    if (!(theta >= R_(0) && theta <= R_(1))) return PS_ERR_METHOD;
-    if (!(is_finite(h) && h > R_(0))) return PS_ERR_STEP;
-    status = check_inputs(L1, gd1, gs1);
+    status = check_step(s, L1, gd1, gs1, h, theta);
     if (status != PS_OK) return status;
-    dL = L1 - s->L;
-    if (ps_fabs(dL) / h > R_(PS_MAX_SPEED_L0_S)) return PS_ERR_SPEED;
-
     p_is_2 = all_equal(p->p, R_(2));
     a_is_03 = all_equal(p->a, R_(0.3));
     for (i = 0; i < PS_NFIBRES; ++i) {
-        const ps_real KSR = p->KSR[i];
-        const ps_real T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i];
-        ps_real a1 = activation_target(fibre_drive(i, gd1, gs1), p->freq[i], p->p[i], p_is_2);
-        ps_real tau_safe = p->tau[i] > R_(0) ? p->tau[i] : R_(1);
-        ps_real rate = h / tau_safe;
-        ps_real beta1, Gamma1, A, F0 = R_(0);
-
-        /* Activation: the same theta-method on df/dt = (a* - f)/tau. */
-        if (theta < R_(1)) {
-            ps_real a0 = activation_target(fibre_drive(i, s->gd, s->gs), p->freq[i], p->p[i],
-                                           p_is_2);
-            f1[i] = (f0 + rate * ((R_(1) - theta) * (a0 - f0) + theta * a1))
-                    / (R_(1) + theta * rate);
-        } else {
-            f1[i] = (f0 + rate * a1) / (R_(1) + rate);
-        }
-        if (!(p->tau[i] > R_(0))) f1[i] = a1;
-
-        beta1 = p->beta0[i] + p->beta_drive[i] * f1[i];
-        Gamma1 = p->Gamma_drive[i] * f1[i];
-        /* The exact integral of dL over the step. */
-        A = T0 + KSR * (L1 - s->L);
+        f1[i] = activation_step(p, i, s, fibre_drive(i, gd1, gs1), h, theta, p_is_2);
         if (theta == R_(0)) {
-            F0 = force(p, i, T0, z0, s->L, p->beta0[i] + p->beta_drive[i] * f0,
-                       p->Gamma_drive[i] * f0);
-            T1[i] = A - (h * KSR) * v0;
-            v1[i] = v0 + (h / p->M[i]) * F0;
-            z1[i] = sign_r(v1[i]) * ps_pow(ps_fabs(v1[i]), p->a[i] / R_(3));
+            explicit_fibre(p, i, s, L1, h, &T1[i], &v1[i], &z1[i]);
         } else {
-            ps_real k1 = R_(1) + p->KPR[i] / KSR;
-            ps_real a2, p0, th_h, rhs, cS, dC, z0_7, slope, z;
-            if (theta < R_(1)) {
-                F0 = force(p, i, T0, z0, s->L, p->beta0[i] + p->beta_drive[i] * f0,
-                           p->Gamma_drive[i] * f0);
-                A = A - ((R_(1) - theta) * h) * KSR * v0;
-            }
-            a2 = p->M[i] / h + (theta * theta * h) * k1 * KSR;
-            p0 = L1 - p->LSR0[i] - p->R[i] - A / KSR;
-            th_h = theta * h;
-            rhs = (p->M[i] / h) * v0
-                  + theta * (k1 * A - Gamma1 - p->KPR[i] * (L1 - p->LSR0[i] - p->LPR0[i]));
-            if (theta < R_(1)) rhs += (R_(1) - theta) * F0;
-            cS = (theta * p->CS[i]) * beta1;
-            dC = (theta * (p->CL[i] - p->CS[i])) * beta1;
-            /* Starting guess as in spindle.core (for a != 0.3 it also keeps its exponent). */
-            z0_7 = z0 * z0;
-            z0_7 *= a_is_03 ? z0_7 * z0_7 * ps_fabs(z0)
-                            : ps_pow(ps_fabs(z0), R_(3) / p->a[i] - R_(3));
-            slope = a2 * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
-            z = cube_root(rhs / slope);
-            z = bound_guess(z, p0, rhs, a2, th_h, p->a[i]);
-            status = newton(&z, a2, p0, rhs, cS, dC, th_h, p->a[i], a_is_03);
+            status = implicit_fibre(p, i, s, L1, f1[i], h, theta, a_is_03, &T1[i], &v1[i],
+                                    &z1[i]);
             if (status != PS_OK) return status;
-            velocity_from_z(z, p->a[i], a_is_03, &v1[i], NULL);
-            T1[i] = A - th_h * KSR * v1[i];
-            z1[i] = z;
         }
-        if (!is_finite(T1[i]) || !is_finite(v1[i]) || !is_finite(z1[i]) || !is_finite(f1[i])) {
-            return PS_ERR_NONFINITE;
-        }
+        if (!fibre_finite(T1[i], v1[i], z1[i], f1[i])) return PS_ERR_NONFINITE;
     }
     afferents(T1, L1, p, &r_ia, &r_ii);
-    /* a tension so large that the rates overflow (float) is a failure too */
-    if (!is_finite(r_ia) || !is_finite(r_ii)) return PS_ERR_NONFINITE;
-    commit(s, T1, v1, z1, f1, L1, gd1, gs1);
-    if (ia != NULL) *ia = r_ia;
-    if (ii != NULL) *ii = r_ii;
-    return PS_OK;
+    return finish_step(s, T1, v1, z1, f1, L1, gd1, gs1, r_ia, r_ii, ia, ii);
 }
 
 static int positive_all(const ps_real x[PS_NFIBRES])
@@ -392,10 +470,10 @@ int ps_params_check(const ps_params *p)
     fields[19] = p->p; fields[20] = p->tau;
     for (k = 0; k < 21; ++k) {
         for (i = 0; i < PS_NFIBRES; ++i) {
-            if (!is_finite(fields[k][i])) return PS_ERR_CONFIG;
+            if (!isfinite(fields[k][i])) return PS_ERR_CONFIG;
         }
     }
-    if (!is_finite(p->S)) return PS_ERR_CONFIG;
+    if (!isfinite(p->S)) return PS_ERR_CONFIG;
     if (!(positive_all(p->KSR) && positive_all(p->M) && positive_all(p->freq)
           && positive_all(p->p) && positive_all(p->CL) && positive_all(p->CS)
           && positive_all(p->a))) {
@@ -430,7 +508,75 @@ int ps_spindle_run(ps_spindle *s, const ps_params *p, const ps_real *L, const ps
     return status;
 }
 
-/* ---- embedded fast path ------------------------------------------------------------- */
+/* ---- embedded fast path ---------------------------------------------------------------
+ * ps_spindle_step_plan is a second implementation of the float step, kept because it pays on
+ * the FPU-less target: on the Cortex-M0+ (scripts/bench_embedded.py --only 1 2, trapezoidal,
+ * 1 ms, float32) it takes 41,825 instructions per step against ps_spindle_step's 62,910
+ * (41.8 vs 62.9 MIPS per muscle, -34 %) at the same accuracy (0.064 pps RMS), and the
+ * embedded levers (PS_FAST_CBRT, PS_NEWTON_TOL_Z, the plan in flash) build on it. It uses the
+ * shared pieces above (activation target, force, Newton start, the solve for a != 0.3, the
+ * rate combination, commit); what differs is the arithmetic the plan precomputes and, for
+ * a = 0.3, Newton in y = |z| from a bound above the root (solve_03). */
+
+/* Fibre i's activation filter: f1 = c_f0 f0 + c_a0 a*(g0) + c_a1 a*(g1) (the theta-method on
+ * df/dt = (a* - f)/tau; without lag f is the target itself). */
+static void plan_activation_coefficients(ps_plan *out, int i, const ps_params *p, ps_real h,
+                                         ps_real theta)
+{
+    ps_real rate = p->tau[i] > R_(0) ? h / p->tau[i] : R_(0);
+    ps_real den = R_(1) + theta * rate;
+    out->lagged[i] = p->tau[i] > R_(0);
+    if (out->lagged[i]) {
+        out->c_f0[i] = (R_(1) - (R_(1) - theta) * rate) / den;
+        out->c_a0[i] = (R_(1) - theta) * rate / den;
+        out->c_a1[i] = theta * rate / den;
+    } else {
+        out->c_f0[i] = R_(0);
+        out->c_a0[i] = R_(0);
+        out->c_a1[i] = R_(1);
+    }
+    out->c_a01[i] = out->c_a0[i] + out->c_a1[i];
+}
+
+/* Fibre i's constants of the step and of the rates at step h, theta. */
+static void plan_fibre_constants(ps_plan *out, int i, const ps_params *p, ps_real h,
+                                 ps_real theta)
+{
+    const ps_real KSR = p->KSR[i];
+    const ps_real k1 = R_(1) + p->KPR[i] / KSR;
+    out->KSR[i] = KSR;
+    out->inv_KSR[i] = R_(1) / KSR;
+    out->freq_p[i] = out->p_is_2 ? p->freq[i] * p->freq[i] : ps_pow(p->freq[i], p->p[i]);
+    out->p[i] = p->p[i];
+    out->a[i] = p->a[i];
+    out->beta0[i] = p->beta0[i];
+    out->beta_drive[i] = p->beta_drive[i];
+    out->Gamma_drive[i] = p->Gamma_drive[i];
+    out->CL[i] = p->CL[i];
+    out->CS[i] = p->CS[i];
+    out->KPR[i] = p->KPR[i];
+    out->LPR0[i] = p->LPR0[i];
+    out->R[i] = p->R[i];
+    out->LSR0[i] = p->LSR0[i];
+    out->LSR0_R[i] = p->LSR0[i] + p->R[i];
+    out->LSR0_LPR0[i] = p->LSR0[i] + p->LPR0[i];
+    out->h_KSR[i] = h * KSR;
+    out->h_M[i] = h / p->M[i];
+    out->c_Av[i] = (R_(1) - theta) * h * KSR;
+    out->a2[i] = p->M[i] / h + theta * theta * h * k1 * KSR;
+    out->inv_a2[i] = R_(1) / out->a2[i];
+    out->M_h[i] = p->M[i] / h;
+    out->th_h_KSR[i] = theta * h * KSR;
+    out->th_k1[i] = theta * k1;
+    out->th_KPR[i] = theta * p->KPR[i];
+    out->th_CS[i] = theta * p->CS[i];
+    out->th_dC[i] = theta * (p->CL[i] - p->CS[i]);
+    out->stretch0[i] = p->LNSR[i] - p->LSR0[i];
+    out->G_pri[i] = p->G_pri[i];
+    out->c_sec1[i] = p->G_sec[i] * p->X[i] * (p->Lsec[i] / p->LSR0[i]);
+    out->c_sec2[i] = p->G_sec[i] * (R_(1) - p->X[i]) * (p->Lsec[i] / p->LPR0[i]);
+    out->sec_off[i] = p->LSR0[i] + p->LNPR[i];
+}
 
 int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
 {
@@ -439,7 +585,7 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
     if (q == NULL || p == NULL) return PS_ERR_NULL;
     if (ps_params_check(p) != PS_OK) return PS_ERR_CONFIG;
     if (!(theta >= R_(0) && theta <= R_(1))) return PS_ERR_METHOD;
-    if (!(is_finite(h) && h > R_(0))) return PS_ERR_STEP;
+    if (!(isfinite(h) && h > R_(0))) return PS_ERR_STEP;
     memset(&out, 0, sizeof out);
     out.h = h;
     out.theta = theta;
@@ -452,53 +598,8 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
     out.explicit_step = theta == R_(0);
     out.uses_F0 = theta < R_(1);
     for (i = 0; i < PS_NFIBRES; ++i) {
-        ps_real KSR = p->KSR[i];
-        ps_real k1 = R_(1) + p->KPR[i] / KSR;
-        ps_real rate = p->tau[i] > R_(0) ? h / p->tau[i] : R_(0);
-        ps_real den = R_(1) + theta * rate;
-        out.KSR[i] = KSR;
-        out.inv_KSR[i] = R_(1) / KSR;
-        out.lagged[i] = p->tau[i] > R_(0);
-        if (out.lagged[i]) {
-            out.c_f0[i] = (R_(1) - (R_(1) - theta) * rate) / den;
-            out.c_a0[i] = (R_(1) - theta) * rate / den;
-            out.c_a1[i] = theta * rate / den;
-        } else { /* no lag: f = a* */
-            out.c_f0[i] = R_(0);
-            out.c_a0[i] = R_(0);
-            out.c_a1[i] = R_(1);
-        }
-        out.c_a01[i] = out.c_a0[i] + out.c_a1[i];
-        out.freq_p[i] = out.p_is_2 ? p->freq[i] * p->freq[i] : ps_pow(p->freq[i], p->p[i]);
-        out.p[i] = p->p[i];
-        out.a[i] = p->a[i];
-        out.beta0[i] = p->beta0[i];
-        out.beta_drive[i] = p->beta_drive[i];
-        out.Gamma_drive[i] = p->Gamma_drive[i];
-        out.CL[i] = p->CL[i];
-        out.CS[i] = p->CS[i];
-        out.KPR[i] = p->KPR[i];
-        out.LPR0[i] = p->LPR0[i];
-        out.R[i] = p->R[i];
-        out.LSR0[i] = p->LSR0[i];
-        out.LSR0_R[i] = p->LSR0[i] + p->R[i];
-        out.LSR0_LPR0[i] = p->LSR0[i] + p->LPR0[i];
-        out.h_KSR[i] = h * KSR;
-        out.h_M[i] = h / p->M[i];
-        out.c_Av[i] = (R_(1) - theta) * h * KSR;
-        out.a2[i] = p->M[i] / h + theta * theta * h * k1 * KSR;
-        out.inv_a2[i] = R_(1) / out.a2[i];
-        out.M_h[i] = p->M[i] / h;
-        out.th_h_KSR[i] = theta * h * KSR;
-        out.th_k1[i] = theta * k1;
-        out.th_KPR[i] = theta * p->KPR[i];
-        out.th_CS[i] = theta * p->CS[i];
-        out.th_dC[i] = theta * (p->CL[i] - p->CS[i]);
-        out.stretch0[i] = p->LNSR[i] - p->LSR0[i];
-        out.G_pri[i] = p->G_pri[i];
-        out.c_sec1[i] = p->G_sec[i] * p->X[i] * (p->Lsec[i] / p->LSR0[i]);
-        out.c_sec2[i] = p->G_sec[i] * (R_(1) - p->X[i]) * (p->Lsec[i] / p->LPR0[i]);
-        out.sec_off[i] = p->LSR0[i] + p->LNPR[i];
+        plan_activation_coefficients(&out, i, p, h, theta);
+        plan_fibre_constants(&out, i, p, h, theta);
     }
     *q = out;
     return PS_OK;
@@ -577,101 +678,107 @@ static int solve_03(ps_real *z_io, ps_real *v, ps_real a2, ps_real inv_a2, ps_re
 
 static ps_real plan_target(const ps_plan *q, int i, ps_real drive)
 {
-    ps_real gp = q->p_is_2 ? drive * drive : ps_pow(drive, q->p[i]);
-    if (!is_finite(gp)) return R_(1);
-    return gp / (gp + q->freq_p[i]);
+    return target_from_power(drive_power(drive, q->p[i], q->p_is_2), q->freq_p[i]);
+}
+
+/* Fibre i's activation after the step; a target is computed only for a drive that changed
+ * (one divide each). */
+static ps_real plan_activation(const ps_plan *q, int i, const ps_spindle *s, ps_real drive1)
+{
+    const ps_real f0 = s->f[i];
+    const ps_real drive0 = fibre_drive(i, s->gd, s->gs);
+    const int same_drive = drive1 == drive0;
+    ps_real f;
+    if (!q->lagged[i]) {
+        /* f is the target itself: unchanged with the drive */
+        return same_drive ? f0 : plan_target(q, i, drive1);
+    }
+    if (same_drive) { /* the previous target is the new one */
+        return q->c_f0[i] * f0 + q->c_a01[i] * plan_target(q, i, drive1);
+    }
+    f = q->c_f0[i] * f0 + q->c_a1[i] * plan_target(q, i, drive1);
+    if (q->c_a0[i] != R_(0)) f += q->c_a0[i] * plan_target(q, i, drive0);
+    return f;
+}
+
+static ps_real plan_start_force(const ps_plan *q, int i, const ps_spindle *s, ps_real z03)
+{
+    const ps_real f0 = s->f[i];
+    return force(s->T[i], s->z[i], z03, s->L - q->LSR0[i] - s->T[i] * q->inv_KSR[i],
+                 q->beta0[i] + q->beta_drive[i] * f0, q->Gamma_drive[i] * f0, q->KPR[i],
+                 q->LPR0[i], q->R[i], q->CL[i], q->CS[i]);
+}
+
+/* Fibre i's step with its new activation f1 (the equations of explicit_fibre and
+ * implicit_fibre, constants from the plan). */
+static int plan_fibre(const ps_plan *q, int i, const ps_spindle *s, ps_real L1, ps_real f1,
+                      ps_real *T1, ps_real *v1, ps_real *z1)
+{
+    const ps_real v0 = s->v[i], z0 = s->z[i], z02 = z0 * z0, z03 = z02 * z0;
+    const ps_real beta1 = q->beta0[i] + q->beta_drive[i] * f1;
+    const ps_real F0 = q->uses_F0 ? plan_start_force(q, i, s, z03) : R_(0);
+    ps_real A = s->T[i] + q->KSR[i] * (L1 - s->L);
+    ps_real p0, rhs, cS, dC, z0_7, z;
+    int status;
+    if (q->explicit_step) {
+        *T1 = A - q->h_KSR[i] * v0;
+        *v1 = v0 + q->h_M[i] * F0;
+        *z1 = root_of_velocity(*v1, q->a[i]);
+        return PS_OK;
+    }
+    A -= q->c_Av[i] * v0;
+    p0 = L1 - q->LSR0_R[i] - A * q->inv_KSR[i];
+    rhs = q->M_h[i] * v0 + q->th_k1[i] * A - q->theta * (q->Gamma_drive[i] * f1)
+          - q->th_KPR[i] * (L1 - q->LSR0_LPR0[i]) + q->one_minus_theta * F0;
+    cS = q->th_CS[i] * beta1;
+    dC = q->th_dC[i] * beta1;
+    z0_7 = q->a_is_03 ? z03 * z03 * ps_fabs(z0)
+                      : z02 * ps_pow(ps_fabs(z0), R_(3) / q->a[i] - R_(3));
+    z = newton_start(z0_7, q->a2[i], rhs, cS, dC, p0);
+    if (q->a_is_03) {
+        status = solve_03(&z, v1, q->a2[i], q->inv_a2[i], p0, rhs, rhs > R_(0) ? cS + dC : cS,
+                          q->th_h);
+    } else {
+        status = solve_z(&z, v1, q->a2[i], p0, rhs, cS, dC, q->th_h, q->a[i], 0);
+    }
+    if (status != PS_OK) return status;
+    *T1 = A - q->th_h_KSR[i] * *v1;
+    *z1 = z;
+    return PS_OK;
+}
+
+static void plan_afferents(const ps_plan *q, const ps_real T[PS_NFIBRES], ps_real L,
+                           ps_real *ia, ps_real *ii)
+{
+    ps_real primary[PS_NFIBRES], sec[PS_NFIBRES];
+    int i;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        ps_real t_ksr = T[i] * q->inv_KSR[i];
+        ps_real stretch = t_ksr - q->stretch0[i];
+        primary[i] = max_r(q->G_pri[i] * stretch, R_(0));
+        sec[i] = q->c_sec1[i] * stretch + q->c_sec2[i] * (L - t_ksr - q->sec_off[i]);
+    }
+    combine_rates(primary, sec, q->S, ia, ii);
 }
 
 int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd1,
                          ps_real gs1, ps_real *ia, ps_real *ii)
 {
-    ps_real T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES];
-    ps_real dL, primary[PS_NFIBRES], sec[PS_NFIBRES], a_dyn, b_stat, r_ia, r_ii;
+    ps_real T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES], r_ia, r_ii;
     int i, status;
 
     if (s == NULL || q == NULL) return PS_ERR_NULL;
     status = check_inputs(L1, gd1, gs1);
     if (status != PS_OK) return status;
-    dL = L1 - s->L;
-    if (ps_fabs(dL) > q->max_dL) return PS_ERR_SPEED;
-
+    if (ps_fabs(L1 - s->L) > q->max_dL) return PS_ERR_SPEED;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        const ps_real T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i];
-        const ps_real drive1 = fibre_drive(i, gd1, gs1);
-        const int same_drive = drive1 == fibre_drive(i, s->gd, s->gs);
-        ps_real beta1, Gamma1, A, F0 = R_(0), z02, z03, f;
-        if (!q->lagged[i]) {
-            /* f is the target itself: unchanged with the drive */
-            f = same_drive ? f0 : plan_target(q, i, drive1);
-        } else if (same_drive) { /* the previous target is the new one */
-            f = q->c_f0[i] * f0 + q->c_a01[i] * plan_target(q, i, drive1);
-        } else {
-            f = q->c_f0[i] * f0 + q->c_a1[i] * plan_target(q, i, drive1);
-            if (q->c_a0[i] != R_(0)) {
-                f += q->c_a0[i] * plan_target(q, i, fibre_drive(i, s->gd, s->gs));
-            }
-        }
-        f1[i] = f;
-        beta1 = q->beta0[i] + q->beta_drive[i] * f;
-        Gamma1 = q->Gamma_drive[i] * f;
-        A = T0 + q->KSR[i] * dL;
-        z02 = z0 * z0;
-        z03 = z02 * z0;
-        if (q->uses_F0) {
-            ps_real polar = s->L - q->LSR0[i] - T0 * q->inv_KSR[i];
-            ps_real beta0 = q->beta0[i] + q->beta_drive[i] * f0;
-            ps_real damping = (z0 > R_(0) ? q->CL[i] : q->CS[i]) * beta0 * z03;
-            F0 = T0 - q->Gamma_drive[i] * f0 - q->KPR[i] * (polar - q->LPR0[i])
-                 - damping * max_r(polar - q->R[i], R_(0));
-        }
-        if (q->explicit_step) {
-            T1[i] = A - q->h_KSR[i] * v0;
-            v1[i] = v0 + q->h_M[i] * F0;
-            z1[i] = sign_r(v1[i]) * ps_pow(ps_fabs(v1[i]), q->a[i] / R_(3));
-        } else {
-            ps_real p0, rhs, cS, dC, z0_7, slope, z;
-            A -= q->c_Av[i] * v0;
-            p0 = L1 - q->LSR0_R[i] - A * q->inv_KSR[i];
-            rhs = q->M_h[i] * v0 + q->th_k1[i] * A - q->theta * Gamma1
-                  - q->th_KPR[i] * (L1 - q->LSR0_LPR0[i]) + q->one_minus_theta * F0;
-            cS = q->th_CS[i] * beta1;
-            dC = q->th_dC[i] * beta1;
-            z0_7 = q->a_is_03 ? z03 * z03 * ps_fabs(z0)
-                              : z02 * ps_pow(ps_fabs(z0), R_(3) / q->a[i] - R_(3));
-            slope = q->a2[i] * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
-            z = cube_root(rhs / slope);
-            if (q->a_is_03) {
-                status = solve_03(&z, &v1[i], q->a2[i], q->inv_a2[i], p0, rhs,
-                                  rhs > R_(0) ? cS + dC : cS, q->th_h);
-                if (status != PS_OK) return status;
-            } else {
-                z = bound_guess(z, p0, rhs, q->a2[i], q->th_h, q->a[i]);
-                status = newton(&z, q->a2[i], p0, rhs, cS, dC, q->th_h, q->a[i], 0);
-                if (status != PS_OK) return status;
-                velocity_from_z(z, q->a[i], 0, &v1[i], NULL);
-            }
-            T1[i] = A - q->th_h_KSR[i] * v1[i];
-            z1[i] = z;
-        }
-        if (!is_finite(T1[i]) || !is_finite(v1[i]) || !is_finite(z1[i]) || !is_finite(f1[i])) {
-            return PS_ERR_NONFINITE;
-        }
+        f1[i] = plan_activation(q, i, s, fibre_drive(i, gd1, gs1));
+        status = plan_fibre(q, i, s, L1, f1[i], &T1[i], &v1[i], &z1[i]);
+        if (status != PS_OK) return status;
+        if (!fibre_finite(T1[i], v1[i], z1[i], f1[i])) return PS_ERR_NONFINITE;
     }
-    for (i = 0; i < PS_NFIBRES; ++i) {
-        ps_real t_ksr = T1[i] * q->inv_KSR[i];
-        ps_real stretch = t_ksr - q->stretch0[i];
-        primary[i] = max_r(q->G_pri[i] * stretch, R_(0));
-        sec[i] = q->c_sec1[i] * stretch + q->c_sec2[i] * (L1 - t_ksr - q->sec_off[i]);
-    }
-    a_dyn = primary[0];
-    b_stat = primary[1] + primary[2];
-    r_ia = max_r(a_dyn, b_stat) + q->S * min_r(a_dyn, b_stat);
-    r_ii = max_r(sec[1], R_(0)) + max_r(sec[2], R_(0));
-    if (!is_finite(r_ia) || !is_finite(r_ii)) return PS_ERR_NONFINITE;
-    commit(s, T1, v1, z1, f1, L1, gd1, gs1);
-    if (ia != NULL) *ia = r_ia;
-    if (ii != NULL) *ii = r_ii;
-    return PS_OK;
+    plan_afferents(q, T1, L1, &r_ia, &r_ii);
+    return finish_step(s, T1, v1, z1, f1, L1, gd1, gs1, r_ia, r_ii, ia, ii);
 }
 
 /* ---- fixed-point step ------------------------------------------------------------------
@@ -759,8 +866,6 @@ static int fx_log2(uint32_t x)
 /* g^2 / (g^2 + freq^2) in Q24 for a drive g >= 0 and freq > 0, both Q8: both are shifted
  * right (rounded) by the same k until the larger is below 2^15, so that g^2 + freq^2 <= 2^31
  * (any int32 drive; the ratio keeps >= 15 significant bits of the larger one). */
-static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q);
-
 static int32_t fx_target(const ps_plan_fx *q, int i, int32_t drive)
 {
     uint32_t g = (uint32_t)drive, F = (uint32_t)q->freq[i], big = g > F ? g : F, g2;
@@ -860,81 +965,110 @@ static int fx_bounds_ok(const ps_params *p, int i, double h, double theta, doubl
     return 1;
 }
 
+/* The plan's step-wide constants. */
+static int fx_plan_scalars(ps_plan_fx *out, const ps_params *p, double h, double theta)
+{
+    int st = PS_OK;
+    st |= fx_const(&out->max_dL, PS_MAX_SPEED_L0_S * h, 1.0);
+    st |= fx_const(&out->theta, theta, 1.0);
+    st |= fx_const(&out->one_minus_theta, 1.0 - theta, 1.0);
+    st |= fx_const(&out->th_h, theta * h, 1.0);
+    st |= fx_const(&out->S, D_(p->S), FX_LIMIT);
+    st |= fx_const(&out->y_max, PS_FX_Y_MAX, FX_LIMIT);
+    st |= fx_const(&out->v_max, pow(PS_FX_Y_MAX, 10.0), FX_V_LIMIT);
+    out->v_max += 16; /* z^10 in Q24 is rounded */
+    st |= fx_const(&out->tol, PS_FX_TOL_Z, 1.0);
+    if (out->tol < 1) out->tol = 1;
+    return st;
+}
+
+/* Fibre i's activation filter (as plan_activation_coefficients) and drive scale. */
+static int fx_plan_activation(ps_plan_fx *out, int i, const ps_params *p, double h,
+                              double theta)
+{
+    const double rate = p->tau[i] > R_(0) ? h / D_(p->tau[i]) : 0.0;
+    const double den = 1.0 + theta * rate, freq = D_(p->freq[i]);
+    int st = PS_OK;
+    if (p->tau[i] > R_(0)) {
+        st |= fx_const(&out->c_f0[i], (1.0 - (1.0 - theta) * rate) / den, 1.0);
+        st |= fx_const(&out->c_a0[i], (1.0 - theta) * rate / den, 1.0);
+        st |= fx_const(&out->c_a1[i], theta * rate / den, 1.0);
+    } else {
+        out->c_a1[i] = FX_ONE;
+    }
+    if (!(freq * 256.0 <= 2147483000.0)) return PS_ERR_CONFIG;
+    out->freq[i] = fx_round(freq * 256.0);
+    return st;
+}
+
+/* Fibre i's constants of the step (Q24) and of the rates (gains Q16). */
+static int fx_plan_fibre(ps_plan_fx *out, int i, const ps_params *p, double h, double theta)
+{
+    const double KSR = D_(p->KSR[i]), k1 = 1.0 + D_(p->KPR[i]) / KSR;
+    const double a2 = D_(p->M[i]) / h + theta * theta * h * k1 * KSR;
+    int st = PS_OK;
+    st |= fx_const(&out->KSR[i], KSR, FX_LIMIT);
+    st |= fx_const(&out->inv_KSR[i], 1.0 / KSR, FX_LIMIT);
+    st |= fx_const(&out->inv_k1[i], 1.0 / k1, FX_LIMIT);
+    st |= fx_const(&out->beta0[i], D_(p->beta0[i]), FX_LIMIT);
+    st |= fx_const(&out->beta_drive[i], D_(p->beta_drive[i]), FX_LIMIT);
+    st |= fx_const(&out->Gamma_drive[i], D_(p->Gamma_drive[i]), FX_LIMIT);
+    st |= fx_const(&out->CL[i], D_(p->CL[i]), FX_LIMIT);
+    st |= fx_const(&out->CS[i], D_(p->CS[i]), FX_LIMIT);
+    st |= fx_const(&out->KPR[i], D_(p->KPR[i]), FX_LIMIT);
+    st |= fx_const(&out->LPR0[i], D_(p->LPR0[i]), FX_LIMIT);
+    st |= fx_const(&out->R[i], D_(p->R[i]), FX_LIMIT);
+    st |= fx_const(&out->LSR0[i], D_(p->LSR0[i]), FX_LIMIT);
+    st |= fx_const(&out->LSR0_R[i], D_(p->LSR0[i]) + D_(p->R[i]), FX_LIMIT);
+    st |= fx_const(&out->LSR0_LPR0[i], D_(p->LSR0[i]) + D_(p->LPR0[i]), FX_LIMIT);
+    st |= fx_const(&out->c_Av[i], (1.0 - theta) * h * KSR, FX_LIMIT);
+    st |= fx_const(&out->a2[i], a2, FX_LIMIT);
+    st |= fx_const(&out->inv_a2[i], 1.0 / a2, FX_LIMIT);
+    st |= fx_const(&out->r_cap[i], a2 * pow(PS_FX_Y_MAX, 10.0), FX_LIMIT);
+    st |= fx_const(&out->M_h[i], D_(p->M[i]) / h, FX_LIMIT);
+    st |= fx_const(&out->th_h_KSR[i], theta * h * KSR, FX_LIMIT);
+    st |= fx_const(&out->th_k1[i], theta * k1, FX_LIMIT);
+    st |= fx_const(&out->th_KPR[i], theta * D_(p->KPR[i]), FX_LIMIT);
+    st |= fx_const(&out->th_CL[i], theta * D_(p->CL[i]), FX_LIMIT);
+    st |= fx_const(&out->th_CS[i], theta * D_(p->CS[i]), FX_LIMIT);
+    st |= fx_const(&out->stretch0[i], D_(p->LNSR[i]) - D_(p->LSR0[i]), FX_LIMIT);
+    st |= fx_gain(&out->G_pri[i], D_(p->G_pri[i]));
+    st |= fx_gain(&out->c_sec1[i],
+                  D_(p->G_sec[i]) * D_(p->X[i]) * (D_(p->Lsec[i]) / D_(p->LSR0[i])));
+    st |= fx_gain(&out->c_sec2[i],
+                  D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * (D_(p->Lsec[i]) / D_(p->LPR0[i])));
+    st |= fx_const(&out->sec_off[i], D_(p->LSR0[i]) + D_(p->LNPR[i]), FX_LIMIT);
+    return st;
+}
+
+/* 1 if the rates fit Q16: the primary and secondary sums of fx_bounds_ok, with
+ * Ia = max + S min <= (1 + |S|) max(a_dyn, b_stat). */
+static int fx_rates_fit(const double prim[PS_NFIBRES], const double sec[PS_NFIBRES], double S)
+{
+    const double big = prim[1] + prim[2] > prim[0] ? prim[1] + prim[2] : prim[0];
+    return (1.0 + fx_absd(S)) * big <= FX_RATE_LIMIT && sec[1] + sec[2] <= FX_RATE_LIMIT;
+}
+
 int ps_plan_fx_init(ps_plan_fx *q, const ps_params *p, ps_real h_in, ps_real theta_in)
 {
     ps_plan_fx out;
     const double h = (double)h_in, theta = (double)theta_in;
-    double prim[PS_NFIBRES], sec[PS_NFIBRES], big;
-    int i, k, st = PS_OK, shift;
+    double prim[PS_NFIBRES], sec[PS_NFIBRES];
+    int i, k, st, shift;
     if (q == NULL || p == NULL) return PS_ERR_NULL;
     if (ps_params_check(p) != PS_OK) return PS_ERR_CONFIG;
     if (!(theta > 0.0 && theta <= 1.0)) return PS_ERR_METHOD;
-    if (!(is_finite(h_in) && h > 0.0)) return PS_ERR_STEP;
+    if (!(isfinite(h_in) && h > 0.0)) return PS_ERR_STEP;
     if (!all_equal(p->a, R_(0.3)) || !all_equal(p->p, R_(2))) return PS_ERR_CONFIG;
     memset(&out, 0, sizeof out);
-    st |= fx_const(&out.max_dL, PS_MAX_SPEED_L0_S * h, 1.0);
-    st |= fx_const(&out.theta, theta, 1.0);
-    st |= fx_const(&out.one_minus_theta, 1.0 - theta, 1.0);
-    st |= fx_const(&out.th_h, theta * h, 1.0);
-    st |= fx_const(&out.S, D_(p->S), FX_LIMIT);
-    st |= fx_const(&out.y_max, PS_FX_Y_MAX, FX_LIMIT);
-    st |= fx_const(&out.v_max, pow(PS_FX_Y_MAX, 10.0), FX_V_LIMIT);
-    out.v_max += 16; /* z^10 in Q24 is rounded */
-    st |= fx_const(&out.tol, PS_FX_TOL_Z, 1.0);
-    if (out.tol < 1) out.tol = 1;
+    st = fx_plan_scalars(&out, p, h, theta);
     for (i = 0; i < PS_NFIBRES; ++i) {
-        const double KSR = D_(p->KSR[i]), k1 = 1.0 + D_(p->KPR[i]) / KSR;
-        const double rate = p->tau[i] > R_(0) ? h / D_(p->tau[i]) : 0.0;
-        const double den = 1.0 + theta * rate, freq = D_(p->freq[i]);
-        const double a2 = D_(p->M[i]) / h + theta * theta * h * k1 * KSR;
         if (!fx_bounds_ok(p, i, h, theta, &prim[i], &sec[i], &shift)) return PS_ERR_CONFIG;
         if (shift > out.dg_shift) out.dg_shift = shift;
-        st |= fx_const(&out.KSR[i], KSR, FX_LIMIT);
-        st |= fx_const(&out.inv_KSR[i], 1.0 / KSR, FX_LIMIT);
-        st |= fx_const(&out.inv_k1[i], 1.0 / k1, FX_LIMIT);
-        if (p->tau[i] > R_(0)) {
-            st |= fx_const(&out.c_f0[i], (1.0 - (1.0 - theta) * rate) / den, 1.0);
-            st |= fx_const(&out.c_a0[i], (1.0 - theta) * rate / den, 1.0);
-            st |= fx_const(&out.c_a1[i], theta * rate / den, 1.0);
-        } else {
-            out.c_a1[i] = FX_ONE;
-        }
-        if (!(freq * 256.0 <= 2147483000.0)) return PS_ERR_CONFIG;
-        out.freq[i] = fx_round(freq * 256.0);
-        st |= fx_const(&out.beta0[i], D_(p->beta0[i]), FX_LIMIT);
-        st |= fx_const(&out.beta_drive[i], D_(p->beta_drive[i]), FX_LIMIT);
-        st |= fx_const(&out.Gamma_drive[i], D_(p->Gamma_drive[i]), FX_LIMIT);
-        st |= fx_const(&out.CL[i], D_(p->CL[i]), FX_LIMIT);
-        st |= fx_const(&out.CS[i], D_(p->CS[i]), FX_LIMIT);
-        st |= fx_const(&out.KPR[i], D_(p->KPR[i]), FX_LIMIT);
-        st |= fx_const(&out.LPR0[i], D_(p->LPR0[i]), FX_LIMIT);
-        st |= fx_const(&out.R[i], D_(p->R[i]), FX_LIMIT);
-        st |= fx_const(&out.LSR0[i], D_(p->LSR0[i]), FX_LIMIT);
-        st |= fx_const(&out.LSR0_R[i], D_(p->LSR0[i]) + D_(p->R[i]), FX_LIMIT);
-        st |= fx_const(&out.LSR0_LPR0[i], D_(p->LSR0[i]) + D_(p->LPR0[i]), FX_LIMIT);
-        st |= fx_const(&out.c_Av[i], (1.0 - theta) * h * KSR, FX_LIMIT);
-        st |= fx_const(&out.a2[i], a2, FX_LIMIT);
-        st |= fx_const(&out.inv_a2[i], 1.0 / a2, FX_LIMIT);
-        st |= fx_const(&out.r_cap[i], a2 * pow(PS_FX_Y_MAX, 10.0), FX_LIMIT);
-        st |= fx_const(&out.M_h[i], D_(p->M[i]) / h, FX_LIMIT);
-        st |= fx_const(&out.th_h_KSR[i], theta * h * KSR, FX_LIMIT);
-        st |= fx_const(&out.th_k1[i], theta * k1, FX_LIMIT);
-        st |= fx_const(&out.th_KPR[i], theta * D_(p->KPR[i]), FX_LIMIT);
-        st |= fx_const(&out.th_CL[i], theta * D_(p->CL[i]), FX_LIMIT);
-        st |= fx_const(&out.th_CS[i], theta * D_(p->CS[i]), FX_LIMIT);
-        st |= fx_const(&out.stretch0[i], D_(p->LNSR[i]) - D_(p->LSR0[i]), FX_LIMIT);
-        st |= fx_gain(&out.G_pri[i], D_(p->G_pri[i]));
-        st |= fx_gain(&out.c_sec1[i],
-                      D_(p->G_sec[i]) * D_(p->X[i]) * (D_(p->Lsec[i]) / D_(p->LSR0[i])));
-        st |= fx_gain(&out.c_sec2[i],
-                      D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * (D_(p->Lsec[i]) / D_(p->LPR0[i])));
-        st |= fx_const(&out.sec_off[i], D_(p->LSR0[i]) + D_(p->LNPR[i]), FX_LIMIT);
+        st |= fx_plan_activation(&out, i, p, h, theta);
+        st |= fx_plan_fibre(&out, i, p, h, theta);
     }
-    /* rates: primary and secondary sums, Ia = max + S min <= (1 + |S|) max(a_dyn, b_stat) */
-    big = prim[1] + prim[2] > prim[0] ? prim[1] + prim[2] : prim[0];
-    if (!((1.0 + fx_absd(D_(p->S))) * big <= FX_RATE_LIMIT && sec[1] + sec[2] <= FX_RATE_LIMIT)) {
-        return PS_ERR_CONFIG;
-    }
+    if (!fx_rates_fit(prim, sec, D_(p->S))) return PS_ERR_CONFIG;
     for (k = 0; k < PS_FX_ROOT_TABLE; ++k) {
         st |= fx_const(&out.root10[k], pow(2.0, (k - 23) / 10.0), FX_LIMIT);
     }
@@ -950,6 +1084,8 @@ static int fx_check_inputs(const ps_plan_fx *q, int32_t L, int32_t gd, int32_t g
     if (gd < 0 || gs < 0) return PS_ERR_NEGATIVE_DRIVE;
     return PS_OK;
 }
+
+static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q);
 
 static void fx_afferents(const ps_plan_fx *q, const int32_t T[PS_NFIBRES], int32_t L,
                          int32_t *ia, int32_t *ii)
@@ -1082,12 +1218,59 @@ static int fx_solve_03(int32_t *z_io, int32_t *v, const ps_plan_fx *q, int i, in
     return PS_OK;
 }
 
+/* The fibres after a fixed-point step, until it commits. */
+typedef struct fx_fibres {
+    int32_t T[PS_NFIBRES], v[PS_NFIBRES], z[PS_NFIBRES], f[PS_NFIBRES], target[PS_NFIBRES];
+} fx_fibres;
+
+/* The force of fibre i at the start of the step (as start_force). */
+static int32_t fx_start_force(const ps_spindle_fx *s, const ps_plan_fx *q, int i)
+{
+    const int32_t T0 = s->T[i], z0 = s->z[i], f0 = s->f[i];
+    const int32_t polar = s->L - q->LSR0[i] - fx_mul(T0, q->inv_KSR[i]);
+    const int32_t beta0 = q->beta0[i] + fx_mul(q->beta_drive[i], f0);
+    const int32_t z03 = fx_mul(fx_mul(z0, z0), z0);
+    const int32_t damping = fx_mul(fx_mul(z0 > 0 ? q->CL[i] : q->CS[i], beta0), z03);
+    return T0 - fx_mul(q->Gamma_drive[i], f0) - fx_mul(q->KPR[i], polar - q->LPR0[i])
+           - fx_mul(damping, fx_max(polar - q->R[i], 0));
+}
+
+/* Fibre i's step to length L1 (dL from the state's) with its drive drive1 (the equations of
+ * plan_fibre for a = 0.3, p = 2, theta in (0, 1]); its new T, v, z, f, target go to next. */
+static int fx_fibre(const ps_spindle_fx *s, const ps_plan_fx *q, int i, int32_t L1, int32_t dL,
+                    int32_t drive1, fx_fibres *next)
+{
+    const int32_t t_max = PS_FX_T_MAX * FX_ONE;
+    const int32_t v0 = s->v[i], f0 = s->f[i], tg0 = s->target[i];
+    const int32_t tg = drive1 == (i == 0 ? s->gd : s->gs) ? tg0 : fx_target(q, i, drive1);
+    int32_t f, beta1, A, F0, p0, rhs, c, z = s->z[i];
+    int status;
+    f = fx_mul(q->c_f0[i], f0) + fx_mul(q->c_a0[i], tg0) + fx_mul(q->c_a1[i], tg);
+    f = fx_min(fx_max(f, 0), FX_ONE);
+    beta1 = q->beta0[i] + fx_mul(q->beta_drive[i], f);
+    A = s->T[i] + fx_mul(q->KSR[i], dL);
+    F0 = fx_start_force(s, q, i);
+    A -= fx_mul(q->c_Av[i], v0);
+    p0 = L1 - q->LSR0_R[i] - fx_mul(A, q->inv_KSR[i]);
+    rhs = fx_mul(q->M_h[i], v0) + fx_mul(q->th_k1[i], A)
+          - fx_mul(q->theta, fx_mul(q->Gamma_drive[i], f))
+          - fx_mul(q->th_KPR[i], L1 - q->LSR0_LPR0[i]) + fx_mul(q->one_minus_theta, F0);
+    c = fx_mul(rhs > 0 ? q->th_CL[i] : q->th_CS[i], beta1);
+    status = fx_solve_03(&z, &next->v[i], q, i, p0, rhs, c);
+    if (status != PS_OK) return status;
+    next->z[i] = z;
+    next->T[i] = A - fx_mul(q->th_h_KSR[i], next->v[i]);
+    if (next->T[i] < -t_max || next->T[i] > t_max) return PS_ERR_NONFINITE;
+    next->f[i] = f;
+    next->target[i] = tg;
+    return PS_OK;
+}
+
 int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_t gd1,
                        int32_t gs1, int32_t *ia, int32_t *ii)
 {
-    int32_t T1[PS_NFIBRES], v1[PS_NFIBRES], z1[PS_NFIBRES], f1[PS_NFIBRES], tg1[PS_NFIBRES];
+    fx_fibres next;
     int32_t dL, r_ia, r_ii;
-    const int32_t t_max = PS_FX_T_MAX * FX_ONE;
     int i, status;
 
     if (s == NULL || q == NULL) return PS_ERR_NULL;
@@ -1096,46 +1279,16 @@ int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_
     if (!fx_state_ok(s, q)) return PS_ERR_NONFINITE;
     dL = L1 - s->L;
     if (fx_abs(dL) > q->max_dL) return PS_ERR_SPEED;
-
     for (i = 0; i < PS_NFIBRES; ++i) {
-        const int32_t T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i];
-        const int32_t drive1 = i == 0 ? gd1 : gs1;
-        const int32_t tg0 = s->target[i];
-        const int32_t tg = drive1 == (i == 0 ? s->gd : s->gs) ? tg0 : fx_target(q, i, drive1);
-        int32_t f, beta1, A, F0, p0, rhs, c, z;
-        f = fx_mul(q->c_f0[i], f0) + fx_mul(q->c_a0[i], tg0) + fx_mul(q->c_a1[i], tg);
-        f = fx_min(fx_max(f, 0), FX_ONE);
-        tg1[i] = tg;
-        f1[i] = f;
-        beta1 = q->beta0[i] + fx_mul(q->beta_drive[i], f);
-        A = T0 + fx_mul(q->KSR[i], dL);
-        {   /* F0: the force at the start of the step (theta < 1) */
-            int32_t polar = s->L - q->LSR0[i] - fx_mul(T0, q->inv_KSR[i]);
-            int32_t beta0 = q->beta0[i] + fx_mul(q->beta_drive[i], f0);
-            int32_t z03 = fx_mul(fx_mul(z0, z0), z0);
-            int32_t damping = fx_mul(fx_mul(z0 > 0 ? q->CL[i] : q->CS[i], beta0), z03);
-            F0 = T0 - fx_mul(q->Gamma_drive[i], f0) - fx_mul(q->KPR[i], polar - q->LPR0[i])
-                 - fx_mul(damping, fx_max(polar - q->R[i], 0));
-        }
-        A -= fx_mul(q->c_Av[i], v0);
-        p0 = L1 - q->LSR0_R[i] - fx_mul(A, q->inv_KSR[i]);
-        rhs = fx_mul(q->M_h[i], v0) + fx_mul(q->th_k1[i], A)
-              - fx_mul(q->theta, fx_mul(q->Gamma_drive[i], f))
-              - fx_mul(q->th_KPR[i], L1 - q->LSR0_LPR0[i]) + fx_mul(q->one_minus_theta, F0);
-        c = fx_mul(rhs > 0 ? q->th_CL[i] : q->th_CS[i], beta1);
-        z = z0;
-        status = fx_solve_03(&z, &v1[i], q, i, p0, rhs, c);
+        status = fx_fibre(s, q, i, L1, dL, i == 0 ? gd1 : gs1, &next);
         if (status != PS_OK) return status;
-        z1[i] = z;
-        T1[i] = A - fx_mul(q->th_h_KSR[i], v1[i]);
-        if (T1[i] < -t_max || T1[i] > t_max) return PS_ERR_NONFINITE;
     }
-    fx_afferents(q, T1, L1, &r_ia, &r_ii);
-    fx_copy3(s->T, T1);
-    fx_copy3(s->v, v1);
-    fx_copy3(s->z, z1);
-    fx_copy3(s->f, f1);
-    fx_copy3(s->target, tg1);
+    fx_afferents(q, next.T, L1, &r_ia, &r_ii);
+    fx_copy3(s->T, next.T);
+    fx_copy3(s->v, next.v);
+    fx_copy3(s->z, next.z);
+    fx_copy3(s->f, next.f);
+    fx_copy3(s->target, next.target);
     s->L = L1;
     s->gd = gd1;
     s->gs = gs1;

@@ -2,7 +2,7 @@
  * firmware.c -- Cortex-M0+ benchmark firmware: the spindles of one arm (BRA, TRImed), HUMAN
  * constants in flash, stepped once per sample.
  *
- * The host (scripts/bench_embedded.py, in an instruction-set emulator) writes the sample into
+ * The host (spindle.native.m0plus, in an instruction-set emulator) writes the sample into
  * fw_io and calls fw_step_muscle(k) for each muscle; on hardware, a timer interrupt would do
  * the same. Build options (besides those of spindle.c):
  *   FW_STEP_S, FW_THETA   the spindle step (s) and theta (default 1 ms, trapezoidal)

@@ -1,0 +1,16 @@
+"""The C spindle on a Cortex-M0+: cross-build, instruction-set check, emulation, measurement.
+
+The firmware it measures is C (``spindle/native/c/m0plus/``: ``firmware.c``, ``m0plus.ld``);
+this package is the host side that ``scripts/bench_embedded.py`` drives:
+
+- :mod:`.build`: the firmware for ``-mcpu=cortex-m0plus`` (soft float, newlib-nano) and its
+  float32 host twin, the plans compiled in as const initializers, sizes and symbols;
+- :mod:`.isa`: the ARMv6-M rules (every executed instruction, and an objdump of the whole
+  firmware) and what the emulator does with instructions an M0+ lacks;
+- :mod:`.emulator`: the firmware in unicorn's Cortex-M0 model, counting instructions;
+- :mod:`.measure`: the Mileusnic Fig. 3 protocol, the lever table, accuracy against the stiff
+  reference, and the demo motion (drives that change every sample).
+
+Needs the ``embedded`` extra (unicorn) and Debian's ``gcc-arm-none-eabi
+libnewlib-arm-none-eabi``; nothing else in ``spindle`` imports it.
+"""
