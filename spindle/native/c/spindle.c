@@ -80,7 +80,7 @@ static ps_real activation_target(ps_real drive, ps_real freq, ps_real p, int p_i
                              p_is_2 ? freq * freq : ps_pow(freq, p));
 }
 
-/* M dv/dt of a fibre (spindle.core._force) at tension T, z = sgn(v)|v|^(a/3) (z3 = z^3,
+/* M dv/dt of a fibre (spindle.core.force) at tension T, z = sgn(v)|v|^(a/3) (z3 = z^3,
  * which the caller may need too), polar length `polar`, drive terms beta and Gamma: the
  * damping C*beta*sgn(v)|v|^a is C*beta*z^3, times the polar length beyond R clipped at 0 (no
  * damping, never a negative one, where the polar region is not longer than R). */
@@ -262,7 +262,7 @@ static void velocity_from_z(ps_real z, ps_real a, int a_is_03, ps_real *w, ps_re
 }
 
 /* Where the new polar region may end no longer than R (p0 <= theta*h*|w| with |w| <= |rhs|/a2
- * at the root, spindle.core._needs_clip), the guess is limited to the root's bound
+ * at the root, spindle.batched.needs_clip), the guess is limited to the root's bound
  * |z| <= (|rhs|/a2)^(a/3); this also replaces the NaN guess of a fibre at rest with p0 <= 0
  * (no slope). */
 static ps_real bound_guess(ps_real z, ps_real p0, ps_real rhs, ps_real a2, ps_real th_h,
@@ -275,7 +275,7 @@ static ps_real bound_guess(ps_real z, ps_real p0, ps_real rhs, ps_real a2, ps_re
     return z;
 }
 
-/* One Newton iteration on g(z) (spindle.core._implicit_solve); returns the step taken. */
+/* One Newton iteration on g(z) (spindle.batched.newton_loop); returns the step taken. */
 static ps_real newton_update(ps_real *z_io, ps_real a2, ps_real p0, ps_real rhs, ps_real cS,
                              ps_real dC, ps_real th_h, ps_real a, int a_is_03)
 {
@@ -378,7 +378,7 @@ static void explicit_fibre(const ps_params *p, int i, const ps_spindle *s, ps_re
 }
 
 /* The implicit theta-method (theta > 0) of fibre i with its new activation f1: Newton on
- * z = sgn(v)|v|^(a/3) for the new velocity (spindle.core._implicit_solve), then the tension. */
+ * z = sgn(v)|v|^(a/3) for the new velocity (spindle.batched.newton_loop), then the tension. */
 static int implicit_fibre(const ps_params *p, int i, const ps_spindle *s, ps_real L1,
                           ps_real f1, ps_real h, ps_real theta, int a_is_03, ps_real *T1,
                           ps_real *v1, ps_real *z1)
