@@ -7,8 +7,8 @@ Figures, each the median of --repeats runs measured side by side in this process
 - ns_per_step: one ps_spindle_run call over the whole trace (the C loop alone);
 - ms_per_simulated_s: spindle.simulate(..., backend="c") end to end (validation, sub-step
   lengths, ctypes call), per simulated second; the same for backend="numpy";
-- speedup_vs_myogen: 52 ms per simulated second (myogen's spindle, the figure quoted in the
-  project's issue #5) / ms_per_simulated_s;
+- speedup_vs_myogen: 52 ms per simulated second (myogen's spindle, a published figure, not measured
+  side by side) / ms_per_simulated_s;
 - rms_pps: the accuracy of this setting, worst-run RMS of Ia and II over the 9 runs of the
   Mileusnic Fig. 3 protocol against the stiff reference (spindle.reference, scipy Radau),
   simulated with backend="c".

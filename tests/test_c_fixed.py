@@ -190,7 +190,7 @@ def test_random_trajectories_match_double_step(lib, preset, seed):
 
 
 def test_accuracy_against_stiff_reference(lib):
-    """Fig. 3 at 5 ms (HUMAN): within the 2 pps RMS target of issue #5 against scipy Radau,
+    """Fig. 3 at 5 ms (HUMAN): within the embedded target of 2 pps RMS against scipy Radau,
     and no worse than the double step at the same step by more than 0.01 pps."""
     pytest.importorskip("scipy")
     from spindle.reference import ramp_and_hold, solve_reference

@@ -1,4 +1,4 @@
-"""Faults that used to break the chain (issue 13): sensor gaps during movement, huge
+"""Faults that used to break the chain: sensor gaps during movement, huge
 timestamps, values that are not real numbers, the first sample of a trace, failing pushes.
 
 Every rule is checked on both backends, which must agree (counters exactly, outputs to

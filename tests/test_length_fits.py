@@ -293,7 +293,7 @@ def test_unreadable_file_raises_length_fits_error(tmp_path, kind):
     assert str(path) in str(err.value) and REGENERATE_COMMAND in str(err.value)
 
 
-# -- an edited model gets its own fits (issue 13, item 7) -------------------------------------
+# -- an edited model gets its own fits -------------------------------------
 BRA_P1 = '<site name="BRA-P1" pos="0.0068 -0.1739 -0.0036"/>'
 ENV_IDS = ("proprio_env/ElbowReach-v0", "proprio_env/ProsthesisElbow-v0")
 ANGLES_DEG = (5.0, 40.0, 80.0, 125.0)

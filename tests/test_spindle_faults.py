@@ -1,4 +1,4 @@
-"""Faults of issue 13 in the spindle core and the batch simulator, numpy and C.
+"""Faults at the edges of the valid inputs in the spindle core and the batch simulator, numpy and C.
 
 - the range ends (0.5 and 1.5 L0) at rest and in motion over the corners of the drive grid:
   the damping's polar-length factor is clipped at 0, so a polar region shorter than R (0.5 L0
@@ -40,7 +40,7 @@ METHOD_STEP = [("trapezoidal", 1e-3), ("backward_euler", 1e-3), ("forward_euler"
 def assert_backends_agree(a, b):
     """numpy and C solve the same equations to |dz| <= 1e-9: 1e-12 pps, or 2e-14 of the rate
     where the CAT gains drive it past 50 pps (1e-11 pps at 1300 pps at the range ends, as
-    before the fixes of issue 13)."""
+    before the range-end fixes)."""
     for x, y in ((a.ia, b.ia), (a.ii, b.ii)):
         assert np.abs(x - y).max() <= 1e-12 + 2e-14 * np.abs(x).max()
 
@@ -82,7 +82,7 @@ def test_rest_and_ramps_at_the_range_ends_over_the_drive_grid(end, method, step)
     """Every corner of the drive grid, rest and ramps out of and into each range end:
     finite, non-negative, bounded; the vectorised (n = 9) and one-spindle paths agree, and the
     C backend agrees with numpy (implicit methods). Forward Euler at its default step (at its
-    1.2 ms limit it blows up on these 8 L0/s ramps, as before issue 13)."""
+    1.2 ms limit it blows up on these 8 L0/s ramps, as it always did)."""
     L = range_end_trace(end)
     gd = np.array([c[0] for c in DRIVE_CORNERS])
     gs = np.array([c[1] for c in DRIVE_CORNERS])

@@ -44,7 +44,7 @@ def test_reference_reproduces_the_published_fig3_qualities(fast_ramp_reference):
 
 
 def test_reference_smoothing_changes_nothing():
-    # onset 1.0014 s: the rest hold that failed at every eps before the fix (issue 13)
+    # onset 1.0014 s: the rest hold that failed at every eps before the one-sided segment rule
     stim = ramp_and_hold(speed_L0_s=1.55, ramp_start_s=1.0014, duration_s=1.25)
     t = np.arange(1251) * 1e-3
     a = solve_reference(stim, t, eps_L0_s=1e-7)
@@ -110,7 +110,7 @@ def test_default_method_meets_the_target_on_every_fig3_run(speed, gd, gs):
     assert rms(r.ii, ref.ii) <= 0.5
 
 
-# --- Any onset, any drive (issue 13, item 10) ------------------------------------------------
+# --- Any onset, any drive ------------------------------------------------
 # Radau's last stage sits exactly on a segment's end, where a piecewise velocity already takes
 # the next piece's value; the reference failed ("Required step size is less than spacing
 # between numbers") in the rest hold of ramps whose onset happened to make that stage bite.
@@ -126,7 +126,7 @@ START_L0, END_L0 = 0.95, 1.08
 
 
 def issue_stimulus(speed, onset, gd, gs, duration, left_continuous=False):
-    """The ramp of issue 13, written as a user would (closed-open velocity by default)."""
+    """The failing ramp, written as a user would (closed-open velocity by default)."""
     off = onset + (END_L0 - START_L0) / speed
     if left_continuous:
         def velocity(t):
@@ -161,7 +161,7 @@ def check_against_the_core_and_rest(stim, onset):
 
 
 @pytest.mark.parametrize(("speed", "onset", "gd", "gs"), [
-    (1.55, 1.0014, 0.0, 0.0),   # the two cases of issue 13
+    (1.55, 1.0014, 0.0, 0.0),   # the two rest holds that used to fail
     (0.66, 1.0053, 70.0, 0.0),
 ])
 def test_reference_solves_the_issue_13_ramps(speed, onset, gd, gs):

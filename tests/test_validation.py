@@ -1,4 +1,4 @@
-"""Validation experiments (issue #7): human gains, the ECRB wrist curve and protocol, and the
+"""Validation experiments: human gains, the ECRB wrist curve and protocol, and the
 one-command ``scripts/validate.py`` in its reduced mode."""
 
 import csv
