@@ -57,6 +57,17 @@ static ps_real max_r(ps_real a, ps_real b) { return a < b ? b : a; }
 
 static ps_real min_r(ps_real a, ps_real b) { return b < a ? b : a; }
 
+/* The Newton step g/g' of both implicit paths: g' kept above PS_TINY (g' = 0 at z = 0 when the
+ * polar region is no longer than R) and the step capped at PS_NEWTON_MAX_DZ. NaN propagates
+ * through both clamps, as np.maximum/np.minimum do. */
+static ps_real newton_step(ps_real g, ps_real dg)
+{
+    ps_real d = g / (dg < R_(PS_TINY) ? R_(PS_TINY) : dg);
+    if (d > R_(PS_NEWTON_MAX_DZ)) d = R_(PS_NEWTON_MAX_DZ);
+    if (d < R_(-PS_NEWTON_MAX_DZ)) d = R_(-PS_NEWTON_MAX_DZ);
+    return d;
+}
+
 static ps_real sign_r(ps_real x) { return x > R_(0) ? R_(1) : (x < R_(0) ? R_(-1) : R_(0)); }
 
 static ps_real fibre_drive(int i, ps_real gd, ps_real gs) { return i == 0 ? gd : gs; }
@@ -294,10 +305,7 @@ static ps_real newton_update(ps_real *z_io, ps_real a2, ps_real p0, ps_real rhs,
         g = a2 * w - rhs;
         dg = a2 * dw;
     }
-    /* NaN propagates through both clamps, as np.maximum/np.minimum do. */
-    dz = g / (dg < R_(PS_TINY) ? R_(PS_TINY) : dg);
-    if (dz > R_(PS_NEWTON_MAX_DZ)) dz = R_(PS_NEWTON_MAX_DZ);
-    if (dz < R_(-PS_NEWTON_MAX_DZ)) dz = R_(-PS_NEWTON_MAX_DZ);
+    dz = newton_step(g, dg);
     *z_io = z - dz;
     return dz;
 }
@@ -656,9 +664,7 @@ static int solve_03(ps_real *z_io, ps_real *v, ps_real a2, ps_real inv_a2, ps_re
             g = a2 * y10 - r;
             dg = y9 * ten_a2;
         }
-        dy = g / (dg < R_(PS_TINY) ? R_(PS_TINY) : dg);
-        if (dy > R_(PS_NEWTON_MAX_DZ)) dy = R_(PS_NEWTON_MAX_DZ);
-        if (dy < R_(-PS_NEWTON_MAX_DZ)) dy = R_(-PS_NEWTON_MAX_DZ);
+        dy = newton_step(g, dg);
         y -= dy;
         if (y < R_(0)) y = R_(0);
 #if !(defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0)
