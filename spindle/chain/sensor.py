@@ -12,7 +12,9 @@ This module holds the device-side pieces, each usable alone:
   (:class:`proprio_env.encoder.Encoder`) draws from;
 - :func:`is_valid_reading`: integers in 0..max_count;
 - :class:`Calibration`: f(x), elbow angle = sign * (counts - zero_count) * deg_per_count;
-- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming), causal.
+- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming), causal;
+  :class:`BatchedMedianFilter` streams many independent signals (one per arm) at once;
+  :func:`valid_readings` is :func:`is_valid_reading` over an array.
 """
 
 from __future__ import annotations
@@ -127,6 +129,13 @@ def is_valid_reading(counts: float, max_count: int = AX12.max_count) -> bool:
     return bool(np.isfinite(x) and x == np.floor(x) and 0 <= x <= max_count)
 
 
+def valid_readings(counts: np.ndarray, max_count: int = AX12.max_count) -> np.ndarray:
+    """:func:`is_valid_reading` elementwise over a float array (NaN for non-real values)."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(counts) & (counts == np.floor(counts)) & (counts >= 0) & (
+            counts <= max_count)
+
+
 def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
     """Causal running median along axis 0: ``out[k] = median(x[k-window+1 .. k])``.
 
@@ -171,6 +180,49 @@ class MedianFilter:
         """Put back the window a :meth:`snapshot` of this filter returned."""
         self._buffer.clear()
         self._buffer.extend(snapshot)
+
+
+class BatchedMedianFilter:
+    """Streaming causal medians of ``n`` independent signals, each over its own last
+    ``window`` accepted samples: :class:`MedianFilter` over a leading axis.
+
+    Each signal's window is a ring in a row of an (n, window) array; the median does not
+    depend on the order within a window, so a push overwrites the oldest sample in place.
+    ``rows`` (an index array, or None for every signal) picks the signals a call concerns.
+    """
+
+    def __init__(self, n: int, window: int = 7) -> None:
+        _check_window(window)
+        self.window = window
+        self._buffer = np.zeros((n, window))
+        self._next = np.zeros(n, dtype=np.intp)  # each ring's oldest slot
+
+    def reset(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Fill the windows of ``rows`` with ``values`` (signals at rest); return them."""
+        values = np.asarray(values, dtype=float)
+        rows = slice(None) if rows is None else rows
+        self._buffer[rows] = values[:, None]
+        self._next[rows] = 0
+        return values.copy()
+
+    def push(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Add one sample to each signal of ``rows``; return their medians."""
+        index = np.arange(self._next.size) if rows is None else rows
+        slot = self._next[index]
+        self._buffer[index, slot] = values
+        slot += 1
+        slot[slot == self.window] = 0
+        self._next[index] = slot
+        middle = self.window // 2
+        return np.partition(self._buffer[index], middle, axis=1)[:, middle]
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """The windows, for :meth:`restore` (a caller undoing a failed update)."""
+        return self._buffer.copy(), self._next.copy()
+
+    def restore(self, snapshot: tuple[np.ndarray, np.ndarray]) -> None:
+        """Put back the windows a :meth:`snapshot` of this filter returned."""
+        self._buffer, self._next = snapshot
 
 
 def _check_window(window: int) -> None:
