@@ -130,6 +130,7 @@ class BatchedArmChain:
         self._intended = np.full((n, 2), math.nan)  # NaN rows: the measured motion
         self._counters = np.zeros((n, len(COUNTERS)), dtype=np.int64)
         self._behind = np.zeros(n, dtype=np.int64)  # samples older than the last accepted
+        self._no_behind = self._behind  # (arrays are rebound, never written: one zero array)
         self._t = np.zeros(n)
         self._angle = np.zeros(n)
         self._u = np.ones((n, 2))  # the last accepted lengths (the low-pass's input)
@@ -340,20 +341,23 @@ class BatchedArmChain:
         """One sample per active arm (``active`` None: every arm); returns the accepted mask.
 
         Rebinds the chain's arrays (never writes into them) except the median windows, the
-        predictors and the spindles, which the caller's snapshot covers."""
+        predictors and the spindles, which the caller's snapshot covers. ``t`` and ``x`` are
+        the caller's own copies (the chain keeps them)."""
         cfg = self.config
         counters = self._counters.copy()
-        finite = np.isfinite(t)
-        if active is None:
-            given = finite
-            bad_time = ~finite
+        given = np.isfinite(t)
+        if active is not None:
+            given &= active
+        with np.errstate(invalid="ignore"):  # inf - inf where a time is not finite
+            dt = t - self._t
+        time_ok = given & (dt > 0.0)
+        back = given & (dt < 0.0)
+        any_back = back.any()
+        if any_back:
+            behind = self._behind + back
+            time_ok |= back & (behind >= cfg.resync_after_samples)
         else:
-            given = active & finite
-            bad_time = active & ~finite
-        repeated = given & (t == self._t)
-        back = given & (t < self._t)
-        behind = self._behind + back
-        time_ok = given & ~repeated & ~(back & (behind < cfg.resync_after_samples))
+            behind = self._behind
         if kind == "counts":
             valid, bad_name = valid_readings(x, cfg.encoder.max_count), "invalid_reading"
         elif kind == "angle_deg":
@@ -361,19 +365,24 @@ class BatchedArmChain:
         else:
             valid, bad_name = _lengths_valid(x), "invalid_length"
         ok = time_ok & valid
-        for name, mask in (("bad_time", bad_time), ("repeated_time", repeated),
-                           ("time_backwards", back & (behind < cfg.resync_after_samples)),
-                           (bad_name, time_ok & ~valid)):
-            counters[:, _COUNTER[name]] += mask
-        behind[ok] = 0
-        self._behind = behind
-        if not ok.any():
+        all_ok = ok.all()
+        if not all_ok:
+            if active is None:
+                counters[:, _COUNTER["bad_time"]] += ~np.isfinite(t)
+            else:
+                counters[:, _COUNTER["bad_time"]] += active & ~np.isfinite(t)
+            counters[:, _COUNTER["repeated_time"]] += given & (dt == 0.0)
+            if any_back:
+                counters[:, _COUNTER["time_backwards"]] += back & ~time_ok
+            counters[:, _COUNTER[bad_name]] += time_ok & ~valid
+        # an accepted sample starts the count of late ones anew
+        self._behind = self._no_behind if all_ok else np.where(ok, 0, behind)
+        if not all_ok and not ok.any():
             self._counters = counters
             return ok
-        S = _ALL if ok.all() else np.flatnonzero(ok)
-        t, x = t[S], x[S]
-        prev_t = self._t[S]
-        dt = t - prev_t
+        S = _ALL if all_ok else np.flatnonzero(ok)
+        if S is not _ALL:
+            t, x, dt = t[S], x[S], dt[S]
         restart = (dt < 0.0) | (dt > cfg.max_bridge_s)
         counters[S, _COUNTER["gaps"]] += dt > cfg.gap_s
         counters[S, _COUNTER["accepted"]] += 1
@@ -399,11 +408,14 @@ class BatchedArmChain:
                 counts = filtered = np.full(t.size, -1.0)
             given_angle = angle
             limit = cfg.max_speed_deg_s * dt
-            change = angle - self._angle[S]
-            slew = normal & (np.abs(change) > limit)
+            last_angle = self._angle[S]
+            change = angle - last_angle
+            slew = np.abs(change) > limit
+            if any_restart:
+                slew &= normal
             if slew.any():
                 counters[S, _COUNTER["slew_limited"]] += slew
-                angle = np.where(slew, self._angle[S] + np.copysign(limit, change), angle)
+                angle = np.where(slew, last_angle + np.copysign(limit, change), angle)
             lo, hi = self.angle_range_deg
             outside = (angle < lo) | (angle > hi)
             if outside.any():
@@ -414,7 +426,6 @@ class BatchedArmChain:
             counters[S, _COUNTER["restarts"]] += restart
             counters[S, _COUNTER["clock_resyncs"]] += restart & (dt < 0.0)
             i = np.flatnonzero(restart)
-            rows = _rows(S, i)
             reading = counts[i].copy()
             from_angle = reading < 0
             if from_angle.any():
@@ -422,7 +433,7 @@ class BatchedArmChain:
                 # of the angle as given, as reset does)
                 source = angle if given_angle is None else given_angle
                 reading[from_angle] = self._rest_reading(source[i][from_angle])
-            self._rest(rows, t[i], angle[i], L[i], reading, counts[i], filtered[i])
+            self._rest(_rows(S, i), t[i], angle[i], L[i], reading, counts[i], filtered[i])
             i = np.flatnonzero(normal)
             if i.size == 0:
                 self._counters = counters
@@ -466,7 +477,7 @@ class BatchedArmChain:
         step_s = self.config.spindle_step_s
         k = np.maximum(np.ceil(dt / step_s * (1 - 1e-12)), 1.0)
         h = dt / k
-        if h.min() == h.max() and k.min() == k.max():
+        if (dt == dt[0]).all():  # shared sample times: one group
             return self._advance_group(S, int(k[0]), float(h[0]), x0, v0, x1, v1, gd, gs, dt)
         ia, ii = np.empty_like(x1), np.empty_like(x1)
         keys = np.stack((k, h), axis=1)
@@ -531,7 +542,7 @@ class BatchedArmChain:
         for name, value in values.items():
             attr = "_" + name
             if S is _ALL:
-                setattr(self, attr, np.array(value, dtype=float))
+                setattr(self, attr, value)
             else:
                 new = getattr(self, attr).copy()
                 new[S] = value
@@ -539,8 +550,7 @@ class BatchedArmChain:
 
     def _set_out(self, S, *values) -> None:
         if S is _ALL:
-            self._out = _read_only({name: np.array(value, dtype=float)
-                                    for name, value in zip(_OUTPUTS, values, strict=True)})
+            self._out = _read_only(dict(zip(_OUTPUTS, values, strict=True)))
             return
         out = {}
         for name, value in zip(_OUTPUTS, values, strict=True):
@@ -606,7 +616,7 @@ class BatchedArmChain:
 
 def _shaped(name: str, value, shape: tuple[int, ...], meaning: str) -> np.ndarray:
     """``value`` as a float array (NaN for non-real entries) of exactly ``shape``."""
-    array = real_array(value)
+    array = np.array(real_array(value), dtype=float)  # a copy: the chain keeps its inputs
     if array.shape != shape:
         raise ValueError(f"{name} has shape {array.shape}; expected {shape} {meaning}")
     return array
@@ -623,8 +633,8 @@ def _check_finite(name: str, values: np.ndarray, rows: np.ndarray) -> None:
 def _lengths_valid(L: np.ndarray) -> np.ndarray:
     """Per row of (m, 2): 2 finite lengths within the spindle's range."""
     lo, hi = core.LENGTH_RANGE_L0
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(L).all(axis=-1) & (L.min(axis=-1) >= lo) & (L.max(axis=-1) <= hi)
+    # NaN and infinities fail one of the comparisons
+    return ((L >= lo) & (L <= hi)).all(axis=-1)
 
 
 def _rows(S, i: np.ndarray) -> np.ndarray:

@@ -240,9 +240,10 @@ class BatchedMotionPredictor:
 
     Each arm's PI loop updates on its own grid of ``1/predictor_rate_hz`` from its own reset
     time, with the same arithmetic as :class:`MotionPredictor` (so the same bits). The last
-    updates (t_k, p_k, u_k) of each arm are kept in its row of (n, K) arrays, the newest in
-    column K - 1; ``count`` says how many are real. ``rows`` (an index array, or None for
-    every arm) picks the arms a call concerns.
+    K updates (t_k, p_k, u_k) of each arm are kept in its row of (n, K) arrays, oldest first;
+    a reset fills every slot with the rest segment (t_0, p_0, 0), which reads as the single
+    predictor's one segment at every time. ``rows`` (an index array, or None for every arm)
+    picks the arms a call concerns.
     """
 
     def __init__(self, n: int, n_muscles: int, params: FusimotorParams = SEED_PAPER) -> None:
@@ -251,7 +252,6 @@ class BatchedMotionPredictor:
         self._t = np.zeros((n, keep))
         self._p = np.zeros((n, keep, n_muscles))
         self._u = np.zeros((n, keep, n_muscles))
-        self._count = np.zeros(n, dtype=np.intp)
         self._integral = np.zeros((n, n_muscles))
 
     def reset(self, t_s: np.ndarray, length_L0: np.ndarray,
@@ -259,12 +259,12 @@ class BatchedMotionPredictor:
         """Arms ``rows`` at rest at ``length_L0`` (r, m) at times ``t_s`` (r,); returns the
         templates (= the lengths)."""
         rows = slice(None) if rows is None else rows
-        self._count[rows] = 1
-        self._t[rows, -1] = t_s
-        self._p[rows, -1] = length_L0
-        self._u[rows, -1] = 0.0
+        length_L0 = np.asarray(length_L0, dtype=float)
+        self._t[rows] = np.asarray(t_s, dtype=float)[:, None]
+        self._p[rows] = length_L0[:, None]
+        self._u[rows] = 0.0
         self._integral[rows] = 0.0
-        return np.array(length_L0, dtype=float)
+        return length_L0.copy()
 
     @property
     def integral_L0_s(self) -> np.ndarray:
@@ -286,7 +286,7 @@ class BatchedMotionPredictor:
         p = self._p[rows, -1].copy()
         u = self._u[rows, -1].copy()
         integral = self._integral[rows]  # a copy for an index array, written back below
-        arms = np.arange(self._count.size)[rows]
+        arms = np.arange(self._t.shape[0])[rows]
         # A bridged gap takes several updates: each pass moves the arms still due by one.
         while True:
             i = np.flatnonzero(due)
@@ -300,38 +300,33 @@ class BatchedMotionPredictor:
             w = integral[i] + (ki * dt) * error
             u_new = kp * error + w
             integral[i], t_k[i], p[i], u[i] = w, t_new, p_new, u_new
-            self._append(arms[i], t_new, p_new, u_new)
+            for array, new in ((self._t, t_new), (self._p, p_new), (self._u, u_new)):
+                array[arms[i], :-1] = array[arms[i], 1:]
+                array[arms[i], -1] = new
             due[i] = t_s[i] >= t_new + dt * (1.0 - 1e-9)
         self._integral[rows] = integral
         return p + u * (t_s - t_k)[:, None]
-
-    def _append(self, arms: np.ndarray, t_k: np.ndarray, p: np.ndarray, u: np.ndarray) -> None:
-        for array, new in ((self._t, t_k), (self._p, p), (self._u, u)):
-            array[arms, :-1] = array[arms, 1:]
-            array[arms, -1] = new
-        self._count[arms] = np.minimum(self._count[arms] + 1, self._t.shape[1])
 
     def template_at(self, t_s: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """The templates of arms ``rows`` at earlier times ``t_s`` (r,), each clamped to the
         arm's oldest kept update."""
         rows = slice(None) if rows is None else rows
-        times, count = self._t[rows], self._count[rows]
-        keep = times.shape[1]
-        usable = (times <= t_s[:, None]) & (np.arange(keep) >= (keep - count)[:, None])
-        newest = keep - 1 - np.argmax(usable[:, ::-1], axis=1)
+        times = self._t[rows]
+        # the newest update at or before t_s (times increase along a row); before the
+        # oldest, the oldest's p: its u times a time clipped at 0 adds exactly nothing
+        later = (times > t_s[:, None]).sum(axis=1)
+        newest = np.maximum(times.shape[1] - 1 - later, 0)
         r = np.arange(times.shape[0])
-        p, u = self._p[rows], self._u[rows]
-        found = p[r, newest] + u[r, newest] * (t_s - times[r, newest])[:, None]
-        return np.where(usable[r, newest][:, None], found, p[r, keep - count])
+        since = np.maximum(t_s - times[r, newest], 0.0)
+        return self._p[rows][r, newest] + self._u[rows][r, newest] * since[:, None]
 
     def snapshot(self) -> tuple:
         """The predictors' state, for :meth:`restore` (a caller undoing a failed update)."""
-        return tuple(a.copy() for a in (self._t, self._p, self._u, self._count,
-                                        self._integral))
+        return tuple(a.copy() for a in (self._t, self._p, self._u, self._integral))
 
     def restore(self, snapshot: tuple) -> None:
-        """Put back the state a :meth:`snapshot` of these predictors returned."""
-        self._t, self._p, self._u, self._count, self._integral = snapshot
+        """Put back the state a :meth:`snapshot` of these predictors returned (once)."""
+        self._t, self._p, self._u, self._integral = snapshot
 
 
 class BatchedFusimotor:

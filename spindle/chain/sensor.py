@@ -131,9 +131,9 @@ def is_valid_reading(counts: float, max_count: int = AX12.max_count) -> bool:
 
 def valid_readings(counts: np.ndarray, max_count: int = AX12.max_count) -> np.ndarray:
     """:func:`is_valid_reading` elementwise over a float array (NaN for non-real values)."""
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(counts) & (counts == np.floor(counts)) & (counts >= 0) & (
-            counts <= max_count)
+    # comparisons with NaN are False (and raise no warning)
+    return np.isfinite(counts) & (counts == np.floor(counts)) & (counts >= 0) & (
+        counts <= max_count)
 
 
 def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
@@ -186,43 +186,42 @@ class BatchedMedianFilter:
     """Streaming causal medians of ``n`` independent signals, each over its own last
     ``window`` accepted samples: :class:`MedianFilter` over a leading axis.
 
-    Each signal's window is a ring in a row of an (n, window) array; the median does not
-    depend on the order within a window, so a push overwrites the oldest sample in place.
-    ``rows`` (an index array, or None for every signal) picks the signals a call concerns.
+    Each signal's window is a row of an (n, window) array, oldest first. ``rows`` (an index
+    array, or None for every signal) picks the signals a call concerns.
     """
 
     def __init__(self, n: int, window: int = 7) -> None:
         _check_window(window)
         self.window = window
         self._buffer = np.zeros((n, window))
-        self._next = np.zeros(n, dtype=np.intp)  # each ring's oldest slot
 
     def reset(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """Fill the windows of ``rows`` with ``values`` (signals at rest); return them."""
         values = np.asarray(values, dtype=float)
-        rows = slice(None) if rows is None else rows
-        self._buffer[rows] = values[:, None]
-        self._next[rows] = 0
+        self._buffer[slice(None) if rows is None else rows] = values[:, None]
         return values.copy()
 
     def push(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """Add one sample to each signal of ``rows``; return their medians."""
-        index = np.arange(self._next.size) if rows is None else rows
-        slot = self._next[index]
-        self._buffer[index, slot] = values
-        slot += 1
-        slot[slot == self.window] = 0
-        self._next[index] = slot
+        if rows is None:
+            window = self._buffer
+            window[:, :-1] = window[:, 1:]
+            window[:, -1] = values
+        else:
+            window = self._buffer[rows]
+            window[:, :-1] = window[:, 1:]
+            window[:, -1] = values
+            self._buffer[rows] = window
         middle = self.window // 2
-        return np.partition(self._buffer[index], middle, axis=1)[:, middle]
+        return np.partition(window, middle, axis=1)[:, middle]
 
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+    def snapshot(self) -> np.ndarray:
         """The windows, for :meth:`restore` (a caller undoing a failed update)."""
-        return self._buffer.copy(), self._next.copy()
+        return self._buffer.copy()
 
-    def restore(self, snapshot: tuple[np.ndarray, np.ndarray]) -> None:
-        """Put back the windows a :meth:`snapshot` of this filter returned."""
-        self._buffer, self._next = snapshot
+    def restore(self, snapshot: np.ndarray) -> None:
+        """Put back the windows a :meth:`snapshot` of this filter returned (once)."""
+        self._buffer = snapshot
 
 
 def _check_window(window: int) -> None:
