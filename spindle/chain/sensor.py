@@ -152,7 +152,11 @@ def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
 
 
 class MedianFilter:
-    """Streaming causal median of the last ``window`` accepted samples (window odd)."""
+    """Streaming causal median of the last ``window`` accepted samples (window odd).
+
+    Many signals at once: :class:`BatchedMedianFilter` (the single chain pushes faster on
+    this deque and ``sorted``; the figure is in :class:`~spindle.chain.fusimotor.MotionPredictor`).
+    """
 
     def __init__(self, window: int = 7) -> None:
         _check_window(window)
