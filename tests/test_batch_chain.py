@@ -249,23 +249,26 @@ def _snapshot(batch: BatchedArmChain):
 
 
 def _failing_advance(monkeypatch, after_calls: int):
-    real = core.advance
+    """core.advance and core.plain_advance (the step with a step size per spindle) raise
+    after ``after_calls`` calls of either."""
     calls = {"n": 0}
 
-    def advance(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] > after_calls:
-            raise FloatingPointError("injected failure")
-        return real(*args, **kwargs)
+    def failing(real):
+        def advance(*args, **kwargs):
+            calls["n"] += 1
+            if calls["n"] > after_calls:
+                raise FloatingPointError("injected failure")
+            return real(*args, **kwargs)
+        return advance
 
-    monkeypatch.setattr(core, "advance", advance)
-    return lambda: monkeypatch.setattr(core, "advance", real)
+    for name in ("advance", "plain_advance"):
+        monkeypatch.setattr(core, name, failing(getattr(core, name)))
+    return monkeypatch.undo
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
-@pytest.mark.parametrize("after_calls", [0, 1, 3])
-def test_a_failed_push_leaves_every_arm_as_it_was(monkeypatch, kind, after_calls):
-    n = 5
+@pytest.mark.parametrize(("n", "after_calls"), [(5, 0), (5, 1), (5, 3), (3, 2)])
+def test_a_failed_push_leaves_every_arm_as_it_was(monkeypatch, kind, n, after_calls):
     batch, _ = make_pair(n)
     streams = [fault_stream(kind, a, 60, seed=2) for a in range(n)]
     for i in range(40):  # some history: rejects, a restart maybe, a full median window
@@ -273,8 +276,8 @@ def test_a_failed_push_leaves_every_arm_as_it_was(monkeypatch, kind, after_calls
                                             np.array([s[1][i] for s in streams]))
     reference = copy.deepcopy(batch)
     before = _snapshot(batch)
-    # jittered times: several groups of sub-steps, so a later group fails after earlier
-    # ones have been written
+    # jittered times: several groups of sub-steps (3 arms: a core call per group, 5: a step
+    # size per spindle), so a later step fails after earlier ones have been written
     t = np.array([s[0][40] for s in streams]) + 0.0003 * np.arange(n)
     x = np.array([s[1][40] for s in streams])
     undo = _failing_advance(monkeypatch, after_calls)
