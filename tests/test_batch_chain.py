@@ -16,6 +16,7 @@ import pytest
 
 from spindle import core
 from spindle.chain import ArmChain, ChainConfig
+from spindle.chain import batch as batch_module
 from spindle.chain.batch import BatchedArmChain, BatchSample
 from spindle.chain.config import COUNTERS, ArmSample
 from spindle.chain.length_model import load_length_fits
@@ -208,7 +209,9 @@ def test_unfiltered_config_equals_single_chains():
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
-def test_ragged_blocks_equal_single_chains(kind):
+def test_ragged_blocks_equal_single_chains(kind, monkeypatch):
+    # jittered arms beyond 2 groups of sub-step sizes: a step size per spindle
+    monkeypatch.setattr(batch_module, "MAX_STEP_GROUPS", 2)
     n, k = 5, 12
     batch, singles = make_pair(n)
     streams = [fault_stream(kind, a, 10 * k, seed=21) for a in range(n)]
@@ -261,14 +264,21 @@ def _failing_advance(monkeypatch, after_calls: int):
             return real(*args, **kwargs)
         return advance
 
-    for name in ("advance", "plain_advance"):
-        monkeypatch.setattr(core, name, failing(getattr(core, name)))
-    return monkeypatch.undo
+    real = {name: getattr(core, name) for name in ("advance", "plain_advance")}
+    for name, step in real.items():
+        monkeypatch.setattr(core, name, failing(step))
+
+    def undo():
+        for name, step in real.items():
+            monkeypatch.setattr(core, name, step)
+
+    return undo
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
 @pytest.mark.parametrize(("n", "after_calls"), [(5, 0), (5, 1), (5, 3), (3, 2)])
 def test_a_failed_push_leaves_every_arm_as_it_was(monkeypatch, kind, n, after_calls):
+    monkeypatch.setattr(batch_module, "MAX_STEP_GROUPS", 4)
     batch, _ = make_pair(n)
     streams = [fault_stream(kind, a, 60, seed=2) for a in range(n)]
     for i in range(40):  # some history: rejects, a restart maybe, a full median window
