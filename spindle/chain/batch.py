@@ -44,11 +44,12 @@ _SPINDLE_ARRAYS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activa
                    "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
 _OUTPUTS = tuple(f.name for f in fields(ArmSample) if f.name != "accepted")
 _ALL = slice(None)
-MAX_STEP_GROUPS = 16
+MAX_STEP_GROUPS = 10
 """Most groups of arms with distinct sub-step sizes stepped one core call each; beyond, the
 arms are stepped with a step size per spindle (see ``BatchedArmChain._advance_group``). With
-jittered times (a group per arm) the plain step over all arms cost ~2x the groups' calls at
-8 arms and ~1/3 at 64 (push_counts, shared 2-core machine, 2026-12-01)."""
+jittered times (a group per arm), push_counts took 5.1 ms per group call vs 5.8 ms with a
+step size per spindle at 8 arms, 7.3 vs 5.6 at 16, 23.5 vs 4.9 at 64 (idle 2-core machine,
+2026-12-01)."""
 
 
 @dataclass(frozen=True)

@@ -135,8 +135,8 @@ class MotionPredictor:
 
     (The batched arms' loop is :class:`BatchedMotionPredictor`, the same arithmetic. This one on
     a deque of (2,) arrays stays: the single chain built on ``BatchedMotionPredictor(1, 2)``
-    (and ``BatchedMedianFilter(1)``) pushed 1.3-1.6x slower, bit-identical, measured side by
-    side on a shared 2-core machine, 2026-12-01.)
+    and ``BatchedMedianFilter(1)`` pushed bit-identical outputs 1.16-1.26x slower, side by
+    side on an idle 2-core machine (1.3-1.6x loaded), 2026-12-01.)
     """
 
     def __init__(self, params: FusimotorParams = SEED_PAPER) -> None:
