@@ -640,10 +640,18 @@ class CBatchedArmChain:
     # -- state ---------------------------------------------------------------------------
     def reset(self, angle_deg: np.ndarray, t_s: float | np.ndarray = 0.0,
               length_L0: np.ndarray | None = None, arms: np.ndarray | None = None):
-        """Arms at rest (every arm, or the arms of the index array ``arms``; see
-        :meth:`spindle.chain.batch.BatchedArmChain.reset`). Returns :attr:`last`."""
+        """Arms at rest: every arm, or the arms of the index array ``arms`` (the others
+        untouched); see :meth:`spindle.chain.batch.BatchedArmChain.reset`. The first reset
+        covers every arm (``arms=None``; a partial one before it raises RuntimeError and
+        changes nothing). Returns :attr:`last` (every arm's output)."""
         index = self._arms(arms)
         m = self.n_arms if index is None else index.size
+        if index is not None:
+            never = self._table["stage"] < 2
+            never[index] = False
+            if never.any():
+                raise RuntimeError(f"arm {int(np.argmax(never))} was never reset: the first reset "
+                                   "must cover every arm (arms=None)")
         angle = _batch_real("angle_deg", angle_deg, (m,))
         t = np.broadcast_to(real_number(t_s), (m,)) if np.ndim(t_s) == 0 else _batch_real(
             "t_s", t_s, (m,))
