@@ -1042,8 +1042,10 @@ int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_r
 
 
 /* ======================================================================================
- * Batches: many arms' chains in one array, one call for all of them
+ * Batches: many arms' chains in one array, one call for all of them (left out of a device
+ * build with -DPS_NO_BATCH: 1.8 kB of Cortex-M0+ code the one-arm firmware does not need)
  * ====================================================================================== */
+#ifndef PS_NO_BATCH
 
 static void set_failed(long *failed_arm, long arm, long *failed_sample, long sample)
 {
@@ -1270,3 +1272,4 @@ int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigne
     return batch_push(chains, PUSH_LENGTHS, n_arms, -1, NULL, active, t_s, length_L0, backup,
                       out, failed_arm, NULL);
 }
+#endif /* PS_NO_BATCH */

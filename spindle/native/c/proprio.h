@@ -431,7 +431,9 @@ int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_r
  * block) then name where it failed (-1 on success; each pointer may be NULL), and the
  * contents of `out` are unspecified. No heap: the caller passes `backup` (pushes) or
  * `scratch` (reset), n_arms (or m) states of working memory whose contents are ignored on
- * entry and meaningless after. */
+ * entry and meaningless after. Compiled unless PS_NO_BATCH is defined (a one-arm device
+ * build saves their code: 1.8 kB on a Cortex-M0+). */
+#ifndef PS_NO_BATCH
 
 /* Reset m arms: arm arms[j] (j = 0..m-1; arms NULL: arm j, and m must equal n_arms) at rest
  * at angle_deg[j], t_s[j] and, if length_L0 is not NULL, lengths length_L0[2j..2j+1]:
@@ -480,6 +482,7 @@ int ps_chain_batch_push_angle(ps_arm_chain *chains, long n_arms, const unsigned 
 int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigned char *active,
                                 const ps_time *t_s, const ps_real *length_L0,
                                 ps_chain_state *backup, ps_arm_sample *out, long *failed_arm);
+#endif /* PS_NO_BATCH */
 
 /* ---- end of chain section ---- */
 
