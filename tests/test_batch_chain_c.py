@@ -22,7 +22,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spindle.chain import COUNTERS, ArmSample, ChainConfig, make_batched_chain, resolve_backend
+from spindle.chain import (
+    BACKEND_CHOICES,
+    BACKENDS,
+    COUNTERS,
+    ArmSample,
+    ChainConfig,
+    make_batched_chain,
+    resolve_backend,
+)
 from spindle.native import abi, build
 
 try:
@@ -353,6 +361,8 @@ print(json.dumps(out))
 
 def test_auto_backend_uses_c_when_it_can_and_falls_back_to_numpy(tmp_path):
     assert resolve_backend("numpy") == "numpy" and resolve_backend("c") == "c"
+    assert BACKENDS == ("numpy", "c") and BACKEND_CHOICES == ("numpy", "c", "auto")
+    assert ChainConfig(backend="auto").backend == "auto"  # resolved when a chain is built
     with pytest.raises(ValueError, match="fortran"):
         resolve_backend("fortran")
     assert make_batched_chain(2, ChainConfig(backend="auto")).config.backend in ("c", "numpy")

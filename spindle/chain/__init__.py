@@ -14,6 +14,7 @@ through a chain. No MuJoCo here.
 
 from spindle.chain.arm import ArmChain
 from spindle.chain.config import (
+    BACKEND_CHOICES,
     BACKENDS,
     COUNTERS,
     MUSCLES,
@@ -26,6 +27,7 @@ from spindle.chain.trace import ChainTrace, run_chain
 
 __all__ = [
     "BACKENDS",
+    "BACKEND_CHOICES",
     "COUNTERS",
     "MUSCLES",
     "ArmChain",

@@ -8,7 +8,7 @@ from dataclasses import replace
 from functools import cache
 
 from spindle.chain.arm import ArmChain
-from spindle.chain.config import BACKENDS, Chain, ChainConfig
+from spindle.chain.config import BACKEND_CHOICES, Chain, ChainConfig
 from spindle.chain.length_model import LengthFits
 
 
@@ -22,10 +22,10 @@ def resolve_backend(name: str) -> str:
     falls back to numpy.
 
     Raises:
-        ValueError: ``name`` is not one of :data:`~spindle.chain.config.BACKENDS`.
+        ValueError: ``name`` is not one of :data:`~spindle.chain.config.BACKEND_CHOICES`.
     """
-    if not isinstance(name, str) or name not in BACKENDS:
-        raise ValueError(f"backend={name!r} is not one of {BACKENDS}")
+    if not isinstance(name, str) or name not in BACKEND_CHOICES:
+        raise ValueError(f"backend={name!r} is not one of {BACKEND_CHOICES}")
     if name != "auto":
         return name
     usable = _native_usable(os.environ.get("CC", ""), os.environ.get("PROPRIO_C_CACHE", ""))
