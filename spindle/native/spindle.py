@@ -289,7 +289,10 @@ class SpindleBatch:
         if code != Status.PS_OK:
             message = (f"C spindle {self._failed.value} of {self.n} failed with "
                        f"{status_name(code)} (step {self.step_s!r} s); no spindle was advanced")
-            if code in (Status.PS_ERR_NONFINITE, Status.PS_ERR_NO_CONVERGENCE):
+            # PS_ERR_NONFINITE is also a non-finite input: that one is the caller's error
+            bad_input = not all(np.isfinite(x[self._failed.value]) for x in arrays)
+            if code == Status.PS_ERR_NO_CONVERGENCE or (code == Status.PS_ERR_NONFINITE
+                                                        and not bad_input):
                 raise FloatingPointError(message)
             raise ValueError(message)
         return self.ia_pps, self.ii_pps
