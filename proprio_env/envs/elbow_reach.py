@@ -132,5 +132,5 @@ class ElbowReachEnv(ElbowProprioEnv):
     def _make_action_space(self) -> spaces.Box:
         return spaces.Box(0.0, 1.0, (2,), dtype=np.float32)
 
-    def _apply_action(self, action: np.ndarray) -> None:
-        self.data.ctrl[self._muscle_ids] = action
+    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
+        ctrl[:, self._muscle_ids] = actions

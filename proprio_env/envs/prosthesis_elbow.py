@@ -112,14 +112,18 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
 
     def command_deg(self, action: np.ndarray) -> float:
         """The servo command (deg) of a (valid) action."""
-        return self._command_mid_deg + self._command_half_deg * float(action[0])
+        return float(self.commands_deg(np.asarray(action, dtype=float)[None, :])[0])
 
-    def _apply_action(self, action: np.ndarray) -> None:
-        self.data.ctrl[self._servo_id] = math.radians(self.command_deg(action))
+    def commands_deg(self, actions: np.ndarray) -> np.ndarray:
+        """The servo commands (deg) of (valid) actions (n, 1)."""
+        return self._command_mid_deg + self._command_half_deg * actions[:, 0]
 
-    def _reset_controls(self, angle_deg: float) -> None:
-        super()._reset_controls(angle_deg)
-        self.data.ctrl[self.model.actuator(SERVO).id] = math.radians(angle_deg)
+    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
+        ctrl[:, self._servo_id] = np.radians(self.commands_deg(actions))
+
+    def _reset_controls(self, data, angle_deg: float) -> None:
+        super()._reset_controls(data, angle_deg)
+        data.ctrl[self.model.actuator(SERVO).id] = math.radians(angle_deg)
 
     def _info(self, pushed, reward_distance, reward_control):
         info = super()._info(pushed, reward_distance, reward_control)
