@@ -23,7 +23,7 @@ import numpy as np
 
 from spindle.chain.sensor import AX12, INVALID_READING, Calibration, EncoderParams
 
-__all__ = ["CHUNK", "Encoder", "EncoderBank", "interval_chunk", "readings", "interp_rows"]
+__all__ = ["CHUNK", "Encoder", "EncoderBank", "interp_rows", "interval_chunk", "readings"]
 
 CHUNK = 64
 """Readings per chunk of random draws (one generator call per stream every CHUNK readings)."""
