@@ -103,7 +103,7 @@ def test_truncates_at_max_episode_steps_then_autoresets():
     truncs = [env.step(a)[3].copy() for _ in range(5)]
     assert [t.tolist() for t in truncs] == [[False, False], [False, False], [True, True],
                                             [False, False], [False, False]]
-    obs, _, _, _, info = env.step(a)
+    _obs, _, _, _, info = env.step(a)
     assert np.all(info["time_s"] == pytest.approx(0.04))  # two steps after the autoreset
     env.close()
 
@@ -130,7 +130,7 @@ def test_reset_mask_and_seed_list():
     obs2, info = env.reset(seed=[None, 6, None], options={"reset_mask": mask})
     np.testing.assert_array_equal(obs2[1], obs1[1])
     assert info["time_s"].tolist() == pytest.approx([0.02, 0.0, 0.02])
-    obs3, info = env.reset(options={"target_deg": 40.0, "angle_deg": np.array([20, 30, 50])})
+    _obs3, info = env.reset(options={"target_deg": 40.0, "angle_deg": np.array([20, 30, 50])})
     assert info["target_deg"].tolist() == [40.0] * 3
     assert info["angle_deg"] == pytest.approx([20, 30, 50])
     with pytest.raises(ValueError, match="reset_mask"):
@@ -185,7 +185,7 @@ def test_encoder_chunks_give_the_same_readings_one_by_one_in_blocks_and_in_a_ban
     t_bank = []
     for k in range(1, 19):
         t = np.tile(np.linspace(0.02 * (k - 1) + 0.002, 0.02 * k, 10), (2, 1))
-        read_t, counts, n = bank.step(t, np.full((2, 10), 65.0))
+        read_t, _counts, n = bank.step(t, np.full((2, 10), 65.0))
         assert n[0] == n[1] and np.array_equal(read_t[0], read_t[1], equal_nan=True)
         t_bank += read_t[0, :n[0]].tolist()
     np.testing.assert_array_equal(t_bank, times1[1:len(t_bank) + 1])
