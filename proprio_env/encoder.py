@@ -169,8 +169,9 @@ class Encoder:
 
 class EncoderBank:
     """``n`` encoders read at once: each keeps its own :class:`Encoder` (its own streams), and
-    the bank holds their next random draws in (n, width) buffers so that one env step's
-    readings of every encoder take a few array operations.
+    the bank holds their next random draws in (n, width) buffers with a cursor per encoder,
+    so that one env step's readings of every encoder take a few array operations (a Python
+    call per encoder only every :data:`CHUNK` readings, to refill).
 
     Args:
         n: number of encoders.
@@ -187,8 +188,12 @@ class EncoderBank:
         self.encoders: list[Encoder | None] = [None] * n
         self._intervals = np.zeros((n, width))
         self._draws = np.zeros((_N_READ, n, width))
-        self._n_intervals = np.zeros(n, dtype=np.int64)   # buffered draws left per encoder
-        self._n_draws = np.zeros(n, dtype=np.int64)
+        # per encoder: next unused buffered draw and end of the buffered draws
+        self._i_cur = np.zeros(n, dtype=np.int64)
+        self._i_end = np.zeros(n, dtype=np.int64)
+        self._d_cur = np.zeros(n, dtype=np.int64)
+        self._d_end = np.zeros(n, dtype=np.int64)
+        self._rows = np.arange(n)[:, None]
         self.next_read_s = np.zeros(n)
         self.last_t_s = np.zeros(n)
         self.last_angle_deg = np.zeros(n)
@@ -197,33 +202,40 @@ class EncoderBank:
         """Encoder ``i`` starts afresh at ``t_s`` with a new :class:`Encoder` spawned from
         ``rng`` (the env's generator); its first reading is one jittered period later."""
         self.encoders[i] = Encoder(self.params, self.calibration, rng=rng)
-        self._n_intervals[i] = 0
-        self._n_draws[i] = 0
-        self._fill(np.array([i]), np.array([1]), np.array([0]))
+        self._i_cur[i] = self._i_end[i] = self._d_cur[i] = self._d_end[i] = 0
+        self._refill_intervals(i, 1)
         self.next_read_s[i] = t_s + self._intervals[i, 0]
-        self._intervals[i, :-1] = self._intervals[i, 1:]
-        self._n_intervals[i] -= 1
+        self._i_cur[i] = 1
         self.last_t_s[i] = t_s
         self.last_angle_deg[i] = angle_deg
 
-    def _fill(self, envs: np.ndarray, need_intervals: np.ndarray, need_draws: np.ndarray
-              ) -> None:
-        """Refill the buffers of ``envs`` up to the needed counts (per encoder, in order)."""
-        for i, ni, nd in zip(envs.tolist(), need_intervals.tolist(), need_draws.tolist(),
-                             strict=True):
-            enc = self.encoders[i]
-            if enc is None:
-                raise RuntimeError(f"encoder {i} read before its reset")
-            while self._n_intervals[i] < ni:
-                k = self._n_intervals[i]
-                self._intervals[i, k:k + CHUNK] = enc.interval_chunk()
-                self._n_intervals[i] += CHUNK
-            while self._n_draws[i] < nd:
-                k = self._n_draws[i]
-                self._draws[:, i, k:k + CHUNK] = enc.read_chunk()
-                self._n_draws[i] += CHUNK
+    def _encoder(self, i: int) -> Encoder:
+        enc = self.encoders[i]
+        if enc is None:
+            raise RuntimeError(f"encoder {i} read before its reset")
+        return enc
 
-    def step(self, t_s: np.ndarray, angle_deg: np.ndarray, envs: Sequence[int] | None = None
+    def _refill_intervals(self, i: int, need: int) -> None:
+        """At least ``need`` buffered intervals for encoder ``i`` (left-aligned, in order)."""
+        enc, buf = self._encoder(i), self._intervals[i]
+        left = int(self._i_end[i] - self._i_cur[i])
+        buf[:left] = buf[self._i_cur[i]:self._i_end[i]]
+        while left < need:
+            buf[left:left + CHUNK] = enc.interval_chunk()
+            left += CHUNK
+        self._i_cur[i], self._i_end[i] = 0, left
+
+    def _refill_draws(self, i: int, need: int) -> None:
+        """At least ``need`` buffered readings' draws for encoder ``i``."""
+        enc, buf = self._encoder(i), self._draws[:, i]
+        left = int(self._d_end[i] - self._d_cur[i])
+        buf[:, :left] = buf[:, self._d_cur[i]:self._d_end[i]]
+        while left < need:
+            buf[:, left:left + CHUNK] = enc.read_chunk()
+            left += CHUNK
+        self._d_cur[i], self._d_end[i] = 0, left
+
+    def step(self, t_s: np.ndarray, angle_deg: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The readings of one env step: every reading due up to the last physics time.
 
@@ -237,47 +249,34 @@ class EncoderBank:
             ``read_t_s`` (n, K), ``counts`` (n, K) and ``n_samples`` (n,): encoder i read
             ``n_samples[i]`` times; the entries past that are padding (NaN).
         """
-        n, w = self.n, self.window
+        n, w, rows = self.n, self.window, self._rows
         end = t_s[:, -1]
-        # readings due: cumulated intervals from the next reading (sequential sums, as a
+        for i in np.flatnonzero(self._i_end - self._i_cur < w - 1).tolist():
+            self._refill_intervals(i, w - 1)
+        # reading times: cumulated intervals from the next reading (sequential sums, as a
         # single encoder adds one interval at a time)
-        short = self._n_intervals < w - 1
-        if short.any():
-            idx = np.flatnonzero(short)
-            self._fill(idx, np.full(idx.size, w - 1), np.zeros(idx.size, dtype=np.int64))
         times = np.empty((n, w))
         times[:, 0] = self.next_read_s
-        times[:, 1:] = self._intervals[:, :w - 1]
+        times[:, 1:] = self._intervals[rows, self._i_cur[:, None] + np.arange(w - 1)]
         np.cumsum(times, axis=1, out=times)
         due = times <= end[:, None]
         n_samples = due.sum(axis=1)
         if np.any(n_samples >= w):
             raise RuntimeError(f"more than {w - 1} encoder readings in one env step")
         k = max(int(n_samples.max()), 1)
-        self.next_read_s = times[np.arange(n), n_samples]
-        self._consume(self._intervals, self._n_intervals, n_samples)
-        short = self._n_draws < n_samples
-        if short.any():
-            idx = np.flatnonzero(short)
-            self._fill(idx, np.zeros(idx.size, dtype=np.int64), n_samples[idx])
-        read_t = np.where(due[:, :k], times[:, :k], np.nan)
+        self.next_read_s = times[rows[:, 0], n_samples]
+        self._i_cur += n_samples
+        for i in np.flatnonzero(self._d_end - self._d_cur < n_samples).tolist():
+            self._refill_draws(i, int(n_samples[i]))
+        due = due[:, :k]
+        read_t = np.where(due, times[:, :k], np.nan)
         knots_t = np.concatenate((self.last_t_s[:, None], t_s), axis=1)
         knots_a = np.concatenate((self.last_angle_deg[:, None], angle_deg), axis=1)
-        angles = interp_rows(np.where(due[:, :k], times[:, :k], end[:, None]), knots_t, knots_a)
-        counts = readings(angles, self._draws[:, :, :k], self.params, self.calibration)
-        counts[~due[:, :k]] = np.nan
-        self._consume(self._draws, self._n_draws, n_samples)
+        angles = interp_rows(np.where(due, read_t, end[:, None]), knots_t, knots_a)
+        draws = self._draws[:, rows, self._d_cur[:, None] + np.arange(k)]
+        counts = readings(angles, draws, self.params, self.calibration)
+        counts[~due] = np.nan
+        self._d_cur += n_samples
         self.last_t_s = end.copy()
         self.last_angle_deg = angle_deg[:, -1].copy()
         return read_t, counts, n_samples
-
-    @staticmethod
-    def _consume(buf: np.ndarray, left: np.ndarray, used: np.ndarray) -> None:
-        """Drop the first ``used[i]`` buffered draws of each encoder (shift left)."""
-        width = buf.shape[-1]
-        cols = np.minimum(np.arange(width)[None, :] + used[:, None], width - 1)
-        if buf.ndim == 2:
-            buf[:] = np.take_along_axis(buf, cols, axis=1)
-        else:
-            buf[:] = np.take_along_axis(buf, np.broadcast_to(cols, buf.shape), axis=2)
-        left -= used
