@@ -17,8 +17,6 @@ same readings for the same seed.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 
 from spindle.chain.sensor import AX12, INVALID_READING, Calibration, EncoderParams

@@ -89,12 +89,16 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
 
     | Parameter              | Type  | Default     | Description |
     |------------------------|-------|-------------|-------------|
+    | `backend`              | str   | `"auto"`    | spindle chain backend: `"auto"` (C where a compiler or a valid cached library exists, numpy otherwise; `env.unwrapped.backend` says which), `"numpy"` or `"c"` |
     | `afferent_source`      | str   | `"encoder"` | `"encoder"` (the prosthesis chain), `"reduced"` (clean angle -> fitted lengths) or `"exact"` (MuJoCo fibre lengths of the passive muscles) |
     | `control_cost_weight`  | float | `0`         | $w_{ctrl}$ |
 
     ## Version History
     * v0: initial release (AX-12 encoder chain of the seed paper, human spindle gains, 50 Hz
-      control).
+      control). Later in v0: ``backend`` defaults to ``"auto"``; physics through
+      ``mujoco.rollout`` (shared with the native vector env of ``gymnasium.make_vec``); the
+      encoder draws its jitter, noise and glitches in chunks of 64 readings from two streams
+      spawned from the env's generator: the random numbers for a given seed changed.
     """
 
     disabled_groups: ClassVar[int] = MUSCLE_GROUP_BIT
