@@ -6,7 +6,6 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
-from batch_standin import LoopBatchedChain  # noqa: F401  (installs the stand-in if needed)
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 import proprio_env  # noqa: F401  (registers the envs)
@@ -208,3 +207,25 @@ def test_encoder_noise_and_glitch_rates():
     assert d.mean() == pytest.approx(p.period_s, rel=0.02)
     assert d.std() == pytest.approx(min(p.jitter_s, 0.4 * p.period_s), rel=0.1)
     assert np.all(d >= 0.6 * p.period_s - 1e-15)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "c"])
+def test_batched_chain_does_not_keep_the_callers_block_buffers(backend):
+    """The vector env reuses its physics buffers every step: a batched chain fed blocks from
+    one buffer that is overwritten between pushes must equal single chains fed copies."""
+    config = spindle.chain.ChainConfig(backend=backend)
+    batch = spindle.chain.make_batched_chain(2, config)
+    singles = [spindle.chain.make_chain(config) for _ in range(2)]
+    angle0 = np.array([40.0, 90.0])
+    batch.reset(angle0)
+    for i, c in enumerate(singles):
+        c.reset(float(angle0[i]))
+    t_buf, a_buf = np.empty((2, 10)), np.empty((2, 10))
+    for k in range(6):
+        t_buf[:] = 0.02 * k + 0.002 * np.arange(1, 11)
+        a_buf[:] = angle0[:, None] + 20.0 * np.sin(8.0 * t_buf)
+        out = batch.push_angle_block(t_buf, a_buf)
+        for i, c in enumerate(singles):
+            ref = c.push_angle_block(t_buf[i].copy(), a_buf[i].copy())
+            np.testing.assert_allclose(out.ia_pps[i], ref.ia_pps, rtol=0, atol=1e-9)
+            assert out.t_s[i] == ref.t_s

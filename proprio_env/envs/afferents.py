@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from proprio_env.encoder import Encoder, EncoderBank
-from spindle.chain import ArmSample, ChainConfig, make_chain
+from spindle.chain import ArmSample, ChainConfig, make_batched_chain, make_chain
 from spindle.chain.length_model import LengthFits
 from spindle.chain.sensor import AX12, EncoderParams
 
@@ -116,11 +116,9 @@ class BatchAfferentReadout:
     def __init__(self, n: int, source: str, chain_config: ChainConfig,
                  encoder_params: EncoderParams = AX12, fits: LengthFits | None = None,
                  step_s: float = 0.02) -> None:
-        import spindle.chain as chain_package
-
         self.n = n
         self.source = check_source(source)
-        self.chain = chain_package.make_batched_chain(n, chain_config, fits)
+        self.chain = make_batched_chain(n, chain_config, fits)
         self.encoder_params = encoder_params
         self.encoders = EncoderBank(n, encoder_params, encoder_window(step_s, encoder_params))
 

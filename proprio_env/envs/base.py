@@ -35,7 +35,7 @@ from proprio_env.envs.physics import PhysicsBatch, load_sensed_model
 from proprio_env.length_fitting import fits_for_model
 from proprio_env.model import JOINT, MUSCLES, model_path
 from proprio_env.muscle_length import fibre_length_L0, muscle_geometry
-from spindle.chain import BACKENDS, ArmSample, ChainConfig, resolve_backend
+from spindle.chain import BACKEND_CHOICES, ArmSample, ChainConfig, resolve_backend
 from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.chain.sensor import AX12, EncoderParams
 
@@ -49,11 +49,6 @@ one step."""
 MUSCLE_GROUP_BIT = 1 << 1
 SERVO_GROUP_BIT = 1 << 2
 """``model.opt.disableactuator`` bits: actuator group 1 = muscles, group 2 = servo."""
-
-BACKEND_CHOICES = tuple(dict.fromkeys(("auto", *BACKENDS)))
-"""The envs' ``backend`` argument: ``"auto"`` (:func:`spindle.chain.resolve_backend`: C where
-a compiler or a valid cached library exists, else numpy) or one of the chain's backends."""
-
 
 def observations(ia_pps: np.ndarray, ii_pps: np.ndarray, gamma_static_pps: np.ndarray,
                  gamma_dynamic_pps: np.ndarray, target_deg: np.ndarray,
