@@ -229,3 +229,19 @@ def test_batched_chain_does_not_keep_the_callers_block_buffers(backend):
             ref = c.push_angle_block(t_buf[i].copy(), a_buf[i].copy())
             np.testing.assert_allclose(out.ia_pps[i], ref.ia_pps, rtol=0, atol=1e-9)
             assert out.t_s[i] == ref.t_s
+
+
+def test_fibre_lengths_of_both_muscles_equal_the_one_muscle_function():
+    from proprio_env.muscle_length import FibreLengths, fibre_length_L0
+
+    geometries = gym.make(IDS[0]).unwrapped._geometries
+    both = FibreLengths(geometries)
+    slack = np.array([g.tendon_slack_length_m for g in geometries])
+    mtu = slack + np.random.default_rng(0).uniform(0.01, 0.2, (3, 10, 2))
+    ref = np.stack([fibre_length_L0(mtu[..., j], g) for j, g in enumerate(geometries)], -1)
+    np.testing.assert_array_equal(both(mtu), ref)
+    for bad, match in ((np.nan, "finite"), (np.inf, "finite"), (0.05, "slack")):
+        mtu_bad = mtu.copy()
+        mtu_bad[1, 4, 1] = bad
+        with pytest.raises(ValueError, match=f"{geometries[1].name}.*{match}"):
+            both(mtu_bad)

@@ -34,7 +34,7 @@ from proprio_env.envs.arguments import (
 from proprio_env.envs.physics import PhysicsBatch, load_sensed_model
 from proprio_env.length_fitting import fits_for_model
 from proprio_env.model import JOINT, MUSCLES, model_path
-from proprio_env.muscle_length import fibre_length_L0, muscle_geometry
+from proprio_env.muscle_length import FibreLengths, muscle_geometry
 from spindle.chain import BACKEND_CHOICES, ArmSample, ChainConfig, resolve_backend
 from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.chain.sensor import AX12, EncoderParams
@@ -51,23 +51,31 @@ SERVO_GROUP_BIT = 1 << 2
 """``model.opt.disableactuator`` bits: actuator group 1 = muscles, group 2 = servo."""
 
 def observations(ia_pps: np.ndarray, ii_pps: np.ndarray, gamma_static_pps: np.ndarray,
-                 gamma_dynamic_pps: np.ndarray, target_deg: np.ndarray,
+                 gamma_dynamic_pps: np.ndarray, target_rad: np.ndarray | float,
                  include_fusimotor: bool) -> np.ndarray:
-    """(n, 5) or (n, 9) float32 observations from (n, 2) rates and (n,) targets (deg)."""
-    parts = [ia_pps / RATE_SCALE_PPS, ii_pps / RATE_SCALE_PPS,
-             np.radians(target_deg)[:, None]]
+    """(..., 5) or (..., 9) float32 observations from (..., 2) rates (pps) and targets (rad)
+    of shape (...): one env (2,) and a float, or n envs (n, 2) and (n,). The rates are
+    divided in float64, then rounded once to float32."""
+    obs = np.empty((*ia_pps.shape[:-1], 9 if include_fusimotor else 5), dtype=np.float32)
+    np.divide(ia_pps, RATE_SCALE_PPS, out=obs[..., 0:2], casting="same_kind")
+    np.divide(ii_pps, RATE_SCALE_PPS, out=obs[..., 2:4], casting="same_kind")
+    obs[..., 4] = target_rad
     if include_fusimotor:
-        parts += [gamma_static_pps / RATE_SCALE_PPS, gamma_dynamic_pps / RATE_SCALE_PPS]
-    return np.concatenate(parts, axis=1).astype(np.float32)
+        np.divide(gamma_static_pps, RATE_SCALE_PPS, out=obs[..., 5:7], casting="same_kind")
+        np.divide(gamma_dynamic_pps, RATE_SCALE_PPS, out=obs[..., 7:9], casting="same_kind")
+    return obs
 
 
-def check_observations(obs: np.ndarray, t_s: np.ndarray) -> None:
-    """RuntimeError naming the env if an observation is not finite (never observed)."""
-    bad = ~np.isfinite(obs).all(axis=1)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise RuntimeError(f"non-finite observation {obs[i].tolist()} in env {i} (chain "
-                           f"output t={t_s[i]!r})")
+def check_observations(obs: np.ndarray, t_s: Any) -> None:
+    """RuntimeError naming the env if an observation is not finite (never observed); one
+    observation (k,) or n of them (n, k)."""
+    if np.isfinite(obs).all():
+        return
+    if obs.ndim == 1:
+        raise RuntimeError(f"non-finite observation {obs.tolist()} (chain output t={t_s!r})")
+    i = int(np.flatnonzero(~np.isfinite(obs).all(axis=1))[0])
+    raise RuntimeError(f"non-finite observation {obs[i].tolist()} in env {i} (chain "
+                       f"output t={t_s[i]!r})")
 
 
 def rewards(angle_deg: np.ndarray, target_deg: np.ndarray, actions: np.ndarray,
@@ -83,7 +91,8 @@ def rewards(angle_deg: np.ndarray, target_deg: np.ndarray, actions: np.ndarray,
 def step_info(sample: Any, time_s: Any, angle_deg: Any, velocity_deg_s: Any, target_deg: Any,
               pushed: Any, reward_distance: Any, reward_control: Any) -> dict[str, Any]:
     """The raw signals of a step (``info``), scalars or arrays alike; ``sample`` is an
-    :class:`~spindle.chain.ArmSample` or a batch of them."""
+    :class:`~spindle.chain.ArmSample` or a batch of them (its arrays are copied: the chain
+    may share them with its state)."""
     return {
         "time_s": time_s,
         "angle_deg": angle_deg,
@@ -103,16 +112,25 @@ def step_info(sample: Any, time_s: Any, angle_deg: Any, velocity_deg_s: Any, tar
     }
 
 
-def check_actions(actions: Any, space: spaces.Box, shape: tuple[int, ...], clip: bool
-                  ) -> np.ndarray:
+def check_actions(actions: Any, space: spaces.Box, shape: tuple[int, ...], clip: bool,
+                  bounds: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``actions`` as float64 of ``shape`` inside ``space`` (clipped if ``clip``), else
-    ValueError naming the action and the box."""
+    ValueError naming the action and the box. ``bounds``: the box's (low, high) as float64,
+    if the caller keeps them."""
+    low, high = ((space.low.astype(np.float64), space.high.astype(np.float64))
+                 if bounds is None else bounds)
+    # the common case in a few array operations: a float array of the right shape inside
+    # the box (NaN fails both comparisons and takes the checked path below)
+    if (isinstance(actions, np.ndarray) and actions.dtype.char in "fd"
+            and actions.shape == shape):
+        a = actions.astype(np.float64)
+        if ((a >= low) & (a <= high)).all():
+            return a
     a = check_real_array("action", actions)
     if a.shape != shape:
         raise ValueError(f"action has shape {a.shape}, expected {shape}")
     if not np.all(np.isfinite(a)):
         raise ValueError(f"action {a.tolist()} holds NaN or inf")
-    low, high = space.low.astype(np.float64), space.high.astype(np.float64)
     if np.any(a < low) or np.any(a > high):
         if not clip:
             raise ValueError(
@@ -218,6 +236,7 @@ class ElbowProprioEnv(gym.Env):
         self.initial_angle_ranges_deg = check_ranges_deg(
             "initial_angle_ranges_deg", initial_angle_ranges_deg, self.joint_range_deg)
         self._geometries = tuple(muscle_geometry(self.model, m) for m in MUSCLES)
+        self._fibre_lengths_of = FibreLengths(self._geometries)
         self._tendon_ids = np.array([self.model.tendon(m).id for m in MUSCLES])
         config = replace(ChainConfig() if chain_config is None else chain_config,
                          backend=backend)
@@ -228,8 +247,11 @@ class ElbowProprioEnv(gym.Env):
         self.backend = backend
         self.observation_space = self._make_observation_space()
         self.action_space = self._make_action_space()
+        self._action_bounds = (self.action_space.low.astype(np.float64),
+                               self.action_space.high.astype(np.float64))
 
         self._target_deg = 0.5 * sum(self.joint_range_deg)
+        self._target_rad = math.radians(self._target_deg)
         self._sample: ArmSample | None = None
         self._renderer: mujoco.Renderer | None = None
         self._physics = PhysicsBatch(self.model, 1, self.frame_skip, scratch=[self.data],
@@ -316,12 +338,15 @@ class ElbowProprioEnv(gym.Env):
         rng = self.np_random
         target, angle = self.draw_start(rng, {} if options is None else dict(options))
         self._target_deg = target
+        self._target_rad = math.radians(target)
         length = self.reset_physics(self.data, angle)
         self._physics.store(0, self.data)
         self._sample = self.afferents.reset(self.data.time, angle, length, rng)
         return self._observation(), self._info(0, 0.0, 0.0)
 
     def step(self, action):
+        # Python work per step counts against the physics (~10 mj_step): scalars stay
+        # Python floats, arrays come straight from the physics buffers.
         if self._sample is None:
             raise RuntimeError("call reset() before step()")
         action = self._check_action(action)
@@ -329,21 +354,24 @@ class ElbowProprioEnv(gym.Env):
         self.write_controls(physics.ctrl, action[None, :])
         physics.step()
         d = self.data
-        if not (np.isfinite(d.qpos[self._qadr]) and np.isfinite(d.qvel[self._vadr])):
-            raise RuntimeError(f"physics diverged: elbow angle {d.qpos[self._qadr]!r} rad, "
-                               f"velocity {d.qvel[self._vadr]!r} rad/s")
+        q, v = float(d.qpos[self._qadr]), float(d.qvel[self._vadr])
+        if not (math.isfinite(q) and math.isfinite(v)):
+            raise RuntimeError(f"physics diverged: elbow angle {q!r} rad, velocity {v!r} rad/s")
         lengths = None
         if self.afferent_source == "exact":
             lengths = self._fibre_lengths(physics.tendon_lengths_m(d)[0])
         self._sample, pushed = self.afferents.push(
             physics.time_s()[0], np.degrees(physics.angle_rad()[0]), lengths)
         obs = self._observation()
-        _, distance, control = rewards(np.array([self.angle_deg]),
-                                       np.array([self._target_deg]), action[None, :],
-                                       self.distance_reward_weight, self.control_cost_weight)
-        reward_distance, reward_control = float(distance[0]), float(control[0])
+        angle_deg = math.degrees(q)
+        # the same arithmetic as rewards() for the vector env
+        reward_distance = -self.distance_reward_weight * abs(
+            math.radians(angle_deg - self._target_deg))
+        reward_control = -self.control_cost_weight * float(action @ action)
         reward = reward_distance + reward_control
-        return obs, reward, False, False, self._info(pushed, reward_distance, reward_control)
+        info = step_info(self._sample, float(d.time), angle_deg, math.degrees(v),
+                         self._target_deg, pushed, reward_distance, reward_control)
+        return obs, reward, False, False, self._add_info(info)
 
     def render(self):
         if self.render_mode != "rgb_array":
@@ -427,8 +455,7 @@ class ElbowProprioEnv(gym.Env):
         return x
 
     def _fibre_lengths(self, mtu_m: np.ndarray) -> np.ndarray:
-        return np.stack([fibre_length_L0(mtu_m[:, j], g)
-                         for j, g in enumerate(self._geometries)], axis=-1)
+        return self._fibre_lengths_of(mtu_m)
 
     def _length_fits(self, model_file: Path, config: ChainConfig) -> LengthFits:
         """The fits of this env's model: ``config.fits_path`` checked against the model's
@@ -439,18 +466,22 @@ class ElbowProprioEnv(gym.Env):
 
     def _check_action(self, action: Any) -> np.ndarray:
         return check_actions(action, self.action_space, self.action_space.shape,
-                             self.clip_actions)
+                             self.clip_actions, self._action_bounds)
 
     def _observation(self) -> np.ndarray:
         s = self._sample
-        obs = observations(s.ia_pps[None], s.ii_pps[None], s.gamma_static_pps[None],
-                           s.gamma_dynamic_pps[None], np.array([self._target_deg]),
-                           self.include_fusimotor)
-        check_observations(obs, np.array([s.t_s]))
-        return obs[0]
+        obs = observations(s.ia_pps, s.ii_pps, s.gamma_static_pps, s.gamma_dynamic_pps,
+                           self._target_rad, self.include_fusimotor)
+        check_observations(obs, s.t_s)
+        return obs
 
     def _info(self, pushed: int, reward_distance: float, reward_control: float
               ) -> dict[str, Any]:
-        return step_info(self._sample, float(self.data.time), self.angle_deg,
-                         math.degrees(float(self.data.qvel[self._vadr])), self._target_deg,
-                         int(pushed), reward_distance, reward_control)
+        return self._add_info(step_info(
+            self._sample, float(self.data.time), self.angle_deg,
+            math.degrees(float(self.data.qvel[self._vadr])), self._target_deg, int(pushed),
+            reward_distance, reward_control))
+
+    def _add_info(self, info: dict[str, Any]) -> dict[str, Any]:
+        """Subclass hook: this env's own entries added to ``info``."""
+        return info

@@ -129,7 +129,6 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
         super()._reset_controls(data, angle_deg)
         data.ctrl[self.model.actuator(SERVO).id] = math.radians(angle_deg)
 
-    def _info(self, pushed, reward_distance, reward_control):
-        info = super()._info(pushed, reward_distance, reward_control)
+    def _add_info(self, info):
         info["command_deg"] = math.degrees(float(self.data.ctrl[self._servo_id]))
         return info

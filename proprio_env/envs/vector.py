@@ -146,7 +146,7 @@ class ElbowProprioVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before step()")
         env, n = self.env, self.num_envs
         actions = check_actions(actions, env.action_space, (n, *env.action_space.shape),
-                                env.clip_actions)
+                                env.clip_actions, env._action_bounds)
         resetting = self._autoreset.copy()
         active = ~resetting
         physics = self.physics
@@ -221,7 +221,7 @@ class ElbowProprioVectorEnv(VectorEnv):
     def _observations(self) -> np.ndarray:
         s = self._sample = self.afferents.chain.last
         obs = observations(s.ia_pps, s.ii_pps, s.gamma_static_pps, s.gamma_dynamic_pps,
-                           self.target_deg, self.env.include_fusimotor)
+                           np.radians(self.target_deg), self.env.include_fusimotor)
         check_observations(obs, s.t_s)
         return obs
 
