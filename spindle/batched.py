@@ -59,6 +59,19 @@ HISTORY_PROBE = 61
 """Every this many spindles, the state's z is compared with the last step's output before
 that step's history steers the next guess (see :class:`Workspace`)."""
 
+_ALL = slice(None)
+_MAX = np.maximum.reduce
+_MIN = np.minimum.reduce
+_ALL_TRUE = np.logical_and.reduce
+
+
+def _spindle_vector(x, n: int) -> np.ndarray:
+    """``x`` (a scalar or (n,)) as an (n,) array; an (n,) float array as it is."""
+    if type(x) is np.ndarray and x.shape == (n,):
+        return x
+    return np.broadcast_to(x, (n,))
+
+
 BUFFERS = (
     # start of the step (setup)
     "target",      # activation target a1 of the new drive
@@ -179,15 +192,16 @@ class Workspace:
     def advance(self, state, L1, gd1, gs1):
         k, n = self.k, self.n
         start = _StepStart.of(state, k)
-        L1 = np.broadcast_to(L1, (n,))
-        gd1 = np.broadcast_to(gd1, (n,))
-        gs1 = np.broadcast_to(gs1, (n,))
+        L1, gd1, gs1 = (_spindle_vector(x, n) for x in (L1, gd1, gs1))
         # An unchanged drive (the common case) has an unchanged activation target.
-        same_drive = (k.theta < 1.0 and np.array_equal(start.gd, gd1)
-                      and np.array_equal(start.gs, gs1))
+        same_drive = (k.theta < 1.0 and bool(_ALL_TRUE(np.equal(start.gd, gd1)))
+                      and bool(_ALL_TRUE(np.equal(start.gs, gs1))))
         prior = self._extrapolation_history(start.z)
         tail = []
         iterations = 0
+        # One block has no other block to share a tail with: its slow fibres iterate on in
+        # the block (at n = 128 the tail's gathering cost more than the whole Newton loop)
+        hand_on = n > CHUNK_SPINDLES
         for j0 in range(0, n, CHUNK_SPINDLES):
             cols = slice(j0, min(n, j0 + CHUNK_SPINDLES))
             b = self.blocks[cols.stop - j0]
@@ -198,7 +212,7 @@ class Workspace:
             clip = needs_clip(b.flat, k)
             if clip:
                 bound_guess(b.flat, k)
-            left, block_iterations = newton_block(b, k, clip)
+            left, block_iterations = newton_block(b, k, clip, hand_on)
             iterations += block_iterations
             if left is not None:
                 tail.append(self._handed_on(b, left, j0, start.z))
@@ -218,10 +232,12 @@ class Workspace:
         """(z_-1, z_-2) when this step may extrapolate its guess from them, else None; makes
         the oldest ring buffer this step's z output."""
         ring = self.z_ring
+        self.z1 = ring[3]  # the oldest: no longer part of the history
+        if self.n < EXTRAPOLATE_SPINDLES:
+            return None
         if self.history and not np.array_equal(z0[:, ::HISTORY_PROBE],
                                                ring[0][:, ::HISTORY_PROBE]):
             self.history = 0  # the state is not the one the last step left
-        self.z1 = ring[3]  # the oldest: no longer part of the history
         self.cooldown = max(0, self.cooldown - 1)
         if self.history >= 3 and self.n >= EXTRAPOLATE_SPINDLES and not self.cooldown:
             return ring[1], ring[2]
@@ -256,9 +272,9 @@ class Workspace:
                       for i in range(3)]
         else:
             # instantaneous fibres: keep = from_a0 = 0, from_a1 = 1 give f1 = a1 exactly
-            groups = [(slice(None), k.fibre_columns, True, power, power_old)]
+            groups = [(_ALL, k.fibre_columns, True, power, power_old)]
         for i, fc, lagged, g, g_old in groups:
-            r = {name: b.rows[name][i] for name in _SETUP_BUFFERS}
+            r = b.rows if i is _ALL else {name: b.rows[name][i] for name in _SETUP_BUFFERS}
             T, v, z0, f0 = (x[i, cols] for x in (start.T, start.v, start.z, start.f))
             f1 = self.f1[i, cols]
             _new_activation(f0, g, g_old, fc, lagged, old and same_drive, f1, r)
@@ -488,8 +504,8 @@ def needs_clip(s, k) -> bool:
     |v| <= |rhs| (the damping term has the sign of v), so q = p0 + theta*h*v >= 0 wherever
     p0 > theta*h*|rhs|: everywhere but near the short end of the length range (three
     reductions per block)."""
-    rhs = s["rhs"]
-    return bool(s["p0"].min() <= k.th_h * max(rhs.max(), -rhs.min()))
+    # (the ufuncs' reduce directly: the ndarray methods add a Python layer per call)
+    return bool(_MIN(s["p0"]) <= k.th_h * _MAX(np.abs(s["rhs"], out=s["tmp"])))
 
 
 def bound_guess(s, k) -> None:
@@ -502,12 +518,13 @@ def bound_guess(s, k) -> None:
     z[far] = np.copysign(bound, rhs)[far]
 
 
-def newton_block(b, k, clip=False):
+def newton_block(b, k, clip=False, hand_on=True):
     """Newton on one block; returns (the flat indices handed to the tail or None, the number
-    of iterations)."""
+    of iterations). Without ``hand_on`` the block iterates until all its fibres converged."""
     f = b.flat
     return newton_loop(f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], k, f,
-                       first=NEWTON_FULL_ITER - 1, moving=b.moving, clip=clip)
+                       first=NEWTON_FULL_ITER - 1, moving=b.moving if hand_on else None,
+                       clip=clip)
 
 
 def newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
@@ -542,11 +559,11 @@ def newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
     # g' = v' + damping*(3*p0 + (3 + 3/a)*theta*h*v); 3*p0 is fixed.
     np.multiply(p0, 3.0, out=s["p0_x3"])
     for iteration in range(NEWTON_MAX_ITER):
-        hi, lo = _newton_iteration(z, p0, rhs, cM, cD, k, s, clip)
-        if hi <= NEWTON_TOL_Z and lo >= -NEWTON_TOL_Z:
+        largest = _newton_iteration(z, p0, rhs, cM, cD, k, s, clip)
+        if largest <= NEWTON_TOL_Z:
             return None, iteration + 1
         if moving is not None and iteration >= first:
-            np.abs(s["newton_step"], out=s["g_slope"])
+            # g_slope holds |dz| (see _newton_iteration)
             np.greater(s["g_slope"], NEWTON_TOL_Z, out=moving)
             left = np.flatnonzero(moving)
             if left.size <= moving.size // TAIL_FRACTION:
@@ -555,7 +572,7 @@ def newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
                 return (left if left.size else None), iteration + 1
     raise FloatingPointError(
         f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
-        f"(last change in z {max(hi, -lo):.3g}); state left unchanged"
+        f"(last change in z {largest:.3g}); state left unchanged"
     )
 
 
@@ -591,9 +608,9 @@ def _newton_iteration(z, p0, rhs, cM, cD, k, s, clip):
         np.copyto(g_slope, v_slope, where=undamped)
     np.maximum(g_slope, 1e-300, out=g_slope)
     np.divide(step, g_slope, out=step)  # now dz
-    hi = step.max()
-    lo = step.min()
-    if hi > NEWTON_MAX_DZ or lo < -NEWTON_MAX_DZ:
+    # the largest |dz| (NaN if any is): one reduction, not a max and a min
+    largest = _MAX(np.abs(step, out=g_slope))
+    if largest > NEWTON_MAX_DZ:
         np.clip(step, -NEWTON_MAX_DZ, NEWTON_MAX_DZ, out=step)
     np.subtract(z, step, out=z)
-    return hi, lo
+    return largest
