@@ -26,6 +26,7 @@ from spindle.fibre_constants import (
     NEWTON_MAX_DZ,
     NEWTON_MAX_ITER,
     NEWTON_TOL_Z,
+    SpindleStepConstants,
     StepConstants,
     check_finite,
 )
@@ -116,14 +117,23 @@ class Block:
     def prepare(self, k: StepConstants) -> None:
         """Expand the step's per-fibre constants that the Newton loop uses to (3*w,)."""
         if self.k is not k:
-            self.th_h_KSR = np.repeat([x.th_h_KSR for x in k.fibre], self.w)
-            self.blend_exp = np.repeat([x.blend_exp for x in k.fibre], self.w)
+            w = self.w
+            if k.per_spindle:  # a block's share of SpindleStepConstants: rows of (w,)
+                def flat(name):
+                    return np.concatenate([getattr(x, name) for x in k.fibre])
+            else:
+                def flat(name):
+                    return np.repeat([getattr(x, name) for x in k.fibre], w)
+            self.th_h_KSR = flat("th_h_KSR")
+            self.blend_exp = flat("blend_exp")
+            e = flat("three_over_a")
+            if k.per_spindle or not k.a_is_03:
+                # the Newton slope's coefficient of v, (3 + 3/a)*theta*h
+                self.flat["v_coef"] = (3.0 + e) * k.th_h
             if not k.a_is_03:
                 # per-fibre exponents, expanded like the data (rows of w)
-                e = np.array([x.three_over_a for x in k.fibre])
-                self.flat["power"] = np.repeat(e - 1.0, self.w)
-                self.flat["three_over_a"] = np.repeat(e, self.w)
-                self.flat["v_coef"] = np.repeat((3.0 + e) * k.th_h, self.w)
+                self.flat["power"] = e - 1.0
+                self.flat["three_over_a"] = e
             self.k = k
 
 
@@ -182,12 +192,13 @@ class Workspace:
             self.blocks[n % m] = Block(n % m)
         self.k: StepConstants | None = None
 
-    def prepare(self, k: StepConstants) -> None:
-        if k is not self.k:
+    def prepare(self, k: StepConstants | SpindleStepConstants) -> None:
+        if k is not self.k or k.per_spindle:
             self.history = 0  # an extrapolation over a different step size is no guess
         self.k = k
-        for b in self.blocks.values():
-            b.prepare(k)
+        if not k.per_spindle:  # (else each block its share, see advance)
+            for b in self.blocks.values():
+                b.prepare(k)
 
     def advance(self, state, L1, gd1, gs1):
         k, n = self.k, self.n
@@ -200,23 +211,28 @@ class Workspace:
         tail = []
         iterations = 0
         # One block has no other block to share a tail with: its slow fibres iterate on in
-        # the block (at n = 128 the tail's gathering cost more than the whole Newton loop)
-        hand_on = n > CHUNK_SPINDLES
+        # the block (at n = 128 the tail's gathering cost more than the whole Newton loop).
+        # (Nor does a step size per spindle use the tail, whose solver takes one.)
+        hand_on = n > CHUNK_SPINDLES and not k.per_spindle
         for j0 in range(0, n, CHUNK_SPINDLES):
             cols = slice(j0, min(n, j0 + CHUNK_SPINDLES))
             b = self.blocks[cols.stop - j0]
-            self._setup(b, cols, start, L1[cols], gd1[cols], gs1[cols], same_drive,
+            kb = k
+            if k.per_spindle:
+                kb = k.block(cols)
+                b.prepare(kb)
+            self._setup(b, cols, start, L1[cols], gd1[cols], gs1[cols], same_drive, kb,
                         guess=prior is None)
             if prior is not None:
                 _extrapolate(start.z[:, cols], prior[0][:, cols], prior[1][:, cols], b.rows)
-            clip = needs_clip(b.flat, k)
+            clip = needs_clip(b.flat, kb)
             if clip:
-                bound_guess(b.flat, k)
-            left, block_iterations = newton_block(b, k, clip, hand_on)
+                bound_guess(b.flat, kb)
+            left, block_iterations = newton_block(b, kb, clip, hand_on)
             iterations += block_iterations
             if left is not None:
                 tail.append(self._handed_on(b, left, j0, start.z))
-            self._finish(b, cols)
+            self._finish(b, cols, kb)
         if tail:
             self._finish_tail(tail, restart=prior is not None)
         check_finite(self.T1, self.v1, k.h)
@@ -252,12 +268,11 @@ class Workspace:
                 *(x[left] for x in (f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], f["A"],
                                     b.th_h_KSR, *exponents)))
 
-    def _setup(self, b, cols, start, L1, gd1, gs1, same_drive, guess=True):
+    def _setup(self, b, cols, start, L1, gd1, gs1, same_drive, k, guess=True):
         """Everything known at the start of the step, and (with ``guess``) the frozen-factor
         guess. Wide blocks go fibre row by fibre row (the constants are then Python floats,
         cheaper to apply than broadcast columns); narrow ones all rows at once with (3, 1)
-        columns (fewer calls)."""
-        k = self.k
+        columns (fewer calls). ``k``: the block's step constants."""
         old = k.theta < 1.0
         L0 = start.L[cols]
         dL = np.subtract(L1, L0, out=b.dL)
@@ -283,7 +298,7 @@ class Workspace:
                 frozen_guess(z0, r["abs_z"], r["z_squared"], r["rhs"], r["cM"], r["cD"],
                              r["p0"], fc.blend_exp, k.a_is_03, r, b.same_sign[i])
 
-    def _finish(self, b, cols):
+    def _finish(self, b, cols, k):
         """v1, T1 and z1 of a block from its last Newton iteration. That iteration moved z by
         dz (|dz| <= NEWTON_TOL_Z wherever the block converged; the tail rewrites the rest), so
         v(z) = v(z_prev) - v'(z_prev)*dz is exact to O(dz^2): below 1e-16 L0/s, v's rounding."""
@@ -293,7 +308,7 @@ class Workspace:
         np.subtract(r["v"], r["tmp"], out=v1)
         for i in range(3):
             T1 = self.T1[i, cols]
-            np.multiply(v1[i], self.k.fibre[i].th_h_KSR, out=T1)
+            np.multiply(v1[i], k.fibre[i].th_h_KSR, out=T1)
             np.subtract(r["A"][i], T1, out=T1)
         self.z1[:, cols] = r["z"]
 
@@ -505,7 +520,7 @@ def needs_clip(s, k) -> bool:
     p0 > theta*h*|rhs|: everywhere but near the short end of the length range (three
     reductions per block)."""
     # (the ufuncs' reduce directly: the ndarray methods add a Python layer per call)
-    return bool(_MIN(s["p0"]) <= k.th_h * _MAX(np.abs(s["rhs"], out=s["tmp"])))
+    return bool(_MIN(s["p0"]) <= k.th_h_max * _MAX(np.abs(s["rhs"], out=s["tmp"])))
 
 
 def bound_guess(s, k) -> None:
@@ -600,7 +615,7 @@ def _newton_iteration(z, p0, rhs, cM, cD, k, s, clip):
     add(step, v, out=step)
     np.subtract(step, rhs, out=step)
     mul(v_slope, 10.0 if k.a_is_03 else s["three_over_a"], out=v_slope)  # now v'(z)
-    mul(v, 13.0 * k.th_h if k.a_is_03 else s["v_coef"], out=g_slope)
+    mul(v, 13.0 * k.th_h if k.a_is_03 and not k.per_spindle else s["v_coef"], out=g_slope)
     add(g_slope, p0_x3, out=g_slope)
     mul(g_slope, damping, out=g_slope)
     add(g_slope, v_slope, out=g_slope)

@@ -53,7 +53,9 @@ class Columns:
         # With a = 0.3, v = z^10 * sgn(z): a polynomial, many times cheaper than a power.
         self.a_is_03 = bool(np.all(self.a == 0.3))
         self.step_constants: StepConstants | None = None
+        self.spindle_step_constants: SpindleStepConstants | None = None
         self.fibre_params = params.fibres
+        self.fibre_parameter_columns = _ParameterColumns(params)
         self.S = float(params.S)
         self.primary_lin = tuple(_primary_linear(f) for f in params.fibres)
         self.secondary_lin = tuple(_secondary_linear(f) for f in params.fibres[1:])
@@ -141,9 +143,20 @@ class FibreStepConstants:
     three_over_a: float
 
 
-def _fibre_step_constants(f: FibreParams, h: float, theta: float) -> FibreStepConstants:
+def _if(condition, a, b):
+    """``a`` where ``condition`` else ``b``: a Python choice for a bool, np.where for arrays."""
+    if isinstance(condition, np.ndarray):
+        return np.where(condition, a, b)
+    return a if condition else b
+
+
+def _fibre_step_constants(f: FibreParams, h: float, theta: float,
+                          convert=float) -> FibreStepConstants:
+    """One fibre's constants for a float ``h``; or, with ``f`` holding (3, 1) columns of
+    the three fibres, ``h`` a (1, n) row of step sizes and ``convert`` None, every fibre's
+    for every spindle (the same operations, so the same bits, elementwise)."""
     lagged = f.tau_s > 0
-    rate = h / (f.tau_s if lagged else 1.0)
+    rate = h / _if(lagged, f.tau_s, 1.0)
     den = 1.0 + theta * rate
     KSR, KPR, M = f.KSR_FU_L0, f.KPR_FU_L0, f.M_FU_s2_L0
     k1 = 1.0 + KPR / KSR
@@ -152,9 +165,9 @@ def _fibre_step_constants(f: FibreParams, h: float, theta: float) -> FibreStepCo
     c_half = 0.5 * (f.CL - f.CS) * inv_a2
     three_over_a = 3.0 / f.a
     constants = dict(
-        keep=(1.0 - (1.0 - theta) * rate) / den if lagged else 0.0,
-        from_a0=(1.0 - theta) * rate / den if lagged else 0.0,
-        from_a1=theta * rate / den if lagged else 1.0,
+        keep=_if(lagged, (1.0 - (1.0 - theta) * rate) / den, 0.0),
+        from_a0=_if(lagged, (1.0 - theta) * rate / den, 0.0),
+        from_a1=_if(lagged, theta * rate / den, 1.0),
         KSR=KSR,
         inv_KSR=1.0 / KSR,
         A_v0=(1.0 - theta) * h * KSR,
@@ -180,18 +193,23 @@ def _fibre_step_constants(f: FibreParams, h: float, theta: float) -> FibreStepCo
         freq_p=f.freq_pps**f.p,
         three_over_a=three_over_a,
     )
-    return FibreStepConstants(**{name: float(x) for name, x in constants.items()})
+    if convert is None:
+        return constants
+    return FibreStepConstants(**{name: convert(x) for name, x in constants.items()})
 
 
 class StepConstants:
     """The constants of one implicit step (step h, weight theta): per fibre as floats
     (``fibre``) and, on demand, all three as (3, 1) columns (``fibre_columns``)."""
 
+    per_spindle = False
+
     def __init__(self, c: Columns, h: float, theta: float):
         # Python floats throughout: a step with a new h (a streaming chain's jittery sample
         # interval) rebuilds these, and numpy's per-call overhead would cost ~0.5 ms.
         self.h, self.theta = h, theta
         self.th_h = theta * h
+        self.th_h_max = self.th_h
         self.a_is_03 = c.a_is_03
         fibres = c.fibre_params
         self.fibre = tuple(_fibre_step_constants(f, h, theta) for f in fibres)
@@ -209,6 +227,83 @@ class StepConstants:
                 field.name: np.array([[getattr(x, field.name)] for x in self.fibre])
                 for field in fields(FibreStepConstants)})
         return self._columns
+
+
+class SpindleStepConstants:
+    """The constants of one implicit step whose size h differs from spindle to spindle (an
+    (n,) array; weight theta): :class:`StepConstants`' attributes with every per-fibre
+    constant, ``h`` and ``th_h`` an array over the spindles (``fibre_columns`` (3, n),
+    ``fibre`` rows (n,)). :meth:`block` gives a block of spindles' share."""
+
+    per_spindle = True
+
+    def __init__(self, c: Columns, h: np.ndarray, theta: float):
+        n = h.shape[0]
+        self.h, self.theta = h, theta
+        self.th_h = theta * h
+        self.th_h_max = float(self.th_h.max())
+        self.a_is_03 = c.a_is_03
+        fibres = c.fibre_params
+        self.lagged = tuple(f.tau_s > 0 for f in fibres)
+        self.p = tuple(float(f.p) for f in fibres)
+        self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
+        # the three fibres at once: (3, 1) parameter columns against a (1, n) row of h
+        values = _fibre_step_constants(c.fibre_parameter_columns, h[None, :], theta,
+                                       convert=None)
+        self.fibre_columns = FibreStepConstants(**{
+            name: np.broadcast_to(x, (3, n)) for name, x in values.items()})
+        self.fibre = tuple(FibreStepConstants(**{
+            name: getattr(self.fibre_columns, name)[i] for name in values}) for i in range(3))
+        self._blocks: dict[tuple[int, int], _BlockStepConstants] = {}
+
+    def block(self, cols: slice) -> _BlockStepConstants:
+        """The constants of the spindles ``cols`` (kept: a chain steps the same sizes over
+        its sub-steps)."""
+        key = (cols.start, cols.stop)
+        hit = self._blocks.get(key)
+        if hit is None:
+            hit = self._blocks[key] = _BlockStepConstants(self, cols)
+        return hit
+
+
+class _BlockStepConstants:
+    """A block's share of :class:`SpindleStepConstants`; ``th_h`` flat (3*w,) like the
+    block's Newton arrays (fibre rows of w)."""
+
+    per_spindle = True
+
+    def __init__(self, k: SpindleStepConstants, cols: slice):
+        self.h, self.theta = k.h[cols], k.theta
+        self.th_h = np.tile(k.th_h[cols], 3)
+        self.th_h_max = float(self.th_h.max())
+        self.a_is_03, self.lagged, self.p, self.drive_row = (
+            k.a_is_03, k.lagged, k.p, k.drive_row)
+        names = [f.name for f in fields(FibreStepConstants)]
+        self.fibre_columns = FibreStepConstants(**{
+            name: getattr(k.fibre_columns, name)[:, cols] for name in names})
+        self.fibre = tuple(FibreStepConstants(**{
+            name: getattr(self.fibre_columns, name)[i] for name in names}) for i in range(3))
+
+
+class _ParameterColumns:
+    """The fibre parameters as (3, 1) columns under :class:`FibreParams`' names."""
+
+    def __init__(self, params: SpindleParams):
+        for f in fields(FibreParams):
+            value = getattr(params.fibres[0], f.name)
+            if isinstance(value, int | float):
+                setattr(self, f.name, params.column(f.name))
+
+
+def spindle_step_constants(c: Columns, h: np.ndarray, theta: float) -> SpindleStepConstants:
+    """The :class:`SpindleStepConstants` of ``c`` for the step sizes ``h`` (n,) and
+    ``theta``, kept until either changes."""
+    hit = c.spindle_step_constants
+    if (hit is None or hit.theta != theta or hit.h.shape != h.shape
+            or not np.array_equal(hit.h, h)):
+        hit = c.spindle_step_constants = SpindleStepConstants(c, np.array(h, dtype=float),
+                                                              theta)
+    return hit
 
 
 def step_constants(c: Columns, h: float, theta: float) -> StepConstants:
