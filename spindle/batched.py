@@ -120,7 +120,7 @@ class Block:
             w = self.w
             if k.per_spindle:  # a block's share of SpindleStepConstants: rows of (w,)
                 def flat(name):
-                    return np.concatenate([getattr(x, name) for x in k.fibre])
+                    return np.broadcast_to(getattr(k.fibre_columns, name), (3, w)).reshape(-1)
             else:
                 def flat(name):
                     return np.repeat([getattr(x, name) for x in k.fibre], w)

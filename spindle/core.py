@@ -336,9 +336,17 @@ def step(
     return afferents_from_tension(new[0], L, c)
 
 
-def commit(state: SpindleState, new, L, gd, gs) -> None:
-    """Write the result of :func:`advance` into ``state``."""
+def commit(state: SpindleState, new, L, gd, gs, where: np.ndarray | None = None) -> None:
+    """Write the result of :func:`advance` into ``state``; with ``where`` ((n,) bool), only
+    into those spindles."""
     T, v, u, f = new
+    if where is not None:
+        for target, value in ((state.tension_FU.T, T), (state.polar_velocity_L0_s.T, v),
+                              (state.velocity_root.T, u), (state.activation.T, f),
+                              (state.length_L0, L), (state.gamma_dyn_pps, gd),
+                              (state.gamma_stat_pps, gs)):
+            np.copyto(target, value, where=where)
+        return
     state.tension_FU.T[...] = T
     state.polar_velocity_L0_s.T[...] = v
     state.velocity_root.T[...] = u

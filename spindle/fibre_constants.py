@@ -231,58 +231,65 @@ class StepConstants:
 
 class SpindleStepConstants:
     """The constants of one implicit step whose size h differs from spindle to spindle (an
-    (n,) array; weight theta): :class:`StepConstants`' attributes with every per-fibre
-    constant, ``h`` and ``th_h`` an array over the spindles (``fibre_columns`` (3, n),
-    ``fibre`` rows (n,)). :meth:`block` gives a block of spindles' share."""
+    (n,) array; weight theta): :class:`StepConstants`' attributes with the per-fibre
+    constants that depend on h as (3, n) arrays (the others (3, 1) columns) in
+    ``fibre_columns``, their rows in ``fibre``, and ``th_h`` = theta*h flat over (3*n,) like
+    the Newton loop's arrays (fibre rows of n). :meth:`block` gives a block's share."""
 
     per_spindle = True
 
-    def __init__(self, c: Columns, h: np.ndarray, theta: float):
-        n = h.shape[0]
-        self.h, self.theta = h, theta
-        self.th_h = theta * h
-        self.th_h_max = float(self.th_h.max())
-        self.a_is_03 = c.a_is_03
-        fibres = c.fibre_params
-        self.lagged = tuple(f.tau_s > 0 for f in fibres)
-        self.p = tuple(float(f.p) for f in fibres)
-        self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
-        # the three fibres at once: (3, 1) parameter columns against a (1, n) row of h
-        values = _fibre_step_constants(c.fibre_parameter_columns, h[None, :], theta,
-                                       convert=None)
-        self.fibre_columns = FibreStepConstants(**{
-            name: np.broadcast_to(x, (3, n)) for name, x in values.items()})
-        self.fibre = tuple(FibreStepConstants(**{
-            name: getattr(self.fibre_columns, name)[i] for name in values}) for i in range(3))
-        self._blocks: dict[tuple[int, int], _BlockStepConstants] = {}
+    def __init__(self, c: Columns, h: np.ndarray, theta: float, *, _share=None):
+        self.theta = theta
+        self.a_is_03 = c.a_is_03 if c is not None else _share[0].a_is_03
+        if _share is not None:  # a block's share of another's: (k, cols)
+            k, cols = _share
+            self.h = k.h[cols]
+            self.fibre_columns = FibreStepConstants(**{
+                name: x if x.shape[1] == 1 else x[:, cols]
+                for name, x in _values(k.fibre_columns).items()})
+            self.lagged, self.p, self.drive_row = k.lagged, k.p, k.drive_row
+        else:
+            self.h = h
+            fibres = c.fibre_params
+            self.lagged = tuple(f.tau_s > 0 for f in fibres)
+            self.p = tuple(float(f.p) for f in fibres)
+            self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
+            # the three fibres at once: (3, 1) parameter columns against a (1, n) row of h
+            # (the float path's operations, elementwise: the same bits)
+            self.fibre_columns = FibreStepConstants(**{
+                name: _three_rows(x) for name, x in _fibre_step_constants(
+                    c.fibre_parameter_columns, h[None, :], theta, convert=None).items()})
+        th_h = theta * self.h
+        self.th_h = np.concatenate((th_h, th_h, th_h))
+        self.th_h_max = float(th_h.max())
+        values = _values(self.fibre_columns)
+        self.fibre = tuple(FibreStepConstants(**{name: x[i] for name, x in values.items()})
+                           for i in range(3))
+        self._blocks: dict[tuple[int, int], SpindleStepConstants] = {}
 
-    def block(self, cols: slice) -> _BlockStepConstants:
+    def block(self, cols: slice) -> SpindleStepConstants:
         """The constants of the spindles ``cols`` (kept: a chain steps the same sizes over
         its sub-steps)."""
+        if cols.start == 0 and cols.stop == self.h.shape[0]:
+            return self
         key = (cols.start, cols.stop)
         hit = self._blocks.get(key)
         if hit is None:
-            hit = self._blocks[key] = _BlockStepConstants(self, cols)
+            hit = self._blocks[key] = SpindleStepConstants(None, None, self.theta,
+                                                           _share=(self, cols))
         return hit
 
 
-class _BlockStepConstants:
-    """A block's share of :class:`SpindleStepConstants`; ``th_h`` flat (3*w,) like the
-    block's Newton arrays (fibre rows of w)."""
+def _three_rows(x) -> np.ndarray:
+    """A constant as (3, 1) or (3, n) (those of h alone are (1, n), of theta alone floats)."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 2 and x.shape[0] == 3:
+        return x
+    return np.broadcast_to(x, (3, x.shape[-1] if x.ndim else 1))
 
-    per_spindle = True
 
-    def __init__(self, k: SpindleStepConstants, cols: slice):
-        self.h, self.theta = k.h[cols], k.theta
-        self.th_h = np.tile(k.th_h[cols], 3)
-        self.th_h_max = float(self.th_h.max())
-        self.a_is_03, self.lagged, self.p, self.drive_row = (
-            k.a_is_03, k.lagged, k.p, k.drive_row)
-        names = [f.name for f in fields(FibreStepConstants)]
-        self.fibre_columns = FibreStepConstants(**{
-            name: getattr(k.fibre_columns, name)[:, cols] for name in names})
-        self.fibre = tuple(FibreStepConstants(**{
-            name: getattr(self.fibre_columns, name)[i] for name in names}) for i in range(3))
+def _values(constants: FibreStepConstants) -> dict:
+    return {f.name: getattr(constants, f.name) for f in fields(FibreStepConstants)}
 
 
 class _ParameterColumns:

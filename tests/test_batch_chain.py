@@ -419,3 +419,29 @@ def test_copies_continue_identically(how):
 @pytest.mark.parametrize("kind", list(KINDS))
 def test_long_fault_streams_equal_single_chains(kind):
     run_streams(kind, n=12, samples=3000, seed=31)
+
+
+def test_jittered_arms_with_different_sub_step_counts_equal_single_chains(monkeypatch):
+    """Each arm its own interval (1-4 sub-steps of its own size): arms with fewer sub-steps
+    wait while the others step, in one core call per sub-step; still each single chain."""
+    partial = []
+    commit = core.commit
+    monkeypatch.setattr(core, "commit", lambda *a, where=None: partial.append(
+        where is not None) or commit(*a, where=where))
+    n = 6
+    batch, singles = make_pair(n)
+    rng = np.random.default_rng(3)
+    start = 40.0 + 30.0 * rng.random(n)
+    batch.reset(start)
+    for a, single in enumerate(singles):
+        single.reset(float(start[a]))
+    t = np.zeros(n)
+    for i in range(150):
+        t = t + rng.uniform(0.0012, 0.0035, n)
+        counts = np.round(CONFIG.calibration.counts(start + 20.0 * np.sin(2 * np.pi * t)))
+        out = batch.push_counts(t, counts)
+        for a, single in enumerate(singles):
+            assert_arm_equal(out.arm(a), single.push_counts(float(t[a]), float(counts[a])),
+                             f"sample {i} arm {a}")
+    assert_counters_equal(batch, singles, "end")
+    assert any(partial), "no arm waited for the others"

@@ -562,23 +562,20 @@ class BatchedArmChain:
             return self._advance_group(S, k, dt_col / k, x0, v0, x1, v1, gd, gs, dt_col)
         k = np.maximum(np.ceil(dt / step_s * (1 - 1e-12)), 1.0)
         h = dt / k
-        if _MIN(k) == _MAX(k):  # one group
-            return self._advance_group(S, int(k[0]), _one_or_each(h), x0, v0, x1, v1, gd, gs,
-                                       dt_col)
-        ia, ii = np.empty_like(x1), np.empty_like(x1)
-        for count in np.unique(k):
-            i = np.flatnonzero(k == count)
-            ia[i], ii[i] = self._advance_group(
-                _rows(S, i), int(count), _one_or_each(h[i]), x0[i], v0[i], x1[i], v1[i],
-                gd[i], gs[i], dt_col[i])
-        return ia, ii
+        # arms with fewer sub-steps than others wait (see _advance_group)
+        return self._advance_group(S, int(k[0]) if _MIN(k) == _MAX(k) else k,
+                                   _one_or_each(h), x0, v0, x1, v1, gd, gs, dt_col)
 
     def _advance_group(self, S, k, h, x0, v0, x1, v1, gd, gs, dt_col):
-        """Arms ``S`` sharing ``k`` sub-steps of ``h`` (a float, or (m,) per arm; the core
-        then steps each spindle with its arm's h, in one call): the Hermite curve between
-        their states, kept in range and within the slew limit (as ``ArmChain`` does), then
-        the spindle steps of all of them at once. ``dt_col`` the interval, a float or
-        (m, 1)."""
+        """Arms ``S``, each ``k`` sub-steps of ``h`` (floats, or (m,) per arm; the core then
+        steps each spindle with its arm's h, in one call): the Hermite curve between their
+        states, kept in range and within the slew limit (as ``ArmChain`` does), then the
+        spindle steps of all of them at once. ``dt_col`` the interval, a float or (m, 1).
+
+        With counts ``k`` that differ, all arms step max(k) times and an arm with fewer
+        waits for its turn: its first steps are computed and not committed (one call per
+        sub-step for all arms instead of a gathered group per count; an encoder's jitter
+        gives 2-3 counts)."""
         c = self._columns
         whole = S is _ALL or (S.size == self.n_arms and np.array_equal(S, np.arange(S.size)))
         state = self._state if whole else _gather(self._state, _spindles(S))
@@ -595,17 +592,32 @@ class BatchedArmChain:
 
         lo, hi = core.LENGTH_RANGE_L0
         previous = x0
+        waiting = np.ndim(k) > 0
+        if waiting:
+            counts = k[:, None]
+            first = int(_MAX(k)) - counts  # the sub-steps each arm waits
+            k = int(_MAX(k))
         for j in range(1, k):
+            if waiting:
+                own = np.maximum(j - first, 0.0)  # each arm's own sub-step (0: waiting)
+                s, left = own / counts, reach * (counts - own)
+            else:
+                s, left = j / k, reach * (k - j)
             # hermite_curve scales its dt argument in place (an array): give it a copy
-            Ls = hermite_curve(j / k, x0, x1, [(v0, v1)],
+            Ls = hermite_curve(s, x0, x1, [(v0, v1)],
                                dt_col if isinstance(dt_col, float) else dt_col.copy())
-            left = reach * (k - j)
             Ls = np.minimum(np.maximum(Ls, previous - reach), previous + reach)
             Ls = np.minimum(np.maximum(Ls, x1 - left), x1 + left)
             Ls = np.minimum(np.maximum(Ls, lo), hi)
             flat = Ls.reshape(-1)
-            core.commit(state, advance(flat), flat, gd_flat, gs_flat)
-            previous = Ls
+            if waiting:
+                moving = own > 0.0
+                core.commit(state, advance(flat), flat, gd_flat, gs_flat,
+                            where=np.repeat(moving.reshape(-1), 2))
+                previous = np.where(moving, Ls, x0)
+            else:
+                core.commit(state, advance(flat), flat, gd_flat, gs_flat)
+                previous = Ls
         flat = x1.reshape(-1)
         new = advance(flat)
         core.commit(state, new, flat, gd_flat, gs_flat)
