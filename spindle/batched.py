@@ -43,6 +43,10 @@ TAIL_FRACTION = 8
 """A block hands its still-unconverged fibres to a common tail once at most 1/TAIL_FRACTION
 of them remain (a few sign changes of v need more iterations than the rest)."""
 
+TAIL_MIN_SPINDLES = 1024
+"""From this many spindles on, blocks hand their slow fibres to the common tail; below,
+a block iterates on (see :meth:`Workspace.advance`)."""
+
 EXTRAPOLATE_SPINDLES = 8192
 """From this many spindles on, the guess extrapolates the last steps' z (see
 :class:`Workspace`). The few fibres it leaves far off (mostly where v is about to cross 0)
@@ -210,10 +214,12 @@ class Workspace:
         prior = self._extrapolation_history(start.z)
         tail = []
         iterations = 0
-        # One block has no other block to share a tail with: its slow fibres iterate on in
-        # the block (at n = 128 the tail's gathering cost more than the whole Newton loop).
-        # (Nor does a step size per spindle use the tail, whose solver takes one.)
-        hand_on = n > CHUNK_SPINDLES and not k.per_spindle
+        # Below TAIL_MIN_SPINDLES a block's slow fibres iterate on in the block: the tail's
+        # gathering costs more than the extra iterations there (per step, 1 ms, smooth
+        # inputs, one process: 395 vs 317 us at n = 128, 640 vs 653 at 512, 749 vs 771 at
+        # 1024, 1180 vs 1301 at 2048; shared 2-core machine, 2026-12-01). (Nor does a step
+        # size per spindle use the tail, whose solver takes one.)
+        hand_on = n >= TAIL_MIN_SPINDLES and not k.per_spindle
         for j0 in range(0, n, CHUNK_SPINDLES):
             cols = slice(j0, min(n, j0 + CHUNK_SPINDLES))
             b = self.blocks[cols.stop - j0]

@@ -454,13 +454,15 @@ def test_few_spindle_float_path_equals_the_vectorised_path(theta):
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
 
 
-@pytest.mark.parametrize("chunk", [None, 1000])
-def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch, chunk):
-    """Fibres whose v reverses need more Newton iterations than the rest of their block; with
-    several blocks the block hands them on and they are finished together, a single block
-    iterates on. Still the reference result."""
+@pytest.mark.parametrize(("chunk", "tail"), [(None, True), (1000, True), (None, False)])
+def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch, chunk, tail):
+    """Fibres whose v reverses need more Newton iterations than the rest of their block; the
+    block hands them on and they are finished together (from TAIL_MIN_SPINDLES on), or the
+    block iterates on. Still the reference result."""
     if chunk is not None:
         monkeypatch.setattr(batched, "CHUNK_SPINDLES", chunk)
+    if not tail:
+        monkeypatch.setattr(batched, "TAIL_MIN_SPINDLES", 10**9)
     n = 3000
     state, L1, gd1, gs1 = random_states(n, seed=9)
     # mostly at rest and held: quick convergence; a few reverse a fast polar velocity
@@ -478,7 +480,7 @@ def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch
                         or finish_tail(self, tail, **kw))
     c = core.columns(spindle.CAT)
     T1, v1, _, _ = core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)
-    assert bool(calls) == (chunk is not None), calls
+    assert bool(calls) == tail, calls
     T_ref, v_ref, _, _ = reference_advance(state, L1, gd1, gs1, 1e-3, 0.5)
     np.testing.assert_allclose(v1, v_ref, rtol=1e-11, atol=1e-13)
     np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
