@@ -445,3 +445,18 @@ def test_jittered_arms_with_different_sub_step_counts_equal_single_chains(monkey
                              f"sample {i} arm {a}")
     assert_counters_equal(batch, singles, "end")
     assert any(partial), "no arm waited for the others"
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (64,), (7, 5)])
+def test_length_fits_evaluate_every_muscle_in_one_pass_with_each_fits_bits(shape):
+    """LengthFits.length_L0 (one Clenshaw pass over zero-padded coefficient columns) equals
+    each muscle's own LengthFit.length_L0, bit for bit, including the range ends."""
+    lo, hi = FITS.valid_range_rad
+    assert len({len(f.coefficients) for f in FITS.fits}) > 1  # the padding is exercised
+    angle = np.random.default_rng(len(shape)).uniform(lo, hi, shape)
+    if angle.size > 2:
+        angle.flat[:2] = lo, hi
+    got = FITS.length_L0(angle)
+    want = np.stack([fit.length_L0(angle) for fit in FITS.fits], axis=-1)
+    assert got.shape == (*shape, 2)
+    np.testing.assert_array_equal(got, want)
