@@ -158,8 +158,9 @@ def advance_batched(state, L1, gd1, gs1, k: StepConstants):
     workspace's (T1, v1, z1, f1) buffers, valid until the next step of ``state``."""
     # a fibre at rest with its polar region no longer than R has no frozen-factor slope: its
     # guess divides by 0 and is then replaced (bound_guess); non-finite results are caught
-    # by the finite check at the end of the step
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # by the finite check at the end of the step; g^p of a huge drive overflows to inf and
+    # is capped (drive_powers). One errstate per step: each costs a few us.
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         return workspace(state, k).advance(state, L1, gd1, gs1)
 
 
@@ -492,14 +493,14 @@ def frozen_guess(z0, abs_z0, z0_squared, rhs, cM, cD, p0, blend_exp, a_is_03, s,
 
 def drive_powers(gd, gs, k, out, all_rows=False):
     """g^p of each fibre's drive into the rows of ``out`` that ``k.drive_row`` names (into
-    every row with ``all_rows``)."""
+    every row with ``all_rows``); capped at MAX_DRIVE_POWER (the caller ignores the
+    overflow: :func:`advance_batched`)."""
     for row, (g, p) in enumerate(zip((gd, gs, gs), k.p, strict=True)):
         if row in k.drive_row:
-            with np.errstate(over="ignore"):
-                if p == 2.0:
-                    np.multiply(g, g, out=out[row])
-                else:
-                    np.power(g, p, out=out[row])
+            if p == 2.0:
+                np.multiply(g, g, out=out[row])
+            else:
+                np.power(g, p, out=out[row])
             np.minimum(out[row], MAX_DRIVE_POWER, out=out[row])
         elif all_rows:
             out[row] = out[k.drive_row[row]]
