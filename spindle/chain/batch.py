@@ -12,14 +12,15 @@ floats).
 
 Per-muscle arrays are (n_arms, 2) in :data:`~spindle.chain.config.MUSCLES` order; the
 spindles are one :class:`~spindle.core.SpindleState` of 2 n_arms spindles, arm-major (arm i:
-BRA 2i, TRImed 2i + 1), stepped by :func:`spindle.core.advance` once per sub-step for every
-arm that shares the step size (all arms, when they share their sample times). Arms whose
-intervals differ (an encoder's jittered times) are stepped in groups of equal sub-step size:
-the core takes one step size per call.
+BRA 2i, TRImed 2i + 1), stepped by :func:`spindle.core.advance` once per sub-step for all
+arms at once: with one step size when the arms share their sample times, else with each
+arm's own (an encoder's jittered times); an arm whose interval has fewer sub-steps than
+another's waits for its turn (its first steps are computed and not committed).
 
-The common push (every arm active, accepted, no restart) runs without a loop over arms;
-rejected samples, restarts and resyncs are handled with masks on the arms concerned. A push
-(and a whole block push) is atomic: if it raises, every arm is left exactly as it was.
+The common push (every arm active, its sample good, no restart) is recognised by four
+reductions and runs without a loop over arms; rejected samples, restarts and resyncs are
+handled with masks on the arms concerned. A push (and a whole block push) is atomic: if it
+raises, every arm is left exactly as it was.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ _MIN = np.minimum.reduce
 _ALL_TRUE = np.logical_and.reduce
 
 
-def _ALL_TRUE_N(n: int) -> np.ndarray:
+def _accepted_all(n: int) -> np.ndarray:
     return np.ones(n, dtype=bool)
 
 
@@ -376,7 +377,7 @@ class BatchedArmChain:
                 counters[:, _COUNTER["accepted"]] += 1
                 self._continue(kind, _ALL, t, x, dt, dt_min == dt_max, counters)
                 self._counters = counters
-                return _ALL_TRUE_N(self.n_arms)
+                return _accepted_all(self.n_arms)
         given = np.isfinite(t)
         if active is not None:
             given &= active
