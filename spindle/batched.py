@@ -26,6 +26,7 @@ from spindle.fibre_constants import (
     NEWTON_MAX_DZ,
     NEWTON_MAX_ITER,
     NEWTON_TOL_Z,
+    SpindleStepConstants,
     StepConstants,
     check_finite,
 )
@@ -35,12 +36,19 @@ CHUNK_SPINDLES = 6144
 core's cache (the step makes ~150 passes over them), and each block leaves the Newton loop
 as soon as all of its own fibres have converged."""
 
-ROW_BY_ROW_SPINDLES = 2048
-"""From this block width on, the start-of-step terms go fibre row by fibre row."""
+ROW_BY_ROW_SPINDLES = 6144
+"""From this block width on, the start-of-step terms go fibre row by fibre row. Narrower
+blocks do better with all rows at once (per step, one process: 1160 vs 1279 us at n = 1024,
+1725 vs 1872 at 2048, 2028 vs 2069 at 4096; even at 6144 and 8192; shared 2-core machine,
+2026-12-01)."""
 
 TAIL_FRACTION = 8
 """A block hands its still-unconverged fibres to a common tail once at most 1/TAIL_FRACTION
 of them remain (a few sign changes of v need more iterations than the rest)."""
+
+TAIL_MIN_SPINDLES = 1024
+"""From this many spindles on, blocks hand their slow fibres to the common tail; below,
+a block iterates on (see :meth:`Workspace.advance`)."""
 
 EXTRAPOLATE_SPINDLES = 8192
 """From this many spindles on, the guess extrapolates the last steps' z (see
@@ -58,6 +66,19 @@ EXTRAPOLATE_COOLDOWN = 64
 HISTORY_PROBE = 61
 """Every this many spindles, the state's z is compared with the last step's output before
 that step's history steers the next guess (see :class:`Workspace`)."""
+
+_ALL = slice(None)
+_MAX = np.maximum.reduce
+_MIN = np.minimum.reduce
+_ALL_TRUE = np.logical_and.reduce
+
+
+def _spindle_vector(x, n: int) -> np.ndarray:
+    """``x`` (a scalar or (n,)) as an (n,) array; an (n,) float array as it is."""
+    if type(x) is np.ndarray and x.shape == (n,):
+        return x
+    return np.broadcast_to(x, (n,))
+
 
 BUFFERS = (
     # start of the step (setup)
@@ -103,14 +124,23 @@ class Block:
     def prepare(self, k: StepConstants) -> None:
         """Expand the step's per-fibre constants that the Newton loop uses to (3*w,)."""
         if self.k is not k:
-            self.th_h_KSR = np.repeat([x.th_h_KSR for x in k.fibre], self.w)
-            self.blend_exp = np.repeat([x.blend_exp for x in k.fibre], self.w)
+            w = self.w
+            if k.per_spindle:  # a block's share of SpindleStepConstants: rows of (w,)
+                def flat(name):
+                    return np.broadcast_to(getattr(k.fibre_columns, name), (3, w)).reshape(-1)
+            else:
+                def flat(name):
+                    return np.repeat([getattr(x, name) for x in k.fibre], w)
+            self.th_h_KSR = flat("th_h_KSR")
+            self.blend_exp = flat("blend_exp")
+            e = flat("three_over_a")
+            if k.per_spindle or not k.a_is_03:
+                # the Newton slope's coefficient of v, (3 + 3/a)*theta*h
+                self.flat["v_coef"] = (3.0 + e) * k.th_h
             if not k.a_is_03:
                 # per-fibre exponents, expanded like the data (rows of w)
-                e = np.array([x.three_over_a for x in k.fibre])
-                self.flat["power"] = np.repeat(e - 1.0, self.w)
-                self.flat["three_over_a"] = np.repeat(e, self.w)
-                self.flat["v_coef"] = np.repeat((3.0 + e) * k.th_h, self.w)
+                self.flat["power"] = e - 1.0
+                self.flat["three_over_a"] = e
             self.k = k
 
 
@@ -128,8 +158,9 @@ def advance_batched(state, L1, gd1, gs1, k: StepConstants):
     workspace's (T1, v1, z1, f1) buffers, valid until the next step of ``state``."""
     # a fibre at rest with its polar region no longer than R has no frozen-factor slope: its
     # guess divides by 0 and is then replaced (bound_guess); non-finite results are caught
-    # by the finite check at the end of the step
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # by the finite check at the end of the step; g^p of a huge drive overflows to inf and
+    # is capped (drive_powers). One errstate per step: each costs a few us.
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         return workspace(state, k).advance(state, L1, gd1, gs1)
 
 
@@ -169,40 +200,49 @@ class Workspace:
             self.blocks[n % m] = Block(n % m)
         self.k: StepConstants | None = None
 
-    def prepare(self, k: StepConstants) -> None:
-        if k is not self.k:
+    def prepare(self, k: StepConstants | SpindleStepConstants) -> None:
+        if k is not self.k or k.per_spindle:
             self.history = 0  # an extrapolation over a different step size is no guess
         self.k = k
-        for b in self.blocks.values():
-            b.prepare(k)
+        if not k.per_spindle:  # (else each block its share, see advance)
+            for b in self.blocks.values():
+                b.prepare(k)
 
     def advance(self, state, L1, gd1, gs1):
         k, n = self.k, self.n
         start = _StepStart.of(state, k)
-        L1 = np.broadcast_to(L1, (n,))
-        gd1 = np.broadcast_to(gd1, (n,))
-        gs1 = np.broadcast_to(gs1, (n,))
+        L1, gd1, gs1 = (_spindle_vector(x, n) for x in (L1, gd1, gs1))
         # An unchanged drive (the common case) has an unchanged activation target.
-        same_drive = (k.theta < 1.0 and np.array_equal(start.gd, gd1)
-                      and np.array_equal(start.gs, gs1))
+        same_drive = (k.theta < 1.0 and bool(_ALL_TRUE(np.equal(start.gd, gd1)))
+                      and bool(_ALL_TRUE(np.equal(start.gs, gs1))))
         prior = self._extrapolation_history(start.z)
         tail = []
         iterations = 0
+        # Below TAIL_MIN_SPINDLES a block's slow fibres iterate on in the block: the tail's
+        # gathering costs more than the extra iterations there (per step, 1 ms, smooth
+        # inputs, one process: 395 vs 317 us at n = 128, 640 vs 653 at 512, 749 vs 771 at
+        # 1024, 1180 vs 1301 at 2048; shared 2-core machine, 2026-12-01). (Nor does a step
+        # size per spindle use the tail, whose solver takes one.)
+        hand_on = n >= TAIL_MIN_SPINDLES and not k.per_spindle
         for j0 in range(0, n, CHUNK_SPINDLES):
             cols = slice(j0, min(n, j0 + CHUNK_SPINDLES))
             b = self.blocks[cols.stop - j0]
-            self._setup(b, cols, start, L1[cols], gd1[cols], gs1[cols], same_drive,
+            kb = k
+            if k.per_spindle:
+                kb = k.block(cols)
+                b.prepare(kb)
+            self._setup(b, cols, start, L1[cols], gd1[cols], gs1[cols], same_drive, kb,
                         guess=prior is None)
             if prior is not None:
                 _extrapolate(start.z[:, cols], prior[0][:, cols], prior[1][:, cols], b.rows)
-            clip = needs_clip(b.flat, k)
+            clip = needs_clip(b.flat, kb)
             if clip:
-                bound_guess(b.flat, k)
-            left, block_iterations = newton_block(b, k, clip)
+                bound_guess(b.flat, kb)
+            left, block_iterations = newton_block(b, kb, clip, hand_on)
             iterations += block_iterations
             if left is not None:
                 tail.append(self._handed_on(b, left, j0, start.z))
-            self._finish(b, cols)
+            self._finish(b, cols, kb)
         if tail:
             self._finish_tail(tail, restart=prior is not None)
         check_finite(self.T1, self.v1, k.h)
@@ -218,10 +258,12 @@ class Workspace:
         """(z_-1, z_-2) when this step may extrapolate its guess from them, else None; makes
         the oldest ring buffer this step's z output."""
         ring = self.z_ring
+        self.z1 = ring[3]  # the oldest: no longer part of the history
+        if self.n < EXTRAPOLATE_SPINDLES:
+            return None
         if self.history and not np.array_equal(z0[:, ::HISTORY_PROBE],
                                                ring[0][:, ::HISTORY_PROBE]):
             self.history = 0  # the state is not the one the last step left
-        self.z1 = ring[3]  # the oldest: no longer part of the history
         self.cooldown = max(0, self.cooldown - 1)
         if self.history >= 3 and self.n >= EXTRAPOLATE_SPINDLES and not self.cooldown:
             return ring[1], ring[2]
@@ -236,12 +278,11 @@ class Workspace:
                 *(x[left] for x in (f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], f["A"],
                                     b.th_h_KSR, *exponents)))
 
-    def _setup(self, b, cols, start, L1, gd1, gs1, same_drive, guess=True):
+    def _setup(self, b, cols, start, L1, gd1, gs1, same_drive, k, guess=True):
         """Everything known at the start of the step, and (with ``guess``) the frozen-factor
         guess. Wide blocks go fibre row by fibre row (the constants are then Python floats,
         cheaper to apply than broadcast columns); narrow ones all rows at once with (3, 1)
-        columns (fewer calls)."""
-        k = self.k
+        columns (fewer calls). ``k``: the block's step constants."""
         old = k.theta < 1.0
         L0 = start.L[cols]
         dL = np.subtract(L1, L0, out=b.dL)
@@ -256,9 +297,9 @@ class Workspace:
                       for i in range(3)]
         else:
             # instantaneous fibres: keep = from_a0 = 0, from_a1 = 1 give f1 = a1 exactly
-            groups = [(slice(None), k.fibre_columns, True, power, power_old)]
+            groups = [(_ALL, k.fibre_columns, True, power, power_old)]
         for i, fc, lagged, g, g_old in groups:
-            r = {name: b.rows[name][i] for name in _SETUP_BUFFERS}
+            r = b.rows if i is _ALL else {name: b.rows[name][i] for name in _SETUP_BUFFERS}
             T, v, z0, f0 = (x[i, cols] for x in (start.T, start.v, start.z, start.f))
             f1 = self.f1[i, cols]
             _new_activation(f0, g, g_old, fc, lagged, old and same_drive, f1, r)
@@ -267,7 +308,7 @@ class Workspace:
                 frozen_guess(z0, r["abs_z"], r["z_squared"], r["rhs"], r["cM"], r["cD"],
                              r["p0"], fc.blend_exp, k.a_is_03, r, b.same_sign[i])
 
-    def _finish(self, b, cols):
+    def _finish(self, b, cols, k):
         """v1, T1 and z1 of a block from its last Newton iteration. That iteration moved z by
         dz (|dz| <= NEWTON_TOL_Z wherever the block converged; the tail rewrites the rest), so
         v(z) = v(z_prev) - v'(z_prev)*dz is exact to O(dz^2): below 1e-16 L0/s, v's rounding."""
@@ -277,7 +318,7 @@ class Workspace:
         np.subtract(r["v"], r["tmp"], out=v1)
         for i in range(3):
             T1 = self.T1[i, cols]
-            np.multiply(v1[i], self.k.fibre[i].th_h_KSR, out=T1)
+            np.multiply(v1[i], k.fibre[i].th_h_KSR, out=T1)
             np.subtract(r["A"][i], T1, out=T1)
         self.z1[:, cols] = r["z"]
 
@@ -452,14 +493,14 @@ def frozen_guess(z0, abs_z0, z0_squared, rhs, cM, cD, p0, blend_exp, a_is_03, s,
 
 def drive_powers(gd, gs, k, out, all_rows=False):
     """g^p of each fibre's drive into the rows of ``out`` that ``k.drive_row`` names (into
-    every row with ``all_rows``)."""
+    every row with ``all_rows``); capped at MAX_DRIVE_POWER (the caller ignores the
+    overflow: :func:`advance_batched`)."""
     for row, (g, p) in enumerate(zip((gd, gs, gs), k.p, strict=True)):
         if row in k.drive_row:
-            with np.errstate(over="ignore"):
-                if p == 2.0:
-                    np.multiply(g, g, out=out[row])
-                else:
-                    np.power(g, p, out=out[row])
+            if p == 2.0:
+                np.multiply(g, g, out=out[row])
+            else:
+                np.power(g, p, out=out[row])
             np.minimum(out[row], MAX_DRIVE_POWER, out=out[row])
         elif all_rows:
             out[row] = out[k.drive_row[row]]
@@ -488,8 +529,8 @@ def needs_clip(s, k) -> bool:
     |v| <= |rhs| (the damping term has the sign of v), so q = p0 + theta*h*v >= 0 wherever
     p0 > theta*h*|rhs|: everywhere but near the short end of the length range (three
     reductions per block)."""
-    rhs = s["rhs"]
-    return bool(s["p0"].min() <= k.th_h * max(rhs.max(), -rhs.min()))
+    # (the ufuncs' reduce directly: the ndarray methods add a Python layer per call)
+    return bool(_MIN(s["p0"]) <= k.th_h_max * _MAX(np.abs(s["rhs"], out=s["tmp"])))
 
 
 def bound_guess(s, k) -> None:
@@ -502,12 +543,13 @@ def bound_guess(s, k) -> None:
     z[far] = np.copysign(bound, rhs)[far]
 
 
-def newton_block(b, k, clip=False):
+def newton_block(b, k, clip=False, hand_on=True):
     """Newton on one block; returns (the flat indices handed to the tail or None, the number
-    of iterations)."""
+    of iterations). Without ``hand_on`` the block iterates until all its fibres converged."""
     f = b.flat
     return newton_loop(f["z"], f["p0"], f["rhs"], f["cM"], f["cD"], k, f,
-                       first=NEWTON_FULL_ITER - 1, moving=b.moving, clip=clip)
+                       first=NEWTON_FULL_ITER - 1, moving=b.moving if hand_on else None,
+                       clip=clip)
 
 
 def newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
@@ -542,11 +584,11 @@ def newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
     # g' = v' + damping*(3*p0 + (3 + 3/a)*theta*h*v); 3*p0 is fixed.
     np.multiply(p0, 3.0, out=s["p0_x3"])
     for iteration in range(NEWTON_MAX_ITER):
-        hi, lo = _newton_iteration(z, p0, rhs, cM, cD, k, s, clip)
-        if hi <= NEWTON_TOL_Z and lo >= -NEWTON_TOL_Z:
+        largest = _newton_iteration(z, p0, rhs, cM, cD, k, s, clip)
+        if largest <= NEWTON_TOL_Z:
             return None, iteration + 1
         if moving is not None and iteration >= first:
-            np.abs(s["newton_step"], out=s["g_slope"])
+            # g_slope holds |dz| (see _newton_iteration)
             np.greater(s["g_slope"], NEWTON_TOL_Z, out=moving)
             left = np.flatnonzero(moving)
             if left.size <= moving.size // TAIL_FRACTION:
@@ -555,7 +597,7 @@ def newton_loop(z, p0, rhs, cM, cD, k, s, first, moving=None, clip=False):
                 return (left if left.size else None), iteration + 1
     raise FloatingPointError(
         f"implicit spindle step did not converge in {NEWTON_MAX_ITER} iterations "
-        f"(last change in z {max(hi, -lo):.3g}); state left unchanged"
+        f"(last change in z {largest:.3g}); state left unchanged"
     )
 
 
@@ -583,7 +625,7 @@ def _newton_iteration(z, p0, rhs, cM, cD, k, s, clip):
     add(step, v, out=step)
     np.subtract(step, rhs, out=step)
     mul(v_slope, 10.0 if k.a_is_03 else s["three_over_a"], out=v_slope)  # now v'(z)
-    mul(v, 13.0 * k.th_h if k.a_is_03 else s["v_coef"], out=g_slope)
+    mul(v, 13.0 * k.th_h if k.a_is_03 and not k.per_spindle else s["v_coef"], out=g_slope)
     add(g_slope, p0_x3, out=g_slope)
     mul(g_slope, damping, out=g_slope)
     add(g_slope, v_slope, out=g_slope)
@@ -591,9 +633,9 @@ def _newton_iteration(z, p0, rhs, cM, cD, k, s, clip):
         np.copyto(g_slope, v_slope, where=undamped)
     np.maximum(g_slope, 1e-300, out=g_slope)
     np.divide(step, g_slope, out=step)  # now dz
-    hi = step.max()
-    lo = step.min()
-    if hi > NEWTON_MAX_DZ or lo < -NEWTON_MAX_DZ:
+    # the largest |dz| (NaN if any is): one reduction, not a max and a min
+    largest = _MAX(np.abs(step, out=g_slope))
+    if largest > NEWTON_MAX_DZ:
         np.clip(step, -NEWTON_MAX_DZ, NEWTON_MAX_DZ, out=step)
     np.subtract(z, step, out=z)
-    return hi, lo
+    return largest

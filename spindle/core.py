@@ -49,6 +49,7 @@ from spindle.fibre_constants import (
     Columns,
     check_finite,
     columns,
+    spindle_step_constants,
     step_constants,
 )
 from spindle.methods import Method, get_method
@@ -335,9 +336,17 @@ def step(
     return afferents_from_tension(new[0], L, c)
 
 
-def commit(state: SpindleState, new, L, gd, gs) -> None:
-    """Write the result of :func:`advance` into ``state``."""
+def commit(state: SpindleState, new, L, gd, gs, where: np.ndarray | None = None) -> None:
+    """Write the result of :func:`advance` into ``state``; with ``where`` ((n,) bool), only
+    into those spindles."""
     T, v, u, f = new
+    if where is not None:
+        for target, value in ((state.tension_FU.T, T), (state.polar_velocity_L0_s.T, v),
+                              (state.velocity_root.T, u), (state.activation.T, f),
+                              (state.length_L0, L), (state.gamma_dyn_pps, gd),
+                              (state.gamma_stat_pps, gs)):
+            np.copyto(target, value, where=where)
+        return
     state.tension_FU.T[...] = T
     state.polar_velocity_L0_s.T[...] = v
     state.velocity_root.T[...] = u
@@ -347,8 +356,11 @@ def commit(state: SpindleState, new, L, gd, gs) -> None:
     state.gamma_stat_pps[...] = gs
 
 
-def advance(state: SpindleState, L1, gd1, gs1, h: float, theta: float, c: Columns):
+def advance(state: SpindleState, L1, gd1, gs1, h, theta: float, c: Columns):
     """One theta-method step from the state to (L1, gd1, gs1), unchecked.
+
+    ``h`` is the step (s), a float or an (n,) array of one per spindle (arms sampled at their
+    own times).
 
     Returns (T1, v1, u1, f1), each (3, n). Nothing in ``state`` is modified: the caller
     commits the result once it is known to be finite, so a failed step leaves the state as it
@@ -358,6 +370,8 @@ def advance(state: SpindleState, L1, gd1, gs1, h: float, theta: float, c: Column
     """
     if theta == 0.0:
         return plain_advance(state, L1, gd1, gs1, h, theta, c)
+    if np.ndim(h):  # a step size per spindle: in numpy blocks, whatever n
+        return advance_batched(state, L1, gd1, gs1, spindle_step_constants(c, h, theta))
     # Two faster implementations of the implicit step pay for themselves (CPU per step,
     # trapezoidal at 1 ms, `bench_spindle.py --paths`, 2026-12-01): on floats up to SMALL_N
     # spindles, 13x the plain step at n = 1, 7x at 2, 3.4x at 8 (and 1.6x the batched step

@@ -53,7 +53,9 @@ class Columns:
         # With a = 0.3, v = z^10 * sgn(z): a polynomial, many times cheaper than a power.
         self.a_is_03 = bool(np.all(self.a == 0.3))
         self.step_constants: StepConstants | None = None
+        self.spindle_step_constants: SpindleStepConstants | None = None
         self.fibre_params = params.fibres
+        self.fibre_parameter_columns = _ParameterColumns(params)
         self.S = float(params.S)
         self.primary_lin = tuple(_primary_linear(f) for f in params.fibres)
         self.secondary_lin = tuple(_secondary_linear(f) for f in params.fibres[1:])
@@ -141,9 +143,20 @@ class FibreStepConstants:
     three_over_a: float
 
 
-def _fibre_step_constants(f: FibreParams, h: float, theta: float) -> FibreStepConstants:
+def _if(condition, a, b):
+    """``a`` where ``condition`` else ``b``: a Python choice for a bool, np.where for arrays."""
+    if isinstance(condition, np.ndarray):
+        return np.where(condition, a, b)
+    return a if condition else b
+
+
+def _fibre_step_constants(f: FibreParams, h: float, theta: float,
+                          convert=float) -> FibreStepConstants:
+    """One fibre's constants for a float ``h``; or, with ``f`` holding (3, 1) columns of
+    the three fibres, ``h`` a (1, n) row of step sizes and ``convert`` None, every fibre's
+    for every spindle (the same operations, so the same bits, elementwise)."""
     lagged = f.tau_s > 0
-    rate = h / (f.tau_s if lagged else 1.0)
+    rate = h / _if(lagged, f.tau_s, 1.0)
     den = 1.0 + theta * rate
     KSR, KPR, M = f.KSR_FU_L0, f.KPR_FU_L0, f.M_FU_s2_L0
     k1 = 1.0 + KPR / KSR
@@ -152,9 +165,9 @@ def _fibre_step_constants(f: FibreParams, h: float, theta: float) -> FibreStepCo
     c_half = 0.5 * (f.CL - f.CS) * inv_a2
     three_over_a = 3.0 / f.a
     constants = dict(
-        keep=(1.0 - (1.0 - theta) * rate) / den if lagged else 0.0,
-        from_a0=(1.0 - theta) * rate / den if lagged else 0.0,
-        from_a1=theta * rate / den if lagged else 1.0,
+        keep=_if(lagged, (1.0 - (1.0 - theta) * rate) / den, 0.0),
+        from_a0=_if(lagged, (1.0 - theta) * rate / den, 0.0),
+        from_a1=_if(lagged, theta * rate / den, 1.0),
         KSR=KSR,
         inv_KSR=1.0 / KSR,
         A_v0=(1.0 - theta) * h * KSR,
@@ -180,18 +193,23 @@ def _fibre_step_constants(f: FibreParams, h: float, theta: float) -> FibreStepCo
         freq_p=f.freq_pps**f.p,
         three_over_a=three_over_a,
     )
-    return FibreStepConstants(**{name: float(x) for name, x in constants.items()})
+    if convert is None:
+        return constants
+    return FibreStepConstants(**{name: convert(x) for name, x in constants.items()})
 
 
 class StepConstants:
     """The constants of one implicit step (step h, weight theta): per fibre as floats
     (``fibre``) and, on demand, all three as (3, 1) columns (``fibre_columns``)."""
 
+    per_spindle = False
+
     def __init__(self, c: Columns, h: float, theta: float):
         # Python floats throughout: a step with a new h (a streaming chain's jittery sample
         # interval) rebuilds these, and numpy's per-call overhead would cost ~0.5 ms.
         self.h, self.theta = h, theta
         self.th_h = theta * h
+        self.th_h_max = self.th_h
         self.a_is_03 = c.a_is_03
         fibres = c.fibre_params
         self.fibre = tuple(_fibre_step_constants(f, h, theta) for f in fibres)
@@ -209,6 +227,90 @@ class StepConstants:
                 field.name: np.array([[getattr(x, field.name)] for x in self.fibre])
                 for field in fields(FibreStepConstants)})
         return self._columns
+
+
+class SpindleStepConstants:
+    """The constants of one implicit step whose size h differs from spindle to spindle (an
+    (n,) array; weight theta): :class:`StepConstants`' attributes with the per-fibre
+    constants that depend on h as (3, n) arrays (the others (3, 1) columns) in
+    ``fibre_columns``, their rows in ``fibre``, and ``th_h`` = theta*h flat over (3*n,) like
+    the Newton loop's arrays (fibre rows of n). :meth:`block` gives a block's share."""
+
+    per_spindle = True
+
+    def __init__(self, c: Columns, h: np.ndarray, theta: float, *, _share=None):
+        self.theta = theta
+        self.a_is_03 = c.a_is_03 if c is not None else _share[0].a_is_03
+        if _share is not None:  # a block's share of another's: (k, cols)
+            k, cols = _share
+            self.h = k.h[cols]
+            self.fibre_columns = FibreStepConstants(**{
+                name: x if x.shape[1] == 1 else x[:, cols]
+                for name, x in _values(k.fibre_columns).items()})
+            self.lagged, self.p, self.drive_row = k.lagged, k.p, k.drive_row
+        else:
+            self.h = h
+            fibres = c.fibre_params
+            self.lagged = tuple(f.tau_s > 0 for f in fibres)
+            self.p = tuple(float(f.p) for f in fibres)
+            self.drive_row = (0, 1, 1 if self.p[2] == self.p[1] else 2)
+            # the three fibres at once: (3, 1) parameter columns against a (1, n) row of h
+            # (the float path's operations, elementwise: the same bits)
+            self.fibre_columns = FibreStepConstants(**{
+                name: _three_rows(x) for name, x in _fibre_step_constants(
+                    c.fibre_parameter_columns, h[None, :], theta, convert=None).items()})
+        th_h = theta * self.h
+        self.th_h = np.concatenate((th_h, th_h, th_h))
+        self.th_h_max = float(th_h.max())
+        values = _values(self.fibre_columns)
+        self.fibre = tuple(FibreStepConstants(**{name: x[i] for name, x in values.items()})
+                           for i in range(3))
+        self._blocks: dict[tuple[int, int], SpindleStepConstants] = {}
+
+    def block(self, cols: slice) -> SpindleStepConstants:
+        """The constants of the spindles ``cols`` (kept: a chain steps the same sizes over
+        its sub-steps)."""
+        if cols.start == 0 and cols.stop == self.h.shape[0]:
+            return self
+        key = (cols.start, cols.stop)
+        hit = self._blocks.get(key)
+        if hit is None:
+            hit = self._blocks[key] = SpindleStepConstants(None, None, self.theta,
+                                                           _share=(self, cols))
+        return hit
+
+
+def _three_rows(x) -> np.ndarray:
+    """A constant as (3, 1) or (3, n) (those of h alone are (1, n), of theta alone floats)."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 2 and x.shape[0] == 3:
+        return x
+    return np.broadcast_to(x, (3, x.shape[-1] if x.ndim else 1))
+
+
+def _values(constants: FibreStepConstants) -> dict:
+    return {f.name: getattr(constants, f.name) for f in fields(FibreStepConstants)}
+
+
+class _ParameterColumns:
+    """The fibre parameters as (3, 1) columns under :class:`FibreParams`' names."""
+
+    def __init__(self, params: SpindleParams):
+        for f in fields(FibreParams):
+            value = getattr(params.fibres[0], f.name)
+            if isinstance(value, int | float):
+                setattr(self, f.name, params.column(f.name))
+
+
+def spindle_step_constants(c: Columns, h: np.ndarray, theta: float) -> SpindleStepConstants:
+    """The :class:`SpindleStepConstants` of ``c`` for the step sizes ``h`` (n,) and
+    ``theta``, kept until either changes."""
+    hit = c.spindle_step_constants
+    if (hit is None or hit.theta != theta or hit.h.shape != h.shape
+            or not np.array_equal(hit.h, h)):
+        hit = c.spindle_step_constants = SpindleStepConstants(c, np.array(h, dtype=float),
+                                                              theta)
+    return hit
 
 
 def step_constants(c: Columns, h: float, theta: float) -> StepConstants:

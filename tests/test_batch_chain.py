@@ -16,7 +16,6 @@ import pytest
 
 from spindle import core
 from spindle.chain import ArmChain, ChainConfig
-from spindle.chain import batch as batch_module
 from spindle.chain.batch import BatchedArmChain, BatchSample
 from spindle.chain.config import COUNTERS, ArmSample
 from spindle.chain.length_model import load_length_fits
@@ -210,8 +209,10 @@ def test_unfiltered_config_equals_single_chains():
 
 @pytest.mark.parametrize("kind", list(KINDS))
 def test_ragged_blocks_equal_single_chains(kind, monkeypatch):
-    # jittered arms beyond 2 groups of sub-step sizes: a step size per spindle
-    monkeypatch.setattr(batch_module, "MAX_STEP_GROUPS", 2)
+    # jittered arms: each arm its own sub-step size, the core's step size per spindle
+    calls = []
+    advance = core.advance
+    monkeypatch.setattr(core, "advance", lambda *a: calls.append(np.ndim(a[4])) or advance(*a))
     n, k = 5, 12
     batch, singles = make_pair(n)
     streams = [fault_stream(kind, a, 10 * k, seed=21) for a in range(n)]
@@ -244,6 +245,7 @@ def test_ragged_blocks_equal_single_chains(kind, monkeypatch):
     for a, single in enumerate(singles):
         assert_arm_equal(out.arm(a), getattr(single, push_block)(t[a], x[a]), f"arm {a}")
     assert_counters_equal(batch, singles, "full block")
+    assert 1 in calls, "no step with a step size per spindle"
 
 
 def _snapshot(batch: BatchedArmChain):
@@ -252,8 +254,7 @@ def _snapshot(batch: BatchedArmChain):
 
 
 def _failing_advance(monkeypatch, after_calls: int):
-    """core.advance and core.plain_advance (the step with a step size per spindle) raise
-    after ``after_calls`` calls of either."""
+    """core.advance and core.plain_advance raise after ``after_calls`` calls of either."""
     calls = {"n": 0}
 
     def failing(real):
@@ -278,7 +279,6 @@ def _failing_advance(monkeypatch, after_calls: int):
 @pytest.mark.parametrize("kind", list(KINDS))
 @pytest.mark.parametrize(("n", "after_calls"), [(5, 0), (5, 1), (5, 3), (3, 2)])
 def test_a_failed_push_leaves_every_arm_as_it_was(monkeypatch, kind, n, after_calls):
-    monkeypatch.setattr(batch_module, "MAX_STEP_GROUPS", 4)
     batch, _ = make_pair(n)
     streams = [fault_stream(kind, a, 60, seed=2) for a in range(n)]
     for i in range(40):  # some history: rejects, a restart maybe, a full median window
@@ -286,8 +286,8 @@ def test_a_failed_push_leaves_every_arm_as_it_was(monkeypatch, kind, n, after_ca
                                             np.array([s[1][i] for s in streams]))
     reference = copy.deepcopy(batch)
     before = _snapshot(batch)
-    # jittered times: several groups of sub-steps (3 arms: a core call per group, 5: a step
-    # size per spindle), so a later step fails after earlier ones have been written
+    # jittered times: several groups of sub-steps, each arm its own sub-step size, so a
+    # later step fails after earlier ones have been written
     t = np.array([s[0][40] for s in streams]) + 0.0003 * np.arange(n)
     x = np.array([s[1][40] for s in streams])
     undo = _failing_advance(monkeypatch, after_calls)
@@ -419,3 +419,44 @@ def test_copies_continue_identically(how):
 @pytest.mark.parametrize("kind", list(KINDS))
 def test_long_fault_streams_equal_single_chains(kind):
     run_streams(kind, n=12, samples=3000, seed=31)
+
+
+def test_jittered_arms_with_different_sub_step_counts_equal_single_chains(monkeypatch):
+    """Each arm its own interval (1-4 sub-steps of its own size): arms with fewer sub-steps
+    wait while the others step, in one core call per sub-step; still each single chain."""
+    partial = []
+    commit = core.commit
+    monkeypatch.setattr(core, "commit", lambda *a, where=None: partial.append(
+        where is not None) or commit(*a, where=where))
+    n = 6
+    batch, singles = make_pair(n)
+    rng = np.random.default_rng(3)
+    start = 40.0 + 30.0 * rng.random(n)
+    batch.reset(start)
+    for a, single in enumerate(singles):
+        single.reset(float(start[a]))
+    t = np.zeros(n)
+    for i in range(150):
+        t = t + rng.uniform(0.0012, 0.0035, n)
+        counts = np.round(CONFIG.calibration.counts(start + 20.0 * np.sin(2 * np.pi * t)))
+        out = batch.push_counts(t, counts)
+        for a, single in enumerate(singles):
+            assert_arm_equal(out.arm(a), single.push_counts(float(t[a]), float(counts[a])),
+                             f"sample {i} arm {a}")
+    assert_counters_equal(batch, singles, "end")
+    assert any(partial), "no arm waited for the others"
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (64,), (7, 5)])
+def test_length_fits_evaluate_every_muscle_in_one_pass_with_each_fits_bits(shape):
+    """LengthFits.length_L0 (one Clenshaw pass over zero-padded coefficient columns) equals
+    each muscle's own LengthFit.length_L0, bit for bit, including the range ends."""
+    lo, hi = FITS.valid_range_rad
+    assert len({len(f.coefficients) for f in FITS.fits}) > 1  # the padding is exercised
+    angle = np.random.default_rng(len(shape)).uniform(lo, hi, shape)
+    if angle.size > 2:
+        angle.flat[:2] = lo, hi
+    got = FITS.length_L0(angle)
+    want = np.stack([fit.length_L0(angle) for fit in FITS.fits], axis=-1)
+    assert got.shape == (*shape, 2)
+    np.testing.assert_array_equal(got, want)

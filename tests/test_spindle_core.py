@@ -308,6 +308,32 @@ def test_optimised_step_matches_the_plain_reference_step(theta, n, h):
     np.testing.assert_allclose(ii, ii_ref, rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("theta", [0.5, 1.0])
+@pytest.mark.parametrize(("n", "chunk"), [(2, None), (9, None), (300, None), (3001, 1000)])
+def test_a_step_size_per_spindle_matches_the_plain_reference_step(monkeypatch, theta, n, chunk):
+    """Each spindle its own h (arms sampled at their own times), in one call of the fast
+    step (in one block or several): the plain step's result to the tolerances above, and
+    with every h equal, the result of the scalar-h step."""
+    if chunk is not None:
+        monkeypatch.setattr(batched, "CHUNK_SPINDLES", chunk)
+    state, L1, gd1, gs1 = random_states(n, seed=n + 5)
+    h = np.random.default_rng(n).uniform(2e-4, 1e-3, n)
+    before = state.copy()
+    c = core.columns(spindle.CAT)
+    T1, v1, z1, f1 = (x.copy() for x in core.advance(state, L1, gd1, gs1, h, theta, c))
+    assert_state_unchanged(state, before)
+    T_ref, v_ref, z_ref, f_ref = reference_advance(state, L1, gd1, gs1, h, theta)
+    np.testing.assert_allclose(f1, f_ref, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(v1, v_ref, rtol=1e-11, atol=1e-13)
+    np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(z1, z_ref, rtol=0, atol=1e-9)
+    same = np.full(n, 7e-4)
+    each = [x.copy() for x in core.advance(state, L1, gd1, gs1, same, theta, c)]
+    one = core.advance(state, L1, gd1, gs1, 7e-4, theta, c)
+    for got, want in zip(each, one, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+
+
 @pytest.mark.parametrize("method", ["trapezoidal", "backward_euler"])
 def test_optimised_trajectory_stays_on_the_reference_trajectory(method):
     """300 steps of 1 ms along random smooth inputs, both started at rest: the afferent rates
@@ -428,9 +454,15 @@ def test_few_spindle_float_path_equals_the_vectorised_path(theta):
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
 
 
-def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch):
+@pytest.mark.parametrize(("chunk", "tail"), [(None, True), (1000, True), (None, False)])
+def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch, chunk, tail):
     """Fibres whose v reverses need more Newton iterations than the rest of their block; the
-    block hands them on and they are finished together. Still the reference result."""
+    block hands them on and they are finished together (from TAIL_MIN_SPINDLES on), or the
+    block iterates on. Still the reference result."""
+    if chunk is not None:
+        monkeypatch.setattr(batched, "CHUNK_SPINDLES", chunk)
+    if not tail:
+        monkeypatch.setattr(batched, "TAIL_MIN_SPINDLES", 10**9)
     n = 3000
     state, L1, gd1, gs1 = random_states(n, seed=9)
     # mostly at rest and held: quick convergence; a few reverse a fast polar velocity
@@ -448,7 +480,7 @@ def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch
                         or finish_tail(self, tail, **kw))
     c = core.columns(spindle.CAT)
     T1, v1, _, _ = core.advance(state, L1, gd1, gs1, 1e-3, 0.5, c)
-    assert calls, "the tail was not used"
+    assert bool(calls) == tail, calls
     T_ref, v_ref, _, _ = reference_advance(state, L1, gd1, gs1, 1e-3, 0.5)
     np.testing.assert_allclose(v1, v_ref, rtol=1e-11, atol=1e-13)
     np.testing.assert_allclose(T1, T_ref, rtol=0, atol=1e-13)

@@ -12,14 +12,15 @@ floats).
 
 Per-muscle arrays are (n_arms, 2) in :data:`~spindle.chain.config.MUSCLES` order; the
 spindles are one :class:`~spindle.core.SpindleState` of 2 n_arms spindles, arm-major (arm i:
-BRA 2i, TRImed 2i + 1), stepped by :func:`spindle.core.advance` once per sub-step for every
-arm that shares the step size (all arms, when they share their sample times). Arms whose
-intervals differ (an encoder's jittered times) are stepped in groups of equal sub-step size:
-the core takes one step size per call.
+BRA 2i, TRImed 2i + 1), stepped by :func:`spindle.core.advance` once per sub-step for all
+arms at once: with one step size when the arms share their sample times, else with each
+arm's own (an encoder's jittered times); an arm whose interval has fewer sub-steps than
+another's waits for its turn (its first steps are computed and not committed).
 
-The common push (every arm active, accepted, no restart) runs without a loop over arms;
-rejected samples, restarts and resyncs are handled with masks on the arms concerned. A push
-(and a whole block push) is atomic: if it raises, every arm is left exactly as it was.
+The common push (every arm active, its sample good, no restart) is recognised by four
+reductions and runs without a loop over arms; rejected samples, restarts and resyncs are
+handled with masks on the arms concerned. A push (and a whole block push) is atomic: if it
+raises, every arm is left exactly as it was.
 """
 
 from __future__ import annotations
@@ -44,12 +45,18 @@ _SPINDLE_ARRAYS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activa
                    "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
 _OUTPUTS = tuple(f.name for f in fields(ArmSample) if f.name != "accepted")
 _ALL = slice(None)
-MAX_STEP_GROUPS = 10
-"""Most groups of arms with distinct sub-step sizes stepped one core call each; beyond, the
-arms are stepped with a step size per spindle (see ``BatchedArmChain._advance_group``). With
-jittered times (a group per arm), push_counts took 5.1 ms per group call vs 5.8 ms with a
-step size per spindle at 8 arms, 7.3 vs 5.6 at 16, 23.5 vs 4.9 at 64 (idle 2-core machine,
-2026-12-01)."""
+_MAX = np.maximum.reduce
+_MIN = np.minimum.reduce
+_ALL_TRUE = np.logical_and.reduce
+
+
+def _accepted_all(n: int) -> np.ndarray:
+    return np.ones(n, dtype=bool)
+
+
+def _one_or_each(h: np.ndarray) -> float | np.ndarray:
+    """One sub-step size if the arms share it (the core's scalar-h step), else each arm's."""
+    return float(h[0]) if _MIN(h) == _MAX(h) else h
 
 
 @dataclass(frozen=True)
@@ -134,6 +141,9 @@ class BatchedArmChain:
                                            self.config.fusimotor)
         self._ready = np.zeros(n, dtype=bool)  # reset at least once
         self._intended = np.full((n, 2), math.nan)  # NaN rows: the measured motion
+        self._following = True  # every row of _intended NaN
+        self._minus_one = np.full(n, -1.0)
+        self._minus_one.flags.writeable = False
         self._counters = np.zeros((n, len(COUNTERS)), dtype=np.int64)
         self._behind = np.zeros(n, dtype=np.int64)  # samples older than the last accepted
         self._no_behind = self._behind  # (arrays are rebound, never written: one zero array)
@@ -205,6 +215,7 @@ class BatchedArmChain:
         try:
             self._intended = self._intended.copy()
             self._intended[rows] = math.nan
+            self._following = bool(np.isnan(self._intended).all())
             minus_one = np.full(m, -1.0)
             self._rest(rows, np.array(t, dtype=float), recorded, L, self._rest_reading(angle),
                        minus_one, minus_one)
@@ -232,6 +243,7 @@ class BatchedArmChain:
         n = self.n_arms
         if angle_deg is None:
             self._intended = np.full((n, 2), math.nan)
+            self._following = True
             return
         angle = self._per_arm("angle_deg", angle_deg, (n,), np.arange(n))
         if np.isinf(angle).any():
@@ -245,6 +257,7 @@ class BatchedArmChain:
             clamped = np.minimum(np.maximum(angle[given], lo), hi)
             intended[given] = self.fits.length_L0(np.radians(clamped))
         self._intended = intended
+        self._following = not given.any()
 
     # -- pushes ----------------------------------------------------------------------------
     def push_counts(self, t_s: np.ndarray, counts: np.ndarray,
@@ -351,11 +364,23 @@ class BatchedArmChain:
         the caller's own copies (the chain keeps them)."""
         cfg = self.config
         counters = self._counters.copy()
+        with np.errstate(invalid="ignore"):  # inf - inf where a time is not finite
+            dt = t - self._t
+        if active is None:
+            # The common push, every arm's sample good and continuing (no restart): four
+            # reductions decide it (a NaN fails every comparison), the rest is skipped.
+            dt_min, dt_max = float(_MIN(dt)), float(_MAX(dt))
+            if dt_min > 0.0 and dt_max <= cfg.max_bridge_s and self._all_valid(kind, x):
+                self._behind = self._no_behind
+                if dt_max > cfg.gap_s:
+                    counters[:, _COUNTER["gaps"]] += dt > cfg.gap_s
+                counters[:, _COUNTER["accepted"]] += 1
+                self._continue(kind, _ALL, t, x, dt, dt_min == dt_max, counters)
+                self._counters = counters
+                return _accepted_all(self.n_arms)
         given = np.isfinite(t)
         if active is not None:
             given &= active
-        with np.errstate(invalid="ignore"):  # inf - inf where a time is not finite
-            dt = t - self._t
         time_ok = given & (dt > 0.0)
         back = given & (dt < 0.0)
         any_back = back.any()
@@ -393,6 +418,10 @@ class BatchedArmChain:
         counters[S, _COUNTER["gaps"]] += dt > cfg.gap_s
         counters[S, _COUNTER["accepted"]] += 1
         any_restart = bool(restart.any())
+        if not any_restart:
+            self._continue(kind, S, t, x, dt, False, counters)
+            self._counters = counters
+            return ok
         normal = ~restart
         given_angle = None
         if kind == "length_L0":
@@ -401,32 +430,17 @@ class BatchedArmChain:
         else:
             if kind == "counts":
                 counts = x
-                if not any_restart:
-                    filtered = self._median.push(x, None if S is _ALL else S)
-                else:  # a restart starts the window afresh on its reading
-                    filtered = x.copy()
-                    i = np.flatnonzero(normal)
-                    if i.size:
-                        filtered[i] = self._median.push(x[i], _rows(S, i))
+                # a restart starts the window afresh on its reading
+                filtered = x.copy()
+                i = np.flatnonzero(normal)
+                if i.size:
+                    filtered[i] = self._median.push(x[i], _rows(S, i))
                 angle = cfg.calibration.angle_deg(filtered)
             else:
                 angle = x
                 counts = filtered = np.full(t.size, -1.0)
             given_angle = angle
-            limit = cfg.max_speed_deg_s * dt
-            last_angle = self._angle[S]
-            change = angle - last_angle
-            slew = np.abs(change) > limit
-            if any_restart:
-                slew &= normal
-            if slew.any():
-                counters[S, _COUNTER["slew_limited"]] += slew
-                angle = np.where(slew, last_angle + np.copysign(limit, change), angle)
-            lo, hi = self.angle_range_deg
-            outside = (angle < lo) | (angle > hi)
-            if outside.any():
-                counters[S, _COUNTER["angle_clamped"]] += outside
-                angle = np.minimum(np.maximum(angle, lo), hi)
+            angle = self._limit_angle(S, angle, dt, counters, normal)
             L = self.fits.length_L0(np.radians(angle))
         if any_restart:
             counters[S, _COUNTER["restarts"]] += restart
@@ -451,18 +465,77 @@ class BatchedArmChain:
         self._counters = counters
         return ok
 
-    def _step(self, S, t, dt, L_in, angle, counts, filtered, counters) -> None:
-        """An accepted sample that continues arms ``S`` (slice or index array)."""
-        cfg = self.config
-        u0, x0, v0 = self._u[S], self._x[S], self._v[S]
-        limit = cfg.max_speed_L0_s * dt
-        change = L_in - u0
-        slew = (np.abs(change) > limit[:, None]).any(axis=1)
+    def _all_valid(self, kind: str, x: np.ndarray) -> bool:
+        """Whether every sample of ``x`` is valid (:func:`valid_readings`, a finite angle,
+        :func:`_lengths_valid`), in few reductions."""
+        if kind == "length_L0":
+            lo, hi = core.LENGTH_RANGE_L0
+            return bool(_MIN(x, axis=None) >= lo) and bool(_MAX(x, axis=None) <= hi)
+        if kind == "angle_deg":
+            return math.isfinite(float(np.add.reduce(x)))
+        # readings: whole numbers in 0..max_count (NaN fails the comparisons)
+        return (bool(_MIN(x) >= 0.0) and bool(_MAX(x) <= self.config.encoder.max_count)
+                and bool(_ALL_TRUE(np.equal(np.floor(x), x))))
+
+    def _limit_angle(self, S, angle, dt, counters, normal) -> np.ndarray:
+        """The slew limit (on the arms ``normal``, None: all) and the clamp to the length
+        model's range of the angles of arms ``S``, counted."""
+        limit = self.config.max_speed_deg_s * dt
+        last_angle = self._angle if S is _ALL else self._angle[S]
+        change = angle - last_angle
+        slew = np.abs(change) > limit
+        if normal is not None:
+            slew &= normal
         if slew.any():
             counters[S, _COUNTER["slew_limited"]] += slew
-            limited = L_in - change + np.clip(change, -limit[:, None], limit[:, None])
-            L_in = np.where(slew[:, None], limited, L_in)
-        dt_col = dt[:, None]
+            angle = np.where(slew, last_angle + np.copysign(limit, change), angle)
+        lo, hi = self.angle_range_deg
+        if _MIN(angle) < lo or _MAX(angle) > hi:  # (NaN cannot reach here)
+            counters[S, _COUNTER["angle_clamped"]] += (angle < lo) | (angle > hi)
+            angle = np.minimum(np.maximum(angle, lo), hi)
+        return angle
+
+    def _continue(self, kind, S, t, x, dt, shared, counters) -> None:
+        """Accepted samples that continue arms ``S`` (no restart): the sensor stage, then
+        :meth:`_step`. ``shared``: every arm has the same interval."""
+        if kind == "length_L0":
+            L, angle = x, self._angle if S is _ALL else self._angle[S]
+            counts = filtered = self._no_reading(t.size)
+        else:
+            if kind == "counts":
+                counts = x
+                filtered = self._median.push(x, None if S is _ALL else S)
+                angle = self.config.calibration.angle_deg(filtered)
+            else:
+                angle = x
+                counts = filtered = self._no_reading(t.size)
+            angle = self._limit_angle(S, angle, dt, counters, None)
+            L = self.fits.length_L0(np.radians(angle))
+        self._step(S, t, dt, L, angle, counts, filtered, counters, shared)
+
+    def _no_reading(self, m: int) -> np.ndarray:
+        # the outputs share one read-only array of -1 (no encoder reading)
+        return self._minus_one if m == self.n_arms else np.full(m, -1.0)
+
+    def _step(self, S, t, dt, L_in, angle, counts, filtered, counters,
+              shared: bool = False) -> None:
+        """An accepted sample that continues arms ``S`` (slice or index array); ``shared``:
+        every arm's interval is the same (its steps then take one scalar dt)."""
+        cfg = self.config
+        if S is _ALL:
+            u0, x0, v0 = self._u, self._x, self._v
+        else:
+            u0, x0, v0 = self._u[S], self._x[S], self._v[S]
+        dt_col = float(dt[0]) if shared else dt[:, None]
+        limit = cfg.max_speed_L0_s * dt_col
+        change = L_in - u0
+        fastest = np.abs(change)
+        if _MAX(fastest, axis=None) > (limit if shared else _MIN(limit, axis=None)):
+            slew = (fastest > limit).any(axis=1)
+            if slew.any():
+                counters[S, _COUNTER["slew_limited"]] += slew
+                limited = L_in - change + np.clip(change, -limit, limit)
+                L_in = np.where(slew[:, None], limited, L_in)
         if self._omega is None:
             x1 = L_in
             v1 = (x1 - x0) / dt_col
@@ -470,73 +543,82 @@ class BatchedArmChain:
         else:
             x1, v1, a1 = tracking_step(x0, v0, u0, L_in, dt_col, self._omega)
         rows = None if S is _ALL else S
-        intended = self._intended[S]
-        template_in = np.where(np.isnan(intended), x1, intended)
+        if self._following:  # every arm's template follows its measured motion
+            template_in = x1
+        else:
+            intended = self._intended[S]
+            template_in = np.where(np.isnan(intended), x1, intended)
         template, gs, gd = self._fusimotor.update(t, template_in, rows)
-        ia, ii = self._advance_spindles(S, x0, v0, x1, v1, gd, gs, dt)
+        ia, ii = self._advance_spindles(S, x0, v0, x1, v1, gd, gs, dt, dt_col, shared)
         self._set(S, t=t, angle=angle, u=L_in, x=x1, v=v1, a=a1)
         self._set_out(S, t, counts, filtered, angle, x1, v1, a1, template, gs, gd, ia, ii)
 
-    def _advance_spindles(self, S, x0, v0, x1, v1, gd, gs, dt):
+    def _advance_spindles(self, S, x0, v0, x1, v1, gd, gs, dt, dt_col, shared):
         """Arms ``S`` from their last sample to the new one (``ArmChain._advance_spindles``),
-        in groups of equal sub-steps; returns (Ia, II), each (m, 2)."""
+        in groups of equal numbers of sub-steps, each arm with its own sub-step size;
+        returns (Ia, II), each (m, 2)."""
         step_s = self.config.spindle_step_s
+        if shared:
+            k = max(math.ceil(dt_col / step_s * (1 - 1e-12)), 1)
+            return self._advance_group(S, k, dt_col / k, x0, v0, x1, v1, gd, gs, dt_col)
         k = np.maximum(np.ceil(dt / step_s * (1 - 1e-12)), 1.0)
         h = dt / k
-        if (dt == dt[0]).all():  # shared sample times: one group
-            return self._advance_group(S, int(k[0]), h[0], x0, v0, x1, v1, gd, gs, dt)
-        keys = np.stack((k, h), axis=1)
-        _, group = np.unique(keys, axis=0, return_inverse=True)
-        group = group.reshape(-1)
-        per_arm_h = group.max() + 1 > MAX_STEP_GROUPS
-        if per_arm_h:  # each arm its own h: group by the number of sub-steps only
-            _, group = np.unique(k, return_inverse=True)
-            group = group.reshape(-1)
-        ia, ii = np.empty_like(x1), np.empty_like(x1)
-        order = np.argsort(group, kind="stable")
-        bounds = np.flatnonzero(np.diff(group[order])) + 1
-        for i in np.split(order, bounds):
-            ia[i], ii[i] = self._advance_group(
-                _rows(S, i), int(k[i[0]]), h[i] if per_arm_h else h[i[0]], x0[i], v0[i],
-                x1[i], v1[i], gd[i], gs[i], dt[i])
-        return ia, ii
+        # arms with fewer sub-steps than others wait (see _advance_group)
+        return self._advance_group(S, int(k[0]) if _MIN(k) == _MAX(k) else k,
+                                   _one_or_each(h), x0, v0, x1, v1, gd, gs, dt_col)
 
-    def _advance_group(self, S, k, h, x0, v0, x1, v1, gd, gs, dt):
-        """Arms ``S`` sharing ``k`` sub-steps of ``h`` (a float, or (m,) per arm): the
-        Hermite curve between their states, kept in range and within the slew limit (as
-        ``ArmChain`` does), then the spindle steps of all of them at once."""
+    def _advance_group(self, S, k, h, x0, v0, x1, v1, gd, gs, dt_col):
+        """Arms ``S``, each ``k`` sub-steps of ``h`` (floats, or (m,) per arm; the core then
+        steps each spindle with its arm's h, in one call): the Hermite curve between their
+        states, kept in range and within the slew limit (as ``ArmChain`` does), then the
+        spindle steps of all of them at once. ``dt_col`` the interval, a float or (m, 1).
+
+        With counts ``k`` that differ, all arms step max(k) times and an arm with fewer
+        waits for its turn: its first steps are computed and not committed (one call per
+        sub-step for all arms instead of a gathered group per count; an encoder's jitter
+        gives 2-3 counts)."""
         c = self._columns
         whole = S is _ALL or (S.size == self.n_arms and np.array_equal(S, np.arange(S.size)))
         state = self._state if whole else _gather(self._state, _spindles(S))
         gd_flat, gs_flat = gd.reshape(-1), gs.reshape(-1)
         if np.ndim(h):
-            # The core's fast steps take one h per call; the plain step broadcasts one per
-            # spindle. Jittered times (an encoder per arm) are one group per arm otherwise
-            # (the figures are at MAX_STEP_GROUPS).
-            h_spindles = np.repeat(h, 2)
+            h_step = np.repeat(h, 2)  # arm-major spindles
             reach = self.config.max_speed_L0_s * h[:, None]
-
-            def advance(L):
-                return core.plain_advance(state, L, gd_flat, gs_flat, h_spindles, self._theta, c)
         else:
-            h = float(h)
-            reach = self.config.max_speed_L0_s * h
+            h_step = float(h)
+            reach = self.config.max_speed_L0_s * h_step
 
-            def advance(L):
-                return core.advance(state, L, gd_flat, gs_flat, h, self._theta, c)
+        def advance(L):
+            return core.advance(state, L, gd_flat, gs_flat, h_step, self._theta, c)
+
         lo, hi = core.LENGTH_RANGE_L0
-        dt_col = dt[:, None]
         previous = x0
+        waiting = np.ndim(k) > 0
+        if waiting:
+            counts = k[:, None]
+            first = int(_MAX(k)) - counts  # the sub-steps each arm waits
+            k = int(_MAX(k))
         for j in range(1, k):
-            # hermite_curve scales its dt argument in place: give it a copy
-            Ls = hermite_curve(j / k, x0, x1, [(v0, v1)], dt_col.copy())
-            left = reach * (k - j)
+            if waiting:
+                own = np.maximum(j - first, 0.0)  # each arm's own sub-step (0: waiting)
+                s, left = own / counts, reach * (counts - own)
+            else:
+                s, left = j / k, reach * (k - j)
+            # hermite_curve scales its dt argument in place (an array): give it a copy
+            Ls = hermite_curve(s, x0, x1, [(v0, v1)],
+                               dt_col if isinstance(dt_col, float) else dt_col.copy())
             Ls = np.minimum(np.maximum(Ls, previous - reach), previous + reach)
             Ls = np.minimum(np.maximum(Ls, x1 - left), x1 + left)
             Ls = np.minimum(np.maximum(Ls, lo), hi)
             flat = Ls.reshape(-1)
-            core.commit(state, advance(flat), flat, gd_flat, gs_flat)
-            previous = Ls
+            if waiting:
+                moving = own > 0.0
+                core.commit(state, advance(flat), flat, gd_flat, gs_flat,
+                            where=np.repeat(moving.reshape(-1), 2))
+                previous = np.where(moving, Ls, x0)
+            else:
+                core.commit(state, advance(flat), flat, gd_flat, gs_flat)
+                previous = Ls
         flat = x1.reshape(-1)
         new = advance(flat)
         core.commit(state, new, flat, gd_flat, gs_flat)

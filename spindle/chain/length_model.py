@@ -21,6 +21,7 @@ the wrong type, non-finite numbers, fitted lengths leaving the spindle's valid r
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -182,7 +183,27 @@ class LengthFits:
     def length_L0(self, angle_rad: np.ndarray | float, *, clip: bool = False) -> np.ndarray:
         """Normalised fibre lengths (L0), shape ``angle_rad.shape + (n_muscles,)``."""
         angle = _check_angle_rad(angle_rad, self.valid_range_rad, clip)
-        return np.stack([f.length_L0(angle) for f in self.fits], axis=-1)
+        columns = self._coefficient_columns
+        if columns is None:
+            return np.stack([f.length_L0(angle) for f in self.fits], axis=-1)
+        # every muscle in one Clenshaw pass (fewer numpy calls: 151 vs 195 us for 64 angles,
+        # shared 2-core machine, 2026-12-01); the leading zeros of a shorter series pass the
+        # recurrence's values through exactly, so each muscle's lengths are
+        # LengthFit.length_L0's, bit for bit
+        return chebyshev.chebval(self.fits[0]._x(angle)[..., None], columns, tensor=False)
+
+    @functools.cached_property
+    def _coefficient_columns(self) -> np.ndarray | None:
+        """(max degree + 1, n_muscles): each fit's coefficients, zero-padded to the longest;
+        None if the fits' angle ranges differ (each then maps the angle to x itself) or a
+        series is too short for the recurrence (chebval treats 1-2 coefficients apart)."""
+        if (any(f.valid_range_rad != self.fits[0].valid_range_rad for f in self.fits)
+                or min(len(f.coefficients) for f in self.fits) < 3):
+            return None
+        columns = np.zeros((max(len(f.coefficients) for f in self.fits), len(self.fits)))
+        for j, f in enumerate(self.fits):
+            columns[:len(f.coefficients), j] = f.coefficients
+        return columns
 
     def velocity_L0_s(
         self,
