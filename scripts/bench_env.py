@@ -1,166 +1,311 @@
-"""Env speed: steps/s of one env and of an 8-env vector, against raw ``mj_step`` on the same
-model, measured side by side in one run (medians over interleaved repeats).
+"""Env speed and scaling: the physics-only limit, the single envs (each chain backend) and the
+native vector envs, measured side by side in one process (medians over interleaved repeats).
 
-The chain backend is ``"c"`` when ``spindle.chain.BACKENDS`` has it, else ``"numpy"`` (the
-script says which). When MyoSuite is importable, its 1-DoF elbow env (no afferents,
-``myoElbowPose1D6MRandom-v0``) is measured in the same interleaved repeats and the ratio
-printed; otherwise the script says it was not measured. Absolute steps/s move 2-5x between
-machines: compare ratios measured in one run.
+    python scripts/bench_env.py [--steps 2000] [--repeats 3] [--sizes 1,8,64,256,1024]
+                                [--threads 1,2] [--myosuite-python PATH] [--quick]
 
-    python scripts/bench_env.py [--steps 2000] [--repeats 3] [--backend c|numpy]
+Rates are env steps per second (for a vector env: vector steps x envs), from wall time and
+from CPU time of this process. What each line measures:
 
-The last line is ``env_steps_per_s=<float> vs_raw_mj_step=<float>``: one ElbowReach-v0 env
-(default settings, 20 ms steps, random actions, resets every 200 steps) and its ratio to raw
-``mj_step`` calls per second (each env step runs 10 of them).
+- **physics-only limit**: ``mj_step`` on one ``MjData`` of the same model with random
+  controls, in a tight loop on one thread, 10 per env step (the env's frame skip): what an
+  env step costs with no sensing at all. Each env id has its own limit (muscles or servo).
+- **single env**: ``gymnasium.make(id)`` with ``backend="numpy"``, ``"c"`` and the default
+  (``"auto"``), random actions, resets at the 200-step truncation.
+- **vector env**: ``gymnasium.make_vec(id, num_envs=n)`` (the native vector env) for every n
+  of ``--sizes`` and every thread count of ``--threads``, numpy chain (the C chain at 64
+  envs), with the resident memory it adds per env (RSS after building and stepping it,
+  minus RSS before, divided by n).
+- **MyoSuite**: its 1-DoF elbow (``myoElbowPose1D6MRandom-v0``: 6 muscles, no afferents, 20 ms
+  steps like ours) run by ``--myosuite-python`` (a Python with MyoSuite installed: MyoSuite
+  pins gymnasium < 1.3, so it lives in its own venv) in a subprocess within the same
+  interleaved repeats, or in this process when MyoSuite is importable here. Without either,
+  the script says it was not measured.
+
+Absolute figures move 2-5x between machines and with load: compare the ratios, which are
+measured side by side. The last line is
+
+    vector_env_steps_per_s=<ElbowReach-v0, 64 envs, numpy, 1 thread>
+    vs_physics_limit=<that / its physics-only limit> single_env_vs_myosuite=<default
+    ElbowReach-v0 / MyoSuite, steps per CPU-second, or nan when not measured>
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
+import subprocess
+import sys
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-
-def bench_raw(steps: int) -> float:
-    """Raw ``mj_step``/s on the muscle-driven elbow with random excitations."""
-    import mujoco
-
-    from proprio_env.envs.base import SERVO_GROUP_BIT
-    from proprio_env.model import load_model
-
-    model = load_model()
-    model.opt.disableactuator = SERVO_GROUP_BIT
-    data = mujoco.MjData(model)
-    ctrl = np.random.default_rng(0).uniform(0, 1, (steps, model.nu))
-    start = time.perf_counter()
-    for k in range(steps):
-        data.ctrl[:] = ctrl[k]
-        mujoco.mj_step(model, data)
-    return steps / (time.perf_counter() - start)
-
-
-def bench_env(env_id: str, steps: int, backend: str) -> tuple[float, float]:
-    """(env steps/s of one ``gymnasium.make`` env, share of the time in the spindle chain)."""
-    import gymnasium as gym
-
-    env = gym.make(env_id, backend=backend)
-    env.action_space.seed(0)
-    actions = [env.action_space.sample() for _ in range(steps)]
-    readout = env.unwrapped.afferents
-    push = readout.push
-    chain_s = [0.0]
-
-    def timed_push(*args):
-        t0 = time.perf_counter()
-        out = push(*args)
-        chain_s[0] += time.perf_counter() - t0
-        return out
-
-    readout.push = timed_push
-    env.reset(seed=0)
-    start = time.perf_counter()
-    for a in actions:
-        _, _, terminated, truncated, _ = env.step(a)
-        if terminated or truncated:
-            env.reset()
-    elapsed = time.perf_counter() - start
-    env.close()
-    return steps / elapsed, chain_s[0] / elapsed
-
-
+REACH = "proprio_env/ElbowReach-v0"
+PROSTHESIS = "proprio_env/ProsthesisElbow-v0"
+ENV_IDS = (REACH, PROSTHESIS)
 MYOSUITE_ENV_ID = "myoElbowPose1D6MRandom-v0"
 """MyoSuite's 1-DoF elbow (6 muscles, no afferents): the nearest published elbow env."""
+TARGET_SIZE = 64
+"""The vector-env size the last line reports (the issue's target configuration)."""
 
 
-def bench_myosuite(steps: int) -> tuple[float, float] | None:
-    """(env steps/s, env step in s) of MyoSuite's 1-DoF elbow with random actions, resetting
-    when an episode ends; None when MyoSuite is not importable."""
+@dataclass
+class Rate:
+    """Env steps per wall second and per CPU second of one measurement."""
+
+    wall: float
+    cpu: float
+
+
+def timed(run: Callable[[], int]) -> Rate:
+    """``run()`` returns the env steps it made; their rate over its wall and CPU time."""
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    steps = run()
+    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    return Rate(steps / wall, steps / max(cpu, 1e-9))
+
+
+def rss_bytes() -> int:
+    """Resident set size of this process (bytes, from /proc; 0 where there is none)."""
     try:
-        import myosuite  # noqa: F401  (registers its envs)
-        from myosuite.utils import gym as myo_gym
-    except ImportError:
-        return None
-    env = myo_gym.make(MYOSUITE_ENV_ID)
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+# -- the measurements ---------------------------------------------------------------------------
+def physics_limit(env_id: str, steps: int) -> Rate:
+    """Env steps/s of bare physics: 10 ``mj_step`` per env step on the env's own model."""
+    import gymnasium as gym
+    import mujoco
+
+    env = gym.make(env_id).unwrapped
+    model, data = env.model, env.data
+    frames = env.frame_skip
+    env.reset(seed=0)
+    low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+    ctrl = np.random.default_rng(0).uniform(low, high, (steps, model.nu))
+
+    def run() -> int:
+        for k in range(steps):
+            data.ctrl[:] = ctrl[k]
+            for _ in range(frames):
+                mujoco.mj_step(model, data)
+        return steps
+
+    rate = timed(run)
+    env.close()
+    return rate
+
+
+def single_env(env_id: str, steps: int, backend: str | None) -> tuple[Rate, str]:
+    """(rate, backend picked) of one ``gymnasium.make`` env with random actions."""
+    import gymnasium as gym
+
+    kwargs = {} if backend is None else {"backend": backend}
+    env = gym.make(env_id, **kwargs)
     env.action_space.seed(0)
     actions = [env.action_space.sample() for _ in range(steps)]
     env.reset(seed=0)
-    start = time.perf_counter()
-    for a in actions:
-        out = env.step(a)  # gymnasium's 5-tuple, or old gym's 4-tuple
-        if out[2] or (len(out) == 5 and out[3]):
-            env.reset()
-    elapsed = time.perf_counter() - start
-    dt_s = float(env.unwrapped.dt)
+
+    def run() -> int:
+        for a in actions:
+            _, _, terminated, truncated, _ = env.step(a)
+            if terminated or truncated:
+                env.reset()
+        return steps
+
+    rate = timed(run)
+    picked = env.unwrapped.backend
     env.close()
-    return steps / elapsed, dt_s
+    return rate, picked
 
 
-def bench_vector(env_id: str, n_envs: int, steps: int, backend: str) -> float:
-    """Env steps/s (summed over the envs) of a ``SyncVectorEnv`` of ``n_envs``."""
+def vector_env(env_id: str, n_envs: int, steps: int, backend: str, threads: int
+               ) -> tuple[Rate, float]:
+    """(rate, resident bytes per env) of the native vector env of ``n_envs``."""
     import gymnasium as gym
 
-    vec = gym.make_vec(env_id, num_envs=n_envs, vectorization_mode="sync",
-                       backend=backend)
+    before = rss_bytes()
+    vec = gym.make_vec(env_id, num_envs=n_envs, vectorization_mode="vector_entry_point",
+                       backend=backend, num_threads=threads)
     vec.action_space.seed(0)
-    n_calls = max(1, steps // n_envs)
+    n_calls = max(2, steps // n_envs)
     actions = [vec.action_space.sample() for _ in range(n_calls)]
     vec.reset(seed=0)
-    start = time.perf_counter()
-    for a in actions:
-        vec.step(a)
-    elapsed = time.perf_counter() - start
+    vec.step(actions[0])  # buffers and caches made before the clock starts
+
+    def run() -> int:
+        for a in actions:
+            vec.step(a)
+        return n_calls * n_envs
+
+    rate = timed(run)
+    per_env = max(rss_bytes() - before, 0) / n_envs
     vec.close()
-    return n_calls * n_envs / elapsed
+    return rate, per_env
+
+
+MYOSUITE_SNIPPET = r"""
+import json, sys, time
+import myosuite  # noqa: F401  (registers its envs)
+from myosuite.utils import gym
+steps = int(sys.argv[1])
+env = gym.make(sys.argv[2])
+env.action_space.seed(0)
+actions = [env.action_space.sample() for _ in range(steps)]
+env.reset(seed=0)
+wall0, cpu0 = time.perf_counter(), time.process_time()
+for a in actions:
+    out = env.step(a)
+    if out[2] or (len(out) == 5 and out[3]):
+        env.reset()
+wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+print(json.dumps({"wall": steps / wall, "cpu": steps / cpu, "dt_s": float(env.unwrapped.dt),
+                  "version": myosuite.__version__}))
+"""
+
+
+def myosuite_env(steps: int, python: str | None) -> tuple[Rate, dict] | None:
+    """MyoSuite's elbow with random actions: in ``python`` (a subprocess) if given, else here
+    when importable; None when neither is possible."""
+    if python is None:
+        try:
+            import myosuite  # noqa: F401
+        except ImportError:
+            return None
+        python = sys.executable
+    out = subprocess.run([python, "-c", MYOSUITE_SNIPPET, str(steps), MYOSUITE_ENV_ID],
+                         capture_output=True, text=True, check=False, timeout=1800)
+    if out.returncode != 0:
+        raise RuntimeError(f"MyoSuite run with {python} failed:\n{out.stderr[-2000:]}")
+    figures = json.loads(out.stdout.strip().splitlines()[-1])
+    return Rate(figures["wall"], figures["cpu"]), figures
+
+
+# -- the run --------------------------------------------------------------------------------------
+@dataclass
+class Results:
+    """Every measurement of every repeat, keyed by a label."""
+
+    rates: dict[str, list[Rate]] = field(default_factory=dict)
+    memory: dict[str, list[float]] = field(default_factory=dict)
+    notes: dict[str, str] = field(default_factory=dict)
+
+    def add(self, label: str, rate: Rate) -> None:
+        self.rates.setdefault(label, []).append(rate)
+
+    def wall(self, label: str) -> float:
+        return float(np.median([r.wall for r in self.rates[label]]))
+
+    def cpu(self, label: str) -> float:
+        return float(np.median([r.cpu for r in self.rates[label]]))
+
+
+def measure(args: argparse.Namespace) -> Results:
+    """All measurements, repeated ``args.repeats`` times in interleaved order."""
+    results = Results()
+    for repeat in range(args.repeats):
+        print(f"repeat {repeat + 1}/{args.repeats}", file=sys.stderr, flush=True)
+        for env_id in ENV_IDS:
+            results.add(f"{env_id} physics", physics_limit(env_id, args.steps))
+            for backend in ("numpy", "c", None):
+                rate, picked = single_env(env_id, args.steps, backend)
+                label = f"{env_id} single {backend or 'default'}"
+                results.add(label, rate)
+                results.notes[label] = picked
+            for threads in args.threads:
+                for n in args.sizes:
+                    label = f"{env_id} vector numpy n={n} threads={threads}"
+                    rate, per_env = vector_env(env_id, n, max(args.steps, 4 * n) if n > 64
+                                               else args.steps, "numpy", threads)
+                    results.add(label, rate)
+                    results.memory.setdefault(label, []).append(per_env)
+            for threads in args.threads:
+                rate, _ = vector_env(env_id, TARGET_SIZE, args.steps, "c", threads)
+                results.add(f"{env_id} vector c n={TARGET_SIZE} threads={threads}", rate)
+        myo = myosuite_env(args.steps, args.myosuite_python)
+        if myo is not None:
+            results.add("myosuite", myo[0])
+            results.notes["myosuite"] = (f"MyoSuite {myo[1]['version']}, "
+                                         f"{1e3 * myo[1]['dt_s']:g} ms steps")
+    return results
+
+
+def report(results: Results, args: argparse.Namespace) -> None:
+    """Print the table and the last line."""
+    print(f"medians of {args.repeats} interleaved repeats of {args.steps} env steps "
+          "(vector envs: at least 4 vector steps per env)")
+    print(f"{'measurement':58s} {'steps/s wall':>13s} {'steps/CPU-s':>12s} "
+          f"{'/ physics':>9s} {'MB/env':>7s}")
+    for label in results.rates:
+        env_id = label.split()[0]
+        limit = results.wall(f"{env_id} physics") if env_id in ENV_IDS else math.nan
+        memory = results.memory.get(label)
+        mb = f"{np.median(memory) / 1e6:7.2f}" if memory else " " * 7
+        note = f"  [{results.notes[label]}]" if label in results.notes else ""
+        print(f"{label:58s} {results.wall(label):13.0f} {results.cpu(label):12.0f} "
+              f"{results.wall(label) / limit:9.3f} {mb}{note}")
+    if "myosuite" not in results.rates:
+        print(f"MyoSuite {MYOSUITE_ENV_ID}: not measured (not importable here and no "
+              "--myosuite-python given)")
+        vs_myo = math.nan
+    else:
+        vs_myo = results.cpu(f"{REACH} single default") / results.cpu("myosuite")
+        for env_id in ENV_IDS:
+            for backend in ("default", "numpy", "c"):
+                label = f"{env_id} single {backend}"
+                print(f"{label} / MyoSuite (steps per CPU-second): "
+                      f"{results.cpu(label) / results.cpu('myosuite'):.2f}")
+    for env_id in ENV_IDS:
+        limit = results.wall(f"{env_id} physics")
+        for backend in ("numpy", "c"):
+            for threads in args.threads:
+                label = f"{env_id} vector {backend} n={TARGET_SIZE} threads={threads}"
+                if label in results.rates:
+                    print(f"{label} / single-thread physics limit: "
+                          f"{results.wall(label) / limit:.3f}")
+    target = f"{REACH} vector numpy n={TARGET_SIZE} threads=1"
+    rate = results.wall(target) if target in results.rates else math.nan
+    print(f"vector_env_steps_per_s={rate:.1f} "
+          f"vs_physics_limit={rate / results.wall(f'{REACH} physics'):.3f} "
+          f"single_env_vs_myosuite={vs_myo:.3f}")
 
 
 def main(argv: list[str] | None = None) -> None:
     import proprio_env  # noqa: F401  (registers the envs)
-    from spindle.chain import BACKENDS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=2000, help="env steps per measurement")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--backend", default=None, help="chain backend (default: c if built)")
+    parser.add_argument("--sizes", default="1,8,64,256,1024",
+                        help="vector env sizes, comma-separated")
+    parser.add_argument("--threads", default="1,2", help="thread counts, comma-separated")
+    parser.add_argument("--myosuite-python", default=None,
+                        help="a Python with MyoSuite installed (its own venv)")
+    parser.add_argument("--quick", action="store_true",
+                        help="a check that everything runs: 200 steps, 1 repeat, sizes 1,64")
     args = parser.parse_args(argv)
-    if args.steps < 1 or args.repeats < 1:
-        parser.error("--steps and --repeats must be >= 1")
-    backend = args.backend or ("c" if "c" in BACKENDS else "numpy")
-    note = "" if "c" in BACKENDS else " (the C backend is not available in this build)"
-    print(f"chain backend: {backend}{note}; available: {BACKENDS}")
-
-    reach, prosthesis, vector, raw, myo = [], [], [], [], []
-    reach_share, prosthesis_share = [], []
-    for _ in range(args.repeats):
-        raw.append(bench_raw(10 * args.steps))
-        rate, share = bench_env("proprio_env/ElbowReach-v0", args.steps, backend)
-        reach.append(rate)
-        reach_share.append(share)
-        rate, share = bench_env("proprio_env/ProsthesisElbow-v0", args.steps, backend)
-        prosthesis.append(rate)
-        prosthesis_share.append(share)
-        vector.append(bench_vector("proprio_env/ElbowReach-v0", 8, args.steps, backend))
-        myo.append(bench_myosuite(args.steps))
-    med = {k: float(np.median(v)) for k, v in (("reach", reach), ("prosthesis", prosthesis),
-                                               ("vector", vector), ("raw", raw),
-                                               ("reach_share", reach_share),
-                                               ("prosthesis_share", prosthesis_share))}
-    print(f"raw mj_step/s (same model)           : {med['raw']:10.0f}  "
-          f"(physics-only ceiling at 10 mj_step per env step: {med['raw'] / 10:.0f} env steps/s)")
-    print(f"ElbowReach-v0, 1 env (exact lengths)  : {med['reach']:10.1f} env steps/s, "
-          f"{100 * med['reach_share']:.0f} % of it in the spindle chain")
-    print(f"ProsthesisElbow-v0, 1 env (encoder)   : {med['prosthesis']:10.1f} env steps/s, "
-          f"{100 * med['prosthesis_share']:.0f} % of it in the spindle chain")
-    print(f"ElbowReach-v0, SyncVectorEnv of 8     : {med['vector']:10.1f} env steps/s (total)")
-    print(f"medians of {args.repeats} interleaved repeats of {args.steps} env steps")
-    if myo[0] is None:
-        print(f"MyoSuite {MYOSUITE_ENV_ID}: not measured (myosuite is not importable)")
-    else:
-        myo_rate = float(np.median([rate for rate, _ in myo]))
-        print(f"MyoSuite {MYOSUITE_ENV_ID} (no afferents, {1e3 * myo[0][1]:g} ms steps): "
-              f"{myo_rate:.1f} env steps/s; ElbowReach-v0 / MyoSuite = "
-              f"{med['reach'] / myo_rate:.2f}")
-    print(f"env_steps_per_s={med['reach']:.1f} vs_raw_mj_step={med['reach'] / med['raw']:.5f}")
+    if args.quick:
+        args.steps, args.repeats, args.sizes = 200, 1, "1,64"
+    try:
+        args.sizes = sorted(int(x) for x in args.sizes.split(","))
+        args.threads = [int(x) for x in args.threads.split(",")]
+    except ValueError:
+        parser.error("--sizes and --threads are comma-separated integers")
+    if (args.steps < 1 or args.repeats < 1 or min(args.sizes) < 1
+            or not set(args.threads) <= {1, 2}):
+        parser.error("--steps, --repeats and sizes must be >= 1; threads 1 or 2")
+    if TARGET_SIZE not in args.sizes:
+        args.sizes = sorted({*args.sizes, TARGET_SIZE})
+    report(measure(args), args)
 
 
 if __name__ == "__main__":
