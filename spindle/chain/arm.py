@@ -86,6 +86,19 @@ LENGTH_RANGE_POINTS = 1301
 fusimotor's h(x) and g(x) span) is taken; ``FIT_RANGE_POINTS`` in ``chain.c`` is the same."""
 
 
+def fits_and_ranges(config: ChainConfig, fits: LengthFits | None
+                    ) -> tuple[LengthFits, tuple[float, float], np.ndarray, np.ndarray]:
+    """The chain's length fits (``fits``, or those of ``config.fits_path``), the angle range
+    they hold (deg) and each muscle's shortest and longest length over it (L0): what both
+    the single and the batched chain clamp to and span h(x) with."""
+    fits = fits if fits is not None else load_length_fits(config.fits_path)
+    if fits.muscles != MUSCLES:
+        raise ValueError(f"length fits are for {fits.muscles}, the chain needs {MUSCLES}")
+    lo_rad, hi_rad = fits.valid_range_rad
+    span = fits.length_L0(np.linspace(lo_rad, hi_rad, LENGTH_RANGE_POINTS))
+    return fits, (math.degrees(lo_rad), math.degrees(hi_rad)), span.min(axis=0), span.max(axis=0)
+
+
 class ArmChain:
     """The streaming chain of one arm (BRA and TRImed), in numpy.
 
@@ -101,14 +114,8 @@ class ArmChain:
             raise ValueError(
                 f"ArmChain is the numpy chain, but config.backend={self.config.backend!r}; "
                 "build the chain with spindle.chain.make_chain(config, fits)")
-        self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
-        if self.fits.muscles != MUSCLES:
-            raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
-        lo_rad, hi_rad = self.fits.valid_range_rad
-        self.angle_range_deg = (math.degrees(lo_rad), math.degrees(hi_rad))
-        span = self.fits.length_L0(np.linspace(lo_rad, hi_rad, LENGTH_RANGE_POINTS))
-        self.length_min_L0 = span.min(axis=0)
-        self.length_max_L0 = span.max(axis=0)
+        (self.fits, self.angle_range_deg, self.length_min_L0,
+         self.length_max_L0) = fits_and_ranges(self.config, fits)
         self._method = get_method(self.config.method)
         self._columns = core.columns(self.config.params)
         self._omega = (None if self.config.lowpass_hz is None

@@ -31,11 +31,11 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from spindle import core
-from spindle.chain.arm import LENGTH_RANGE_POINTS
+from spindle.chain.arm import fits_and_ranges
 from spindle.chain.conditioning import natural_rad_s, tracking_step
-from spindle.chain.config import COUNTERS, MUSCLES, ArmSample, ChainConfig, real_array
+from spindle.chain.config import COUNTERS, ArmSample, ChainConfig, real_array
 from spindle.chain.fusimotor import BatchedFusimotor
-from spindle.chain.length_model import LengthFits, load_length_fits
+from spindle.chain.length_model import LengthFits
 from spindle.chain.sensor import BatchedMedianFilter, valid_readings
 from spindle.methods import get_method
 from spindle.substeps import hermite_curve
@@ -123,14 +123,8 @@ class BatchedArmChain:
             raise ValueError(
                 "BatchedArmChain is the numpy batch, but config.backend='c'; build the batch "
                 "with spindle.chain.make_batched_chain(n_arms, config, fits)")
-        self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
-        if self.fits.muscles != MUSCLES:
-            raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
-        lo_rad, hi_rad = self.fits.valid_range_rad
-        self.angle_range_deg = (math.degrees(lo_rad), math.degrees(hi_rad))
-        span = self.fits.length_L0(np.linspace(lo_rad, hi_rad, LENGTH_RANGE_POINTS))
-        self.length_min_L0 = span.min(axis=0)
-        self.length_max_L0 = span.max(axis=0)
+        (self.fits, self.angle_range_deg, self.length_min_L0,
+         self.length_max_L0) = fits_and_ranges(self.config, fits)
         self._theta = get_method(self.config.method).theta
         self._columns = core.columns(self.config.params)
         self._omega = (None if self.config.lowpass_hz is None
