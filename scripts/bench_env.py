@@ -14,8 +14,9 @@ from CPU time of this process. What each line measures:
   (``"auto"``), random actions, resets at the 200-step truncation.
 - **vector env**: ``gymnasium.make_vec(id, num_envs=n)`` (the native vector env) for every n
   of ``--sizes`` and every thread count of ``--threads``, numpy chain (the C chain at 64
-  envs), with the resident memory it adds per env (RSS after building and stepping it,
-  minus RSS before, divided by n).
+  envs), and the peak memory per env: in a fresh process per env id and size, the peak
+  resident set after building the vector env and stepping it 20 times, minus the resident
+  set before building it (imports done), divided by n.
 - **MyoSuite**: its 1-DoF elbow (``myoElbowPose1D6MRandom-v0``: 6 muscles, no afferents, 20 ms
   steps like ours) run by ``--myosuite-python`` (a Python with MyoSuite installed: MyoSuite
   pins gymnasium < 1.3, so it lives in its own venv) in a subprocess within the same
@@ -69,15 +70,41 @@ def timed(run: Callable[[], int]) -> Rate:
     return Rate(steps / wall, steps / max(cpu, 1e-9))
 
 
-def rss_bytes() -> int:
-    """Resident set size of this process (bytes, from /proc; 0 where there is none)."""
+def memory_bytes(field_name: str) -> int:
+    """``VmRSS`` (resident now) or ``VmHWM`` (peak resident) of this process in bytes, from
+    /proc; 0 where there is none."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(field_name + ":"):
                 return int(line.split()[1]) * 1024
     except OSError:
         pass
     return 0
+
+
+MEMORY_SNIPPET = r"""
+import sys
+import gymnasium as gym
+import proprio_env  # noqa: F401
+sys.path.insert(0, sys.argv[4])
+from bench_env import memory_bytes
+env_id, n, backend = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+before = memory_bytes("VmRSS")
+vec = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", backend=backend)
+vec.action_space.seed(0)
+vec.reset(seed=0)
+for _ in range(20):
+    vec.step(vec.action_space.sample())
+print((memory_bytes("VmHWM") - before) / n)
+"""
+
+
+def peak_memory_per_env(env_id: str, n_envs: int, backend: str) -> float:
+    """Peak resident bytes a vector env of ``n_envs`` adds per env, in a fresh process."""
+    out = subprocess.run([sys.executable, "-c", MEMORY_SNIPPET, env_id, str(n_envs), backend,
+                          str(Path(__file__).parent)], capture_output=True, text=True,
+                         check=True, timeout=1800)
+    return float(out.stdout.strip().splitlines()[-1])
 
 
 # -- the measurements ---------------------------------------------------------------------------
@@ -128,12 +155,10 @@ def single_env(env_id: str, steps: int, backend: str | None) -> tuple[Rate, str]
     return rate, picked
 
 
-def vector_env(env_id: str, n_envs: int, steps: int, backend: str, threads: int
-               ) -> tuple[Rate, float]:
-    """(rate, resident bytes per env) of the native vector env of ``n_envs``."""
+def vector_env(env_id: str, n_envs: int, steps: int, backend: str, threads: int) -> Rate:
+    """The rate of the native vector env of ``n_envs``."""
     import gymnasium as gym
 
-    before = rss_bytes()
     vec = gym.make_vec(env_id, num_envs=n_envs, vectorization_mode="vector_entry_point",
                        backend=backend, num_threads=threads)
     vec.action_space.seed(0)
@@ -148,9 +173,8 @@ def vector_env(env_id: str, n_envs: int, steps: int, backend: str, threads: int
         return n_calls * n_envs
 
     rate = timed(run)
-    per_env = max(rss_bytes() - before, 0) / n_envs
     vec.close()
-    return rate, per_env
+    return rate
 
 
 MYOSUITE_SNIPPET = r"""
@@ -224,13 +248,13 @@ def measure(args: argparse.Namespace) -> Results:
             for threads in args.threads:
                 for n in args.sizes:
                     label = f"{env_id} vector numpy n={n} threads={threads}"
-                    rate, per_env = vector_env(env_id, n, max(args.steps, 4 * n) if n > 64
-                                               else args.steps, "numpy", threads)
-                    results.add(label, rate)
-                    results.memory.setdefault(label, []).append(per_env)
+                    results.add(label, vector_env(env_id, n, max(args.steps, 4 * n) if n > 64
+                                                  else args.steps, "numpy", threads))
+                    if repeat == 0 and threads == args.threads[0]:
+                        results.memory[label] = [peak_memory_per_env(env_id, n, "numpy")]
             for threads in args.threads:
-                rate, _ = vector_env(env_id, TARGET_SIZE, args.steps, "c", threads)
-                results.add(f"{env_id} vector c n={TARGET_SIZE} threads={threads}", rate)
+                results.add(f"{env_id} vector c n={TARGET_SIZE} threads={threads}",
+                            vector_env(env_id, TARGET_SIZE, args.steps, "c", threads))
         myo = myosuite_env(args.steps, args.myosuite_python)
         if myo is not None:
             results.add("myosuite", myo[0])
