@@ -118,14 +118,20 @@ def _callbacks_class():
     from ray.rllib.callbacks.callbacks import RLlibCallback
 
     class TrainingError(RLlibCallback):
-        """Sums |angle error| over every env step sampled (the curve's training error)."""
+        """Per iteration: the sum of |angle error| over the env steps sampled (the curve's
+        training error) and the env steps each runner sampled (``steps_by_runner``)."""
 
-        def on_episode_step(self, *, episode, metrics_logger=None, **kwargs) -> None:
+        def on_episode_step(self, *, episode, env_runner=None, metrics_logger=None,
+                            **kwargs) -> None:
             info = episode.get_infos(-1)
-            if metrics_logger is not None and "angle_error_deg" in info:
-                metrics_logger.log_value("train_abs_err_sum_deg",
-                                         abs(float(info["angle_error_deg"])), reduce="sum")
-                metrics_logger.log_value("train_abs_err_steps", 1, reduce="sum")
+            if metrics_logger is None or "angle_error_deg" not in info:
+                return
+            metrics_logger.log_value("train_abs_err_sum_deg",
+                                     abs(float(info["angle_error_deg"])), reduce="sum")
+            metrics_logger.log_value("train_abs_err_steps", 1, reduce="sum")
+            if env_runner is not None:
+                metrics_logger.log_value(("steps_by_runner", str(env_runner.worker_index)), 1,
+                                         reduce="sum")
 
     return TrainingError
 
@@ -232,6 +238,12 @@ def env_steps(result: dict[str, Any]) -> int:
     steps = runners.get("num_env_steps_sampled_lifetime",
                         result.get("num_env_steps_sampled_lifetime", 0))
     return int(steps)
+
+
+def steps_by_runner(result: dict[str, Any]) -> dict[int, int]:
+    """Env steps each runner (by worker index) sampled in this iteration."""
+    by_runner = result.get("env_runners", {}).get("steps_by_runner", {})
+    return {int(k): int(v) for k, v in by_runner.items()}
 
 
 def training_error(result: dict[str, Any]) -> float:
