@@ -61,6 +61,9 @@ def main(argv: list[str] | None = None) -> dict[int, list[dict[str, float]]]:
     args = parser.parse_args(argv)
     if args.iterations < 1 or args.repeats < 1:
         parser.error("--iterations and --repeats must be positive")
+    import torch
+
+    torch.set_num_threads(1)  # the PPO update runs here, on one thread as in train.py
     start_ray(RLlibOptions())
     runs: dict[int, list[dict[str, float]]] = {1: [], 2: []}
     for repeat in range(args.repeats):

@@ -63,6 +63,10 @@ def test_smoke_run_trains_evaluates_and_plots(tmp_path):
 
 
 def test_options_refuse_bad_values():
+    with pytest.raises(ValueError, match="num_envs=0"):
+        train.TrainConfig(num_envs=0)
+    with pytest.raises(ValueError, match="num_envs=True"):
+        train.TrainConfig(num_envs=True)
     with pytest.raises(ValueError, match="num_env_runners=-1"):
         trl.RLlibOptions(num_env_runners=-1)
     with pytest.raises(ValueError, match="num_cpus=0"):
@@ -117,3 +121,18 @@ def test_module_policy_maps_normalised_actions_onto_the_box():
     # [-1, 1] -> [0, 1]; beyond the range clipped
     np.testing.assert_allclose(policy(np.array([-1.0, 0.0, 9.0], np.float32), None), [0.0, 0.5])
     np.testing.assert_allclose(policy(np.array([1.0, 3.0, 9.0], np.float32), None), [1.0, 1.0])
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--num-envs", "3"], "num_envs=3 must divide the rollout of 2048"),
+    (["--address", "auto"], "--address belong to --engine rllib"),
+    (["--engine", "rllib", "--num-envs", "4"], "--num-envs belongs to --engine sb3"),
+    (["--engine", "rllib", "--resume"], "resume=True needs a checkpoint_dir"),
+])
+def test_bad_arguments_are_refused_before_anything_starts(args, message, tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    run = subprocess.run([sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert run.returncode == 2
+    assert message in run.stderr
+    assert not (tmp_path / "eval.json").exists()
