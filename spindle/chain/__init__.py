@@ -6,11 +6,15 @@
 
 :class:`ArmChain` (numpy, :mod:`spindle.chain.arm`) streams sample by sample; its C mirror is
 :class:`spindle.native.chain.CArmChain`. :func:`make_chain` builds the one
-``ChainConfig.backend`` names; :func:`run_chain` runs a whole trace through it. No MuJoCo here.
+``ChainConfig.backend`` names (``"auto"``: :func:`resolve_backend`), :func:`make_batched_chain`
+the batch of many arms advanced by one call (numpy ``spindle.chain.batch.BatchedArmChain`` or
+C :class:`spindle.native.chain.CBatchedArmChain`); :func:`run_chain` runs a whole trace
+through a chain. No MuJoCo here.
 """
 
 from spindle.chain.arm import ArmChain
 from spindle.chain.config import (
+    BACKEND_CHOICES,
     BACKENDS,
     COUNTERS,
     MUSCLES,
@@ -18,11 +22,12 @@ from spindle.chain.config import (
     Chain,
     ChainConfig,
 )
-from spindle.chain.factory import make_chain
+from spindle.chain.factory import make_batched_chain, make_chain, resolve_backend
 from spindle.chain.trace import ChainTrace, run_chain
 
 __all__ = [
     "BACKENDS",
+    "BACKEND_CHOICES",
     "COUNTERS",
     "MUSCLES",
     "ArmChain",
@@ -30,6 +35,8 @@ __all__ = [
     "Chain",
     "ChainConfig",
     "ChainTrace",
+    "make_batched_chain",
     "make_chain",
+    "resolve_backend",
     "run_chain",
 ]

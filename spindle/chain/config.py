@@ -24,9 +24,13 @@ from spindle.params import HUMAN, SpindleParams
 MUSCLES = ("BRA", "TRImed")
 """The muscles of the arm, in the order of every per-muscle axis of the project."""
 BACKENDS = ("numpy", "c")
-"""``ChainConfig.backend``: ``"numpy"`` (:class:`spindle.chain.arm.ArmChain`) or ``"c"``
+"""The chain's implementations: ``"numpy"`` (:class:`spindle.chain.arm.ArmChain`) and ``"c"``
 (``spindle/native/c/chain.c`` through :class:`spindle.native.chain.CArmChain`, compiled on
-first use: same API, outputs and counters); :func:`spindle.chain.make_chain` picks one."""
+first use: same API, outputs and counters); :func:`spindle.chain.make_chain` and
+:func:`spindle.chain.make_batched_chain` build the one ``ChainConfig.backend`` names."""
+BACKEND_CHOICES = (*BACKENDS, "auto")
+"""What ``ChainConfig.backend`` accepts: a backend of :data:`BACKENDS`, or ``"auto"`` (C where
+the library can be loaded or built, else numpy: :func:`spindle.chain.resolve_backend`)."""
 
 COUNTERS = (
     "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
@@ -85,8 +89,12 @@ class ChainConfig:
         max_speed_deg_s: slew limit of the conditioned angle (deg/s).
         max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
         fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
-        backend: ``"numpy"`` or ``"c"`` (:data:`BACKENDS`); :func:`spindle.chain.make_chain`
-            builds the chain it names.
+        backend: ``"numpy"``, ``"c"`` or ``"auto"`` (:data:`BACKEND_CHOICES`);
+            :func:`spindle.chain.make_chain` (and :func:`~spindle.chain.make_batched_chain`)
+            builds the chain it names. ``"auto"`` is ``"c"`` when the C library can be used
+            (a valid cached build, or a working C compiler that builds it on first use) and
+            ``"numpy"`` otherwise, never an error (:func:`spindle.chain.resolve_backend`); the
+            chain built records the resolved name in its ``config.backend``.
     """
 
     encoder: EncoderParams = AX12
@@ -133,8 +141,8 @@ class ChainConfig:
                 f"max_speed_L0_s={self.max_speed_L0_s!r} must lie in (0, "
                 f"{core.MAX_SPEED_L0_S}] (the spindle's speed limit)"
             )
-        if not isinstance(self.backend, str) or self.backend not in BACKENDS:
-            raise ValueError(f"backend={self.backend!r} is not one of {BACKENDS}")
+        if not isinstance(self.backend, str) or self.backend not in BACKEND_CHOICES:
+            raise ValueError(f"backend={self.backend!r} is not one of {BACKEND_CHOICES}")
 
     @property
     def gap_s(self) -> float:

@@ -12,7 +12,9 @@ This module holds the device-side pieces, each usable alone:
   (:class:`proprio_env.encoder.Encoder`) draws from;
 - :func:`is_valid_reading`: integers in 0..max_count;
 - :class:`Calibration`: f(x), elbow angle = sign * (counts - zero_count) * deg_per_count;
-- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming), causal.
+- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming), causal;
+  :class:`BatchedMedianFilter` streams many independent signals (one per arm) at once;
+  :func:`valid_readings` is :func:`is_valid_reading` over an array.
 """
 
 from __future__ import annotations
@@ -127,6 +129,13 @@ def is_valid_reading(counts: float, max_count: int = AX12.max_count) -> bool:
     return bool(np.isfinite(x) and x == np.floor(x) and 0 <= x <= max_count)
 
 
+def valid_readings(counts: np.ndarray, max_count: int = AX12.max_count) -> np.ndarray:
+    """:func:`is_valid_reading` elementwise over a float array (NaN for non-real values)."""
+    # comparisons with NaN are False (and raise no warning)
+    return np.isfinite(counts) & (counts == np.floor(counts)) & (counts >= 0) & (
+        counts <= max_count)
+
+
 def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
     """Causal running median along axis 0: ``out[k] = median(x[k-window+1 .. k])``.
 
@@ -143,7 +152,11 @@ def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
 
 
 class MedianFilter:
-    """Streaming causal median of the last ``window`` accepted samples (window odd)."""
+    """Streaming causal median of the last ``window`` accepted samples (window odd).
+
+    Many signals at once: :class:`BatchedMedianFilter` (the single chain pushes faster on
+    this deque and ``sorted``; the figure is in :class:`~spindle.chain.fusimotor.MotionPredictor`).
+    """
 
     def __init__(self, window: int = 7) -> None:
         _check_window(window)
@@ -171,6 +184,48 @@ class MedianFilter:
         """Put back the window a :meth:`snapshot` of this filter returned."""
         self._buffer.clear()
         self._buffer.extend(snapshot)
+
+
+class BatchedMedianFilter:
+    """Streaming causal medians of ``n`` independent signals, each over its own last
+    ``window`` accepted samples: :class:`MedianFilter` over a leading axis.
+
+    Each signal's window is a row of an (n, window) array, oldest first. ``rows`` (an index
+    array, or None for every signal) picks the signals a call concerns.
+    """
+
+    def __init__(self, n: int, window: int = 7) -> None:
+        _check_window(window)
+        self.window = window
+        self._buffer = np.zeros((n, window))
+
+    def reset(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Fill the windows of ``rows`` with ``values`` (signals at rest); return them."""
+        values = np.asarray(values, dtype=float)
+        self._buffer[slice(None) if rows is None else rows] = values[:, None]
+        return values.copy()
+
+    def push(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Add one sample to each signal of ``rows``; return their medians."""
+        if rows is None:
+            window = self._buffer
+            window[:, :-1] = window[:, 1:]
+            window[:, -1] = values
+        else:
+            window = self._buffer[rows]
+            window[:, :-1] = window[:, 1:]
+            window[:, -1] = values
+            self._buffer[rows] = window
+        middle = self.window // 2
+        return np.partition(window, middle, axis=1)[:, middle]
+
+    def snapshot(self) -> np.ndarray:
+        """The windows, for :meth:`restore` (a caller undoing a failed update)."""
+        return self._buffer.copy()
+
+    def restore(self, snapshot: np.ndarray) -> None:
+        """Put back the windows a :meth:`snapshot` of this filter returned (once)."""
+        self._buffer = snapshot
 
 
 def _check_window(window: int) -> None:

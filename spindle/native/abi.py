@@ -37,6 +37,7 @@ class Status(enum.IntEnum):
     PS_ERR_ANGLE_RANGE = 10
     PS_ERR_NOT_RESET = 11
     PS_ERR_INTERVAL = 12
+    PS_ERR_ARGUMENT = 13
 
 
 def status_name(code: int) -> str:

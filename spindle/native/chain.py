@@ -154,6 +154,20 @@ def library(variant: str = "double") -> ctypes.CDLL:
         **{f"ps_chain_run_{kind}": [chain_p, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p,
                                     ctypes.c_void_p, ctypes.c_void_p, long_p]
            for kind in ("counts", "angle", "lengths")},
+        # The batch entry points take raw addresses (numpy buffers; .ctypes.data_as costs us).
+        "ps_chain_batch_reset": [ctypes.c_void_p, ctypes.c_long, ctypes.c_void_p, ctypes.c_long,
+                                 ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                                 ctypes.c_void_p, ctypes.c_void_p, long_p],
+        "ps_chain_batch_set_intended_angle": [ctypes.c_void_p, ctypes.c_long, ctypes.c_void_p,
+                                              long_p],
+        **{f"ps_chain_batch_push_{kind}_block": [
+            ctypes.c_void_p, ctypes.c_long, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p,
+            ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, long_p, long_p]
+           for kind in ("counts", "angle", "lengths")},
+        **{f"ps_chain_batch_push_{kind}": [
+            ctypes.c_void_p, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+            ctypes.c_void_p, ctypes.c_void_p, long_p]
+           for kind in ("counts", "angle", "lengths")},
     }
     for name, argtypes in protos.items():
         fn = getattr(lib, name)
@@ -501,6 +515,393 @@ class CArmChain(ArmChain):
             float(s.t_s), accepted, float(s.counts), float(s.counts_filtered),
             float(s.angle_deg), *rows.astype(float)), strict=True))
         return out
+
+
+# -- many arms: the batched chain --------------------------------------------------------------
+_C_LONG = np.dtype(f"i{ctypes.sizeof(ctypes.c_long)}")
+_C_ULONG = np.dtype(f"u{ctypes.sizeof(ctypes.c_ulong)}")
+_SPINDLE_FIELDS = (("T", "tension_FU"), ("v", "polar_velocity_L0_s"), ("z", "velocity_root"),
+                   ("f", "activation"), ("L", "length_L0"), ("gd", "gamma_dyn_pps"),
+                   ("gs", "gamma_stat_pps"))
+"""ps_spindle's fields and the core.SpindleState attribute each one fills."""
+_ENTRY = {"counts": "counts", "angle_deg": "angle", "length_L0": "lengths"}
+"""A pushed signal's name -> the kind in the C entry point's name."""
+
+
+@cache
+def chain_dtype(variant: str = "double") -> np.dtype:
+    """A numpy structured dtype over ``ps_arm_chain`` exposing what the batch reads (stage,
+    spindles, counters, last output): an array of chains becomes a table, no per-arm loop."""
+    s = structs(variant)
+    chain_cls, state_cls = s["PsArmChain"], s["PsChainState"]
+    spindle_cls = spindle_structs(variant)[1]
+    real = np.float32 if variant == "float" else np.float64
+    spindle = np.dtype({
+        "names": [name for name, _ in _SPINDLE_FIELDS],
+        "formats": [(real, (3,)) if name in "Tvzf" else real for name, _ in _SPINDLE_FIELDS],
+        "offsets": [getattr(spindle_cls, name).offset for name, _ in _SPINDLE_FIELDS],
+        "itemsize": ctypes.sizeof(spindle_cls)})
+    state = chain_cls.state.offset
+    return np.dtype({
+        "names": ["stage", "spindle", "counters", "last"],
+        "formats": [np.intc, (spindle, (len(MUSCLES),)), (_C_ULONG, (len(COUNTERS),)),
+                    sample_dtype(variant)],
+        "offsets": [chain_cls.stage.offset, state + state_cls.spindle.offset,
+                    state + state_cls.counters.offset, state + state_cls.last.offset],
+        "itemsize": ctypes.sizeof(chain_cls)})
+
+
+@cache
+def _batch_sample_class() -> type:
+    # imported on first use: spindle.chain.batch (the numpy batch) owns the class, and a
+    # module-level import would make this module need it to load
+    from spindle.chain.batch import BatchSample
+
+    return BatchSample
+
+
+def _sample_columns(variant: str) -> tuple[int, int] | None:
+    """(columns, column of counts) of ``ps_arm_sample`` read as rows of doubles, if the double
+    build lays it out as t_s, accepted (+ padding), then every real field in ArmSample's order
+    (so one copy of those rows gives every field); None otherwise (the float build)."""
+    if variant != "double":
+        return None
+    cls = structs(variant)["PsArmSample"]
+    offsets = [getattr(cls, name).offset for name in SAMPLE_FIELDS[2:]]
+    start = offsets[0]
+    expected = [start + 8 * j for j in range(3)] + [start + 24 + 16 * j
+                                                    for j in range(len(PER_MUSCLE))]
+    if offsets != expected or ctypes.sizeof(cls) != start + 24 + 16 * len(PER_MUSCLE) \
+            or cls.t_s.offset != 0 or start % 8:
+        return None
+    return ctypes.sizeof(cls) // 8, start // 8
+
+
+def _batch_sample(table: np.ndarray, rows: np.ndarray | None, accepted: np.ndarray):
+    """A ``BatchSample`` (float copies) of ``ps_arm_sample`` rows: ``rows``, the rows read as
+    doubles (see :func:`_sample_columns`), or else the structured ``table``."""
+    if rows is None:
+        values = {name: table[name].astype(float) for name in SAMPLE_FIELDS}
+    else:
+        # One copy of the rows, every field a view of it: a structured field costs ~1.5 us to
+        # read, 13 of them most of a small batch's call.
+        block = rows.copy()
+        c = rows.shape[1] - 2 * len(PER_MUSCLE) - 3
+        per_muscle = block[:, c + 3:].reshape(-1, len(PER_MUSCLE), 2)
+        values = {"t_s": block[:, 0], "counts": block[:, c], "counts_filtered": block[:, c + 1],
+                  "angle_deg": block[:, c + 2],
+                  **{name: per_muscle[:, j] for j, name in enumerate(PER_MUSCLE)}}
+    values["accepted"] = accepted
+    return _batch_sample_class()(**values)
+
+
+class CBatchedArmChain:
+    """``n_arms`` arm chains in C, each advanced by ONE C call for the whole batch.
+
+    The API of :class:`spindle.chain.batch.BatchedArmChain` (``docs/c_chain.md``, Batches):
+    arm k behaves exactly like a :class:`CArmChain` with the same config and fits fed the same
+    samples (outputs, counters, handling rules). The chains are one contiguous ctypes array
+    of ``ps_arm_chain``; outputs, counters and spindle states are read through numpy views of
+    it, without a per-arm Python loop. A push that raises leaves every arm exactly as it was
+    (the C call is atomic across arms). Pickling and ``copy.deepcopy`` carry the chains'
+    bytes, as :class:`CArmChain` does.
+
+    Args:
+        n_arms: number of arms (>= 1).
+        config, fits: as for :class:`CArmChain` (``config.backend`` is not read).
+        variant: ``"double"`` or ``"float"``.
+    """
+
+    def __init__(self, n_arms: int, config: ChainConfig | None = None,
+                 fits: LengthFits | None = None, variant: str = "double"):
+        if (isinstance(n_arms, bool | np.bool_) or not isinstance(n_arms, int | np.integer)
+                or n_arms < 1):
+            raise ValueError(f"n_arms={n_arms!r} must be an integer >= 1")
+        self.n_arms = int(n_arms)
+        self.config = ChainConfig() if config is None else config
+        self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
+        if self.fits.muscles != MUSCLES:
+            raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
+        self.variant = variant
+        self._lib = library(variant)
+        s = structs(variant)
+        self._np_real = np.float32 if variant == "float" else np.float64
+        first = s["PsArmChain"]()
+        status = self._lib.ps_chain_init(ctypes.byref(first),
+                                         ctypes.byref(chain_config_struct(self.config, self.fits,
+                                                                          variant)))
+        if status != Status.PS_OK:
+            raise ValueError(f"the C chain refused the configuration ({status_name(status)})")
+        self.angle_range_deg = (float(first.angle_min_deg), float(first.angle_max_deg))
+        self.length_min_L0 = np.array(first.length_min_L0[:], dtype=float)
+        self.length_max_L0 = np.array(first.length_max_L0[:], dtype=float)
+        n = self.n_arms
+        self._chains = (s["PsArmChain"] * n)()
+        # ps_chain_init once (its 1301-point length range), its bytes copied to every arm
+        raw = np.frombuffer(self._chains, dtype=np.uint8).reshape(n, ctypes.sizeof(first))
+        raw[:] = np.frombuffer(first, dtype=np.uint8)
+        self._work = (s["PsChainState"] * n)()
+        self._out = (s["PsArmSample"] * n)()
+        self._table = np.frombuffer(self._chains, dtype=chain_dtype(variant))
+        self._out_table = np.frombuffer(self._out, dtype=sample_dtype(variant))
+        self._out_rows = self._last_rows = None
+        layout = _sample_columns(variant)
+        if layout is not None:
+            width = layout[0]
+            self._out_rows = np.frombuffer(self._out, dtype=np.float64).reshape(n, width)
+            at = (s["PsArmChain"].state.offset + s["PsChainState"].last.offset) // 8
+            self._last_rows = np.frombuffer(self._chains, dtype=np.float64).reshape(
+                n, ctypes.sizeof(first) // 8)[:, at:at + width]
+        self._addr = (ctypes.addressof(self._chains), ctypes.addressof(self._work),
+                      ctypes.addressof(self._out))
+        self._failed = (ctypes.c_long(), ctypes.c_long())
+        self._failed_p = tuple(ctypes.pointer(f) for f in self._failed)
+
+    # -- pickling and deep copies: the chains travel as their bytes ------------------------
+    def __getstate__(self) -> dict[str, object]:
+        """Settings plus the bytes of the ``ps_arm_chain`` array (no pointers in it: the
+        whole C state); the library, buffers and views are rebuilt by :meth:`__setstate__`."""
+        return {"n_arms": self.n_arms, "config": self.config, "fits": self.fits,
+                "variant": self.variant,
+                _C_SNAPSHOTS: (_layout(structs(self.variant)["PsArmChain"]),
+                               bytes(self._chains))}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        CBatchedArmChain.__init__(self, state["n_arms"], state["config"], state["fits"],
+                                  state["variant"])
+        layout, raw = state[_C_SNAPSHOTS]
+        if layout != _layout(structs(self.variant)["PsArmChain"]) or len(raw) != ctypes.sizeof(
+                self._chains):
+            raise ValueError(
+                f"cannot unpickle CBatchedArmChain: its chains were pickled with a different C "
+                f"layout ({len(raw)} bytes) than this build's ({ctypes.sizeof(self._chains)} "
+                "bytes); unpickle with the version that pickled it")
+        ctypes.memmove(self._addr[0], raw, len(raw))
+
+    # -- state ---------------------------------------------------------------------------
+    def reset(self, angle_deg: np.ndarray, t_s: float | np.ndarray = 0.0,
+              length_L0: np.ndarray | None = None, arms: np.ndarray | None = None):
+        """Arms at rest: every arm, or the arms of the index array ``arms`` (the others
+        untouched); see :meth:`spindle.chain.batch.BatchedArmChain.reset`. The first reset
+        covers every arm (``arms=None``; a partial one before it raises RuntimeError and
+        changes nothing). Returns :attr:`last` (every arm's output)."""
+        index = self._arms(arms)
+        m = self.n_arms if index is None else index.size
+        if index is not None:
+            never = self._table["stage"] < 2
+            never[index] = False
+            if never.any():
+                raise RuntimeError(f"arm {int(np.argmax(never))} was never reset: the first reset "
+                                   "must cover every arm (arms=None)")
+        angle = _batch_real("angle_deg", angle_deg, (m,))
+        t = np.broadcast_to(real_number(t_s), (m,)) if np.ndim(t_s) == 0 else _batch_real(
+            "t_s", t_s, (m,))
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        which = np.arange(m) if index is None else index
+        for name, values in (("t_s", t), ("angle_deg", angle)):
+            bad = ~np.isfinite(values)
+            if bad.any():
+                j = int(np.argmax(bad))
+                raise ValueError(f"{name}={values[j]!r} of arm {int(which[j])} must be a finite "
+                                 "real number")
+        lengths = None
+        if length_L0 is not None:
+            lengths = _batch_real("length_L0", length_L0, (m, 2))
+            lo, hi = core.LENGTH_RANGE_L0
+            bad = ~np.all(np.isfinite(lengths) & (lengths >= lo) & (lengths <= hi), axis=1)
+            if bad.any():
+                j = int(np.argmax(bad))
+                raise ValueError(f"length_L0={lengths[j]!r} of arm {int(which[j])} must be 2 "
+                                 f"finite lengths within {core.LENGTH_RANGE_L0} L0")
+            lengths = np.ascontiguousarray(lengths, dtype=self._np_real)
+        angle = np.ascontiguousarray(angle, dtype=self._np_real)
+        status = self._lib.ps_chain_batch_reset(
+            self._addr[0], self.n_arms, None if index is None else _address(index), m,
+            _address(angle), _address(t), None if lengths is None else _address(lengths),
+            self._addr[1], None, self._failed_p[0])
+        if status != Status.PS_OK:
+            raise ValueError(f"the C chain refused the reset of arm {self._failed[0].value} "
+                             f"({status_name(status)})")
+        return self.last
+
+    def set_intended_angle(self, angle_deg: np.ndarray | None) -> None:
+        """The switch of every arm: None, or (n,) intended angles with NaN for the arms that
+        follow their measured motion (see :meth:`ArmChain.set_intended_angle`)."""
+        angle = None
+        if angle_deg is not None:
+            if np.iscomplexobj(angle_deg):
+                raise ValueError("angle_deg must be real intended angles (deg)")
+            try:
+                angle = np.ascontiguousarray(angle_deg, dtype=self._np_real)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"angle_deg must be real intended angles (deg): {exc}") from None
+            _check_shape("angle_deg", angle, (self.n_arms,))
+        status = self._lib.ps_chain_batch_set_intended_angle(
+            self._addr[0], self.n_arms, None if angle is None else _address(angle),
+            self._failed_p[0])
+        if status == Status.PS_ERR_NONFINITE:
+            i = self._failed[0].value
+            raise ValueError(f"angle_deg={float(angle[i])!r} of arm {i} must be finite "
+                             "(NaN selects the measured motion)")
+        self._check(status)
+
+    @property
+    def counters(self) -> dict[str, np.ndarray]:
+        """Counts of each handling rule since each arm's last reset: name -> (n,) int64."""
+        counted = self._table["counters"].astype(np.int64)
+        return {name: counted[:, j] for j, name in enumerate(COUNTERS)}
+
+    @property
+    def last(self):
+        """Every arm's latest accepted output (a ``BatchSample``)."""
+        self._require_reset()
+        table = self._table["last"]
+        return _batch_sample(table, self._last_rows, table["accepted"] != 0)
+
+    @property
+    def spindle_state(self) -> core.SpindleState:
+        """A copy of the 2n spindles' state, arm-major (arm i: BRA 2i, TRImed 2i+1)."""
+        self._require_reset()
+        sp = self._table["spindle"]
+        n = 2 * self.n_arms
+        return core.SpindleState(**{
+            attr: sp[name].astype(float).reshape(n, 3) if name in "Tvzf"
+            else sp[name].astype(float).reshape(n) for name, attr in _SPINDLE_FIELDS})
+
+    # -- pushes ----------------------------------------------------------------------------
+    def push_counts(self, t_s: np.ndarray, counts: np.ndarray, active: np.ndarray | None = None):
+        """One reading per arm (``active`` (n,) bool: only those arms get one)."""
+        return self._push("counts", t_s, counts, (), active)
+
+    def push_angle(self, t_s: np.ndarray, angle_deg: np.ndarray,
+                   active: np.ndarray | None = None):
+        """One elbow angle (deg) per arm."""
+        return self._push("angle_deg", t_s, angle_deg, (), active)
+
+    def push_lengths(self, t_s: np.ndarray, length_L0: np.ndarray,
+                     active: np.ndarray | None = None):
+        """One pair of fibre lengths (L0) per arm: length_L0 (n, 2)."""
+        return self._push("length_L0", t_s, length_L0, (2,), active)
+
+    def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray,
+                          n_samples: np.ndarray | None = None):
+        """Arm i pushes its first ``n_samples[i]`` (default k) of (n, k) readings."""
+        return self._block("counts", t_s, counts, (), n_samples)
+
+    def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray,
+                         n_samples: np.ndarray | None = None):
+        """Arm i pushes its first ``n_samples[i]`` of (n, k) angles."""
+        return self._block("angle_deg", t_s, angle_deg, (), n_samples)
+
+    def push_lengths_block(self, t_s: np.ndarray, length_L0: np.ndarray,
+                           n_samples: np.ndarray | None = None):
+        """Arm i pushes its first ``n_samples[i]`` of (n, k, 2) lengths."""
+        return self._block("length_L0", t_s, length_L0, (2,), n_samples)
+
+    # -- plumbing ----------------------------------------------------------------------------
+    def _push(self, name, t_s, signal, sample_shape, active):
+        n = self.n_arms
+        t = np.ascontiguousarray(_batch_real("t_s", t_s, (n,)), dtype=np.float64)
+        x = np.ascontiguousarray(_batch_real(name, signal, (n, *sample_shape)),
+                                 dtype=self._np_real)
+        mask = None
+        if active is not None:
+            mask = np.asarray(active)
+            if mask.dtype != np.bool_:
+                raise ValueError(f"active has dtype {mask.dtype}, expected bool")
+            _check_shape("active", mask, (n,))
+            mask = np.ascontiguousarray(mask)
+        fn = getattr(self._lib, f"ps_chain_batch_push_{_ENTRY[name]}")
+        status = fn(self._addr[0], n, None if mask is None else _address(mask), _address(t),
+                    _address(x), self._addr[1], self._addr[2], self._failed_p[0])
+        if status != Status.PS_OK:
+            self._check(status, t.reshape(n, 1), 0)
+        return _batch_sample(self._out_table, self._out_rows, self._out_table["accepted"] != 0)
+
+    def _block(self, name, t_s, signal, sample_shape, n_samples):
+        n = self.n_arms
+        t = real_array(t_s)
+        if t.ndim != 2 or t.shape[0] != n:
+            raise ValueError(f"t_s has shape {t.shape}, expected ({n}, k)")
+        k = t.shape[1]
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        x = np.ascontiguousarray(_batch_real(name, signal, (n, k, *sample_shape)),
+                                 dtype=self._np_real)
+        counts = None
+        if n_samples is not None:
+            given = np.asarray(n_samples)
+            _check_shape("n_samples", given, (n,))
+            if given.dtype == np.bool_ or not np.issubdtype(given.dtype, np.integer):
+                raise ValueError(f"n_samples has dtype {given.dtype}, expected integers")
+            bad = (given < 0) | (given > k)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise ValueError(f"n_samples[{i}]={int(given[i])} must lie in 0..{k} (k samples "
+                                 "per arm in this block)")
+            counts = np.ascontiguousarray(given, dtype=_C_LONG)
+        fn = getattr(self._lib, f"ps_chain_batch_push_{_ENTRY[name]}_block")
+        status = fn(self._addr[0], n, k, None if counts is None else _address(counts),
+                    _address(t), _address(x), self._addr[1], self._addr[2], *self._failed_p)
+        if status != Status.PS_OK:
+            self._check(status, t, self._failed[1].value)
+        return _batch_sample(self._out_table, self._out_rows, self._out_table["accepted"] != 0)
+
+    def _check(self, status: int, t: np.ndarray | None = None, sample: int = 0) -> None:
+        if status == Status.PS_OK:
+            return
+        i = self._failed[0].value
+        if status == Status.PS_ERR_NOT_RESET:
+            raise RuntimeError(f"call reset before using the chain (arm {i} was never reset)")
+        t_s = float(t[i, sample]) if t is not None and i >= 0 else math.nan
+        if status == Status.PS_ERR_INTERVAL:
+            raise ValueError(
+                f"the sample of arm {i} at t_s={t_s!r} is too far after its last accepted one "
+                f"at {float(self._chains[i].state.t_s)!r} s: the interval needs more than "
+                f"{MAX_UPDATES} spindle sub-steps or predictor updates; no arm changed")
+        if t is not None:
+            raise FloatingPointError(
+                f"the C chain of arm {i} failed at t_s={t_s!r} ({status_name(status)}): a "
+                "spindle step did not produce a valid state; no arm changed")
+        raise ValueError(f"the C chain refused the call for arm {i} ({status_name(status)})")
+
+    def _require_reset(self) -> None:
+        never = self._table["stage"] < 2
+        if never.any():
+            raise RuntimeError(f"call reset before using the chain (arm {int(np.argmax(never))} "
+                               "was never reset)")
+
+    def _arms(self, arms: np.ndarray | None) -> np.ndarray | None:
+        if arms is None:
+            return None
+        index = np.asarray(arms)
+        if index.ndim != 1 or index.dtype == np.bool_ or not (
+                np.issubdtype(index.dtype, np.integer) or index.size == 0):
+            raise ValueError(f"arms must be a 1-D integer index array, got shape {index.shape} "
+                             f"dtype {index.dtype}")
+        bad = (index < 0) | (index >= self.n_arms)
+        if bad.any():
+            raise ValueError(f"arms contains {int(index[np.argmax(bad)])}, outside "
+                             f"0..{self.n_arms - 1}")
+        if np.unique(index).size != index.size:
+            raise ValueError(f"arms={index.tolist()!r} repeats an arm")
+        return np.ascontiguousarray(index, dtype=_C_LONG)
+
+
+def _address(array: np.ndarray) -> int:
+    return array.__array_interface__["data"][0]
+
+
+def _check_shape(name: str, array: np.ndarray, expected: tuple[int, ...]) -> None:
+    if array.shape != expected:
+        raise ValueError(f"{name} has shape {array.shape}, expected {expected}")
+
+
+def _batch_real(name: str, value: object, expected: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a float array (NaN for non-real elements: the bad-sample rules) of shape
+    ``expected`` (else ValueError naming the argument, its shape and the expected one)."""
+    array = real_array(value)
+    _check_shape(name, array, expected)
+    return array
 
 
 def config_c_source(config: ChainConfig | None = None, fits: LengthFits | None = None,

@@ -527,16 +527,13 @@ static int reset_lengths(const ps_arm_chain *c, ps_real angle_deg, const ps_real
     return PS_OK;
 }
 
-int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_real *length_L0,
-                   ps_arm_sample *out)
+/* The state of `c` reset at rest (ps_chain_reset's work) into `st`; `c` is not written. */
+static int reset_state(const ps_arm_chain *c, ps_real angle_deg, ps_time t_s,
+                       const ps_real *length_L0, ps_chain_state *st)
 {
-    ps_chain_state st;
     ps_real L[PS_MUSCLES], recorded;
     ps_chain_counters zero = {0}; /* the universal zero initializer: every counter */
     int k, status, clamped;
-    if (c == NULL) {
-        return PS_ERR_NULL;
-    }
     if (c->stage < 1) {
         return PS_ERR_NOT_RESET;
     }
@@ -547,16 +544,31 @@ int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_rea
     if (status != PS_OK) {
         return status;
     }
-    st.has_intended = 0;
+    st->has_intended = 0;
     for (k = 0; k < PS_MUSCLES; ++k) {
-        st.intended_L0[k] = 0;
+        st->intended_L0[k] = 0;
     }
-    status = rest(c, &st, t_s, recorded, L, rest_reading(&c->config, angle_deg), -1, -1);
+    status = rest(c, st, t_s, recorded, L, rest_reading(&c->config, angle_deg), -1, -1);
     if (status != PS_OK) {
         return status;
     }
-    st.counters = zero;
-    st.counters.angle_clamped = (unsigned long)clamped;
+    st->counters = zero;
+    st->counters.angle_clamped = (unsigned long)clamped;
+    return PS_OK;
+}
+
+int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_real *length_L0,
+                   ps_arm_sample *out)
+{
+    ps_chain_state st;
+    int status;
+    if (c == NULL) {
+        return PS_ERR_NULL;
+    }
+    status = reset_state(c, angle_deg, t_s, length_L0, &st);
+    if (status != PS_OK) {
+        return status;
+    }
     c->state = st;
     c->stage = 2;
     if (out != NULL) {
@@ -837,13 +849,55 @@ static int angle_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_
 
 enum push_kind { PUSH_COUNTS, PUSH_ANGLE, PUSH_LENGTHS };
 
+/* One push on the state `st` of chain `c` (c's own state or a copy of it: only st is read and
+ * written). On an error st is left part-way and must be discarded by the caller. *accepted
+ * receives whether the sample was accepted (a rejected one only changes a counter). */
+static int push_state(const ps_arm_chain *c, ps_chain_state *st, enum push_kind kind,
+                      ps_time t, ps_real value, const ps_real *lengths,
+                      const ps_real *angle_deg, int *accepted)
+{
+    int status = PS_OK;
+    *accepted = 0;
+    if (!time_ok(&c->config, st, t)) {
+        return PS_OK;
+    }
+    if (kind == PUSH_COUNTS) {
+        if (!ps_is_valid_reading(value, c->config.max_count)) {
+            st->counters.invalid_reading += 1;
+        } else {
+            /* a restart refills the window with this reading instead */
+            ps_real filtered = restarts(c, st, t) ? value : ps_median_push(&st->median, value);
+            status = angle_stage(c, st, t, calibration_angle_deg(&c->config, filtered), value,
+                                 filtered);
+            *accepted = 1;
+        }
+    } else if (kind == PUSH_ANGLE) {
+        if (!isfinite(value)) {
+            st->counters.invalid_angle += 1;
+        } else {
+            status = angle_stage(c, st, t, value, -1, -1);
+            *accepted = 1;
+        }
+    } else {
+        if (!lengths_ok(lengths)) {
+            st->counters.invalid_length += 1;
+        } else {
+            ps_real angle = (angle_deg == NULL || !isfinite(*angle_deg)) ? st->angle_deg
+                                                                         : *angle_deg;
+            status = length_stage(c, st, t, lengths, angle, -1, -1, angle);
+            *accepted = 1;
+        }
+    }
+    return status;
+}
+
 /* One push on a copy of the state, committed only if it completes. A rejected sample only
  * changes a counter, so it is committed too. */
 static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
                 const ps_real *lengths, const ps_real *angle_deg, ps_arm_sample *out)
 {
     ps_chain_state st;
-    int status = PS_OK, accepted = 0;
+    int status, accepted;
     if (c == NULL || (kind == PUSH_LENGTHS && lengths == NULL)) {
         return PS_ERR_NULL;
     }
@@ -851,35 +905,7 @@ static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
         return PS_ERR_NOT_RESET;
     }
     st = c->state;
-    if (time_ok(&c->config, &st, t)) {
-        if (kind == PUSH_COUNTS) {
-            if (!ps_is_valid_reading(value, c->config.max_count)) {
-                st.counters.invalid_reading += 1;
-            } else {
-                /* a restart refills the window with this reading instead */
-                ps_real filtered = restarts(c, &st, t) ? value : ps_median_push(&st.median, value);
-                status = angle_stage(c, &st, t, calibration_angle_deg(&c->config, filtered),
-                                     value, filtered);
-                accepted = 1;
-            }
-        } else if (kind == PUSH_ANGLE) {
-            if (!isfinite(value)) {
-                st.counters.invalid_angle += 1;
-            } else {
-                status = angle_stage(c, &st, t, value, -1, -1);
-                accepted = 1;
-            }
-        } else {
-            if (!lengths_ok(lengths)) {
-                st.counters.invalid_length += 1;
-            } else {
-                ps_real angle = (angle_deg == NULL || !isfinite(*angle_deg))
-                                    ? st.angle_deg : *angle_deg;
-                status = length_stage(c, &st, t, lengths, angle, -1, -1, angle);
-                accepted = 1;
-            }
-        }
-    }
+    status = push_state(c, &st, kind, t, value, lengths, angle_deg, &accepted);
     if (status != PS_OK) {
         return status;
     }
@@ -1013,3 +1039,237 @@ int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_r
 {
     return run_trace(c, PUSH_LENGTHS, n, t_s, length_L0, intended_deg, samples, n_done);
 }
+
+
+/* ======================================================================================
+ * Batches: many arms' chains in one array, one call for all of them (left out of a device
+ * build with -DPS_NO_BATCH: 1.8 kB of Cortex-M0+ code the one-arm firmware does not need)
+ * ====================================================================================== */
+#ifndef PS_NO_BATCH
+
+static void set_failed(long *failed_arm, long arm, long *failed_sample, long sample)
+{
+    if (failed_arm != NULL) {
+        *failed_arm = arm;
+    }
+    if (failed_sample != NULL) {
+        *failed_sample = sample;
+    }
+}
+
+/* Every arm usable (initialised and reset) and every per-arm count within 0..k; on failure
+ * *failed_arm names the first arm that is not. */
+static int batch_ok(const ps_arm_chain *chains, long n_arms, long k, const long *n_samples,
+                    long *failed_arm)
+{
+    long i;
+    if (k < 0) {
+        return PS_ERR_ARGUMENT;
+    }
+    for (i = 0; i < n_arms; ++i) {
+        if (chains[i].stage < 2) {
+            set_failed(failed_arm, i, NULL, 0);
+            return PS_ERR_NOT_RESET;
+        }
+        if (n_samples != NULL && (n_samples[i] < 0 || n_samples[i] > k)) {
+            set_failed(failed_arm, i, NULL, 0);
+            return PS_ERR_ARGUMENT;
+        }
+    }
+    return PS_OK;
+}
+
+/* Arm i pushes its first n_i samples (n_samples[i], or k; active[i] ? 1 : 0 for the
+ * one-sample forms) in place, its state saved in backup[i] first; the first failure puts
+ * back every arm pushed so far, so the call is atomic across arms at the cost of one state
+ * copy per arm (a single push copies the state twice per sample). `per_sample` selects the
+ * outputs of the one-sample forms (the push's own, accepted = 0 if rejected) over those of
+ * the blocks (ArmChain.last). */
+static int batch_push(ps_arm_chain *chains, enum push_kind kind, long n_arms, long k,
+                      const long *n_samples, const unsigned char *active, const ps_time *t_s,
+                      const ps_real *values, ps_chain_state *backup, ps_arm_sample *out,
+                      long *failed_arm, long *failed_sample)
+{
+    const long width = kind == PUSH_LENGTHS ? PS_MUSCLES : 1;
+    const int per_sample = active != NULL || k < 0;
+    long i, j, n;
+    int status = PS_OK, accepted = 0;
+    set_failed(failed_arm, -1, failed_sample, -1);
+    if (n_arms < 0) {
+        return PS_ERR_ARGUMENT;
+    }
+    if (n_arms == 0) {
+        return PS_OK;
+    }
+    if (chains == NULL || backup == NULL || t_s == NULL || values == NULL) {
+        return PS_ERR_NULL;
+    }
+    if (per_sample) {
+        k = 1;
+    }
+    status = batch_ok(chains, n_arms, k, n_samples, failed_arm);
+    if (status != PS_OK) {
+        return status;
+    }
+    for (i = 0; i < n_arms; ++i) {
+        ps_arm_chain *c = &chains[i];
+        n = active != NULL ? (active[i] != 0) : (n_samples != NULL ? n_samples[i] : k);
+        backup[i] = c->state;
+        accepted = 0;
+        for (j = 0; j < n; ++j) {
+            long at = i * k + j;
+            status = push_state(c, &c->state, kind, t_s[at], width == 1 ? values[at] : 0,
+                                values + width * at, NULL, &accepted);
+            if (status != PS_OK) {
+                for (; i >= 0; --i) {
+                    chains[i].state = backup[i];
+                }
+                set_failed(failed_arm, c - chains, failed_sample, j);
+                return status;
+            }
+        }
+        if (out != NULL) {
+            out[i] = c->state.last;
+            /* an arm given no sample repeats its last output as not accepted */
+            out[i].accepted = per_sample ? accepted : n > 0;
+        }
+    }
+    return PS_OK;
+}
+
+int ps_chain_batch_reset(ps_arm_chain *chains, long n_arms, const long *arms, long m,
+                         const ps_real *angle_deg, const ps_time *t_s,
+                         const ps_real *length_L0, ps_chain_state *scratch,
+                         ps_arm_sample *out, long *failed_arm)
+{
+    long j;
+    int status;
+    set_failed(failed_arm, -1, NULL, 0);
+    if (n_arms < 0 || m < 0 || (arms == NULL && m != n_arms)) {
+        return PS_ERR_ARGUMENT;
+    }
+    if (m == 0) {
+        return PS_OK;
+    }
+    if (chains == NULL || angle_deg == NULL || t_s == NULL || scratch == NULL) {
+        return PS_ERR_NULL;
+    }
+    /* Every new state is built in scratch first, so a refused arm leaves all untouched. */
+    for (j = 0; j < m; ++j) {
+        long i = arms == NULL ? j : arms[j];
+        if (i < 0 || i >= n_arms) {
+            set_failed(failed_arm, i, NULL, 0);
+            return PS_ERR_ARGUMENT;
+        }
+        status = reset_state(&chains[i], angle_deg[j], t_s[j],
+                             length_L0 == NULL ? NULL : length_L0 + PS_MUSCLES * j, &scratch[j]);
+        if (status != PS_OK) {
+            set_failed(failed_arm, i, NULL, 0);
+            return status;
+        }
+    }
+    for (j = 0; j < m; ++j) {
+        long i = arms == NULL ? j : arms[j];
+        chains[i].state = scratch[j];
+        chains[i].stage = 2;
+        if (out != NULL) {
+            out[j] = scratch[j].last;
+        }
+    }
+    return PS_OK;
+}
+
+int ps_chain_batch_set_intended_angle(ps_arm_chain *chains, long n_arms,
+                                      const ps_real *angle_deg, long *failed_arm)
+{
+    long i;
+    int status;
+    set_failed(failed_arm, -1, NULL, 0);
+    if (n_arms < 0) {
+        return PS_ERR_ARGUMENT;
+    }
+    if (n_arms > 0 && chains == NULL) {
+        return PS_ERR_NULL;
+    }
+    for (i = 0; i < n_arms; ++i) { /* checked first: all arms or none */
+        if (chains[i].stage < 2) {
+            set_failed(failed_arm, i, NULL, 0);
+            return PS_ERR_NOT_RESET;
+        }
+        if (angle_deg != NULL && isinf(angle_deg[i])) {
+            set_failed(failed_arm, i, NULL, 0);
+            return PS_ERR_NONFINITE;
+        }
+    }
+    for (i = 0; i < n_arms; ++i) {
+        int measured = angle_deg == NULL || isnan(angle_deg[i]);
+        status = ps_chain_set_intended_angle(&chains[i], measured ? NULL : &angle_deg[i]);
+        if (status != PS_OK) { /* not reached: its checks were made above */
+            set_failed(failed_arm, i, NULL, 0);
+            return status;
+        }
+    }
+    return PS_OK;
+}
+
+int ps_chain_batch_push_counts_block(ps_arm_chain *chains, long n_arms, long k,
+                                     const long *n_samples, const ps_time *t_s,
+                                     const ps_real *counts, ps_chain_state *backup,
+                                     ps_arm_sample *out, long *failed_arm, long *failed_sample)
+{
+    if (k < 0) {
+        return PS_ERR_ARGUMENT;
+    }
+    return batch_push(chains, PUSH_COUNTS, n_arms, k, n_samples, NULL, t_s, counts, backup,
+                      out, failed_arm, failed_sample);
+}
+
+int ps_chain_batch_push_angle_block(ps_arm_chain *chains, long n_arms, long k,
+                                    const long *n_samples, const ps_time *t_s,
+                                    const ps_real *angle_deg, ps_chain_state *backup,
+                                    ps_arm_sample *out, long *failed_arm, long *failed_sample)
+{
+    if (k < 0) {
+        return PS_ERR_ARGUMENT;
+    }
+    return batch_push(chains, PUSH_ANGLE, n_arms, k, n_samples, NULL, t_s, angle_deg, backup,
+                      out, failed_arm, failed_sample);
+}
+
+int ps_chain_batch_push_lengths_block(ps_arm_chain *chains, long n_arms, long k,
+                                      const long *n_samples, const ps_time *t_s,
+                                      const ps_real *length_L0, ps_chain_state *backup,
+                                      ps_arm_sample *out, long *failed_arm, long *failed_sample)
+{
+    if (k < 0) {
+        return PS_ERR_ARGUMENT;
+    }
+    return batch_push(chains, PUSH_LENGTHS, n_arms, k, n_samples, NULL, t_s, length_L0,
+                      backup, out, failed_arm, failed_sample);
+}
+
+/* The one-sample forms: k = -1 tells batch_push to use `active` (NULL: every arm). */
+int ps_chain_batch_push_counts(ps_arm_chain *chains, long n_arms, const unsigned char *active,
+                               const ps_time *t_s, const ps_real *counts,
+                               ps_chain_state *backup, ps_arm_sample *out, long *failed_arm)
+{
+    return batch_push(chains, PUSH_COUNTS, n_arms, -1, NULL, active, t_s, counts, backup, out,
+                      failed_arm, NULL);
+}
+
+int ps_chain_batch_push_angle(ps_arm_chain *chains, long n_arms, const unsigned char *active,
+                              const ps_time *t_s, const ps_real *angle_deg,
+                              ps_chain_state *backup, ps_arm_sample *out, long *failed_arm)
+{
+    return batch_push(chains, PUSH_ANGLE, n_arms, -1, NULL, active, t_s, angle_deg, backup,
+                      out, failed_arm, NULL);
+}
+
+int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigned char *active,
+                                const ps_time *t_s, const ps_real *length_L0,
+                                ps_chain_state *backup, ps_arm_sample *out, long *failed_arm)
+{
+    return batch_push(chains, PUSH_LENGTHS, n_arms, -1, NULL, active, t_s, length_L0, backup,
+                      out, failed_arm, NULL);
+}
+#endif /* PS_NO_BATCH */

@@ -41,9 +41,12 @@ enum ps_status {
     PS_ERR_CONFIG = 9,        /* an unusable configuration (chain) */
     PS_ERR_ANGLE_RANGE = 10,  /* reserved (ps_chain_reset now clamps the angle) */
     PS_ERR_NOT_RESET = 11,    /* a chain used before ps_chain_init and ps_chain_reset */
-    PS_ERR_INTERVAL = 12      /* an interval needing more than PS_CHAIN_MAX_UPDATES spindle
+    PS_ERR_INTERVAL = 12,     /* an interval needing more than PS_CHAIN_MAX_UPDATES spindle
                                  sub-steps or predictor updates: a guard, not reached with a
                                  config ps_chain_init accepted (longer intervals restart) */
+    PS_ERR_ARGUMENT = 13      /* a count or index argument out of range (batch calls: a
+                                 negative n_arms or k, n_samples[i] outside 0..k, an arm
+                                 index outside 0..n_arms-1) */
 };
 
 #define PS_LENGTH_MIN_L0 0.5
@@ -418,6 +421,68 @@ int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_r
                          const ps_real *intended_deg, ps_arm_sample *samples, long *n_done);
 
 
+/* ---- batches: the chains of many arms in one array, advanced by one call ----------------
+ * `chains` is an array of n_arms chains, each set up by ps_chain_init and ps_chain_reset (or
+ * ps_chain_batch_reset). Arm i of every call below does exactly what the single-arm function
+ * does on chains[i] alone (same outputs, counters and handling rules). The calls are atomic
+ * across arms: they check every arm first (PS_ERR_NOT_RESET, PS_ERR_ARGUMENT), and if an
+ * arm's push fails (a spindle step's status, PS_ERR_INTERVAL) every arm is put back exactly
+ * as it was before the call; *failed_arm (and *failed_sample, the index within that arm's
+ * block) then name where it failed (-1 on success; each pointer may be NULL), and the
+ * contents of `out` are unspecified. No heap: the caller passes `backup` (pushes) or
+ * `scratch` (reset), n_arms (or m) states of working memory whose contents are ignored on
+ * entry and meaningless after. Compiled unless PS_NO_BATCH is defined (a one-arm device
+ * build saves their code: 1.8 kB on a Cortex-M0+). */
+#ifndef PS_NO_BATCH
+
+/* Reset m arms: arm arms[j] (j = 0..m-1; arms NULL: arm j, and m must equal n_arms) at rest
+ * at angle_deg[j], t_s[j] and, if length_L0 is not NULL, lengths length_L0[2j..2j+1]:
+ * ps_chain_reset's work and checks; out[j] (if out is not NULL) receives its rest output.
+ * The other arms are untouched. A repeated index is reset once (by its last entry). */
+int ps_chain_batch_reset(ps_arm_chain *chains, long n_arms, const long *arms, long m,
+                         const ps_real *angle_deg, const ps_time *t_s,
+                         const ps_real *length_L0, ps_chain_state *scratch,
+                         ps_arm_sample *out, long *failed_arm);
+
+/* The switch of every arm: angle_deg[i] as ps_chain_set_intended_angle's angle, NaN (or
+ * angle_deg NULL) for the measured motion; an infinite angle is PS_ERR_NONFINITE (no arm
+ * changed). */
+int ps_chain_batch_set_intended_angle(ps_arm_chain *chains, long n_arms,
+                                      const ps_real *angle_deg, long *failed_arm);
+
+/* Blocks: arm i pushes its first n_samples[i] (0..k; n_samples NULL: k) samples of row i of
+ * t_s (n_arms, k) and counts / angle_deg (n_arms, k) or length_L0 (n_arms, k, 2), in order,
+ * as ps_chain_push_*_block; entries past n_samples[i] are never read (padding). out[i]
+ * receives the arm's last output (ArmChain.last); an arm given no sample repeats its last
+ * output with accepted = 0. */
+int ps_chain_batch_push_counts_block(ps_arm_chain *chains, long n_arms, long k,
+                                     const long *n_samples, const ps_time *t_s,
+                                     const ps_real *counts, ps_chain_state *backup,
+                                     ps_arm_sample *out, long *failed_arm, long *failed_sample);
+int ps_chain_batch_push_angle_block(ps_arm_chain *chains, long n_arms, long k,
+                                    const long *n_samples, const ps_time *t_s,
+                                    const ps_real *angle_deg, ps_chain_state *backup,
+                                    ps_arm_sample *out, long *failed_arm, long *failed_sample);
+int ps_chain_batch_push_lengths_block(ps_arm_chain *chains, long n_arms, long k,
+                                      const long *n_samples, const ps_time *t_s,
+                                      const ps_real *length_L0, ps_chain_state *backup,
+                                      ps_arm_sample *out, long *failed_arm, long *failed_sample);
+
+/* One sample per arm (t_s, counts / angle_deg (n_arms), length_L0 (n_arms, 2)) for the arms
+ * with active[i] != 0 (active NULL: every arm), as ps_chain_push_counts / _angle / _lengths
+ * (lengths: the angle is the last one); out[i] is that push's output (accepted = 0 if the
+ * sample was rejected); an inactive arm gets no sample and repeats its last output with
+ * accepted = 0. */
+int ps_chain_batch_push_counts(ps_arm_chain *chains, long n_arms, const unsigned char *active,
+                               const ps_time *t_s, const ps_real *counts,
+                               ps_chain_state *backup, ps_arm_sample *out, long *failed_arm);
+int ps_chain_batch_push_angle(ps_arm_chain *chains, long n_arms, const unsigned char *active,
+                              const ps_time *t_s, const ps_real *angle_deg,
+                              ps_chain_state *backup, ps_arm_sample *out, long *failed_arm);
+int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigned char *active,
+                                const ps_time *t_s, const ps_real *length_L0,
+                                ps_chain_state *backup, ps_arm_sample *out, long *failed_arm);
+#endif /* PS_NO_BATCH */
 
 /* ---- end of chain section ---- */
 

@@ -1,0 +1,199 @@
+"""The muscle lengths after every physics step of an env step: recorded, or a Hermite curve.
+
+A wrapper sees the env step, not the physics steps inside it. Two sources of the lengths in
+between, chosen per env (``substep_source``):
+
+- ``"frames"``: the env's physics stepping is wrapped so that each physics step is recorded.
+  For Gymnasium's ``MujocoEnv`` (``do_simulation`` -> ``_step_mujoco_simulation``, not
+  overridden by the env) the wrapper puts its own ``_step_mujoco_simulation`` on the
+  instance: the same ``mj_step`` calls one by one (``mj_step(nstep=n)`` is that loop) and
+  the same ``mj_rnePostConstraint``, reading after each call ``actuator_length`` and
+  ``actuator_velocity``, which ``mj_step`` computed at the step's *start* (so the physics and
+  the env's own data are bit-for-bit what they were). The state after the last step comes
+  from :class:`~proprio_env.wrappers.muscles.ActuatorKinematics` on a scratch ``MjData``.
+  Not with the RK4 integrator (its last stage leaves intermediate values in those fields).
+- ``"hermite"``: for any other env (ours, MyoSuite's ``sim.advance``): the cubic Hermite
+  curve between the lengths and velocities at the ends of the env step, sampled at the
+  physics step's times. On the elbow at 50 Hz it differs from the recorded lengths by up to
+  the figure in ``docs/wrapper.md``.
+
+``"auto"`` (default) takes ``"frames"`` where it can, else ``"hermite"``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from spindle.substeps import hermite_curve
+
+SUBSTEP_SOURCES = ("auto", "frames", "hermite")
+
+
+def frames_hook_reason(env: Any) -> str | None:
+    """``None`` if the physics steps of ``env`` (an ``unwrapped`` env) can be recorded, else
+    why not."""
+    try:
+        from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
+    except ImportError as exc:  # gymnasium[mujoco] needs imageio
+        return f"gymnasium.envs.mujoco is not importable ({exc})"
+    if not isinstance(env, MujocoEnv):
+        return f"{type(env).__name__} is not a gymnasium.envs.mujoco.MujocoEnv"
+    if type(env)._step_mujoco_simulation is not MujocoEnv._step_mujoco_simulation:
+        return f"{type(env).__name__} overrides _step_mujoco_simulation"
+    if env.model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4:
+        return "the RK4 integrator leaves intermediate values in actuator_length"
+    return None
+
+
+class FrameRecorder:
+    """Records (time, actuator length, velocity) at the start of every physics step of a
+    Gymnasium ``MujocoEnv`` (see the module docstring); :meth:`remove` restores the env."""
+
+    def __init__(self, env: Any, ids: np.ndarray) -> None:
+        reason = frames_hook_reason(env)
+        if reason is not None:
+            raise ValueError(f"substep_source='frames' is not possible here: {reason}")
+        self.env = env
+        self.ids = np.asarray(ids, dtype=int)
+        self.times: list[float] = []
+        self.lengths: list[np.ndarray] = []
+        self.velocities: list[np.ndarray] = []
+        env._step_mujoco_simulation = self._step
+
+    def _step(self, ctrl, n_frames) -> None:
+        model, data, ids = self.env.model, self.env.data, self.ids
+        data.ctrl[:] = ctrl
+        for _ in range(n_frames):
+            t = data.time
+            mujoco.mj_step(model, data)
+            self.times.append(t)
+            self.lengths.append(data.actuator_length[ids])
+            self.velocities.append(data.actuator_velocity[ids])
+        mujoco.mj_rnePostConstraint(model, data)
+
+    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The records since the last call: times (F,), lengths (F, M) m, velocities (F, M)
+        m/s, each at the start of a physics step."""
+        out = (np.array(self.times), np.array(self.lengths).reshape(-1, self.ids.size),
+               np.array(self.velocities).reshape(-1, self.ids.size))
+        self.times, self.lengths, self.velocities = [], [], []
+        return out
+
+    def remove(self) -> None:
+        self.env.__dict__.pop("_step_mujoco_simulation", None)
+
+
+def hermite_knots(t0: np.ndarray, L0: np.ndarray, V0: np.ndarray, t1: np.ndarray,
+                  L1: np.ndarray, V1: np.ndarray, K: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K equally spaced knots (times (K, n), lengths and slopes (K, n, M)) on the cubic
+    Hermite curve from (L0, V0) at t0 to (L1, V1) at t1 (rows n, muscles M); the last is
+    (L1, V1) itself. Between two such knots, the Hermite curve through them and their slopes
+    is the same cubic, so the spindles follow the one curve."""
+    dt = (t1 - t0)[:, None]
+    s = np.arange(1, K + 1) / K
+    times = t0[None, :] + s[:, None] * (t1 - t0)[None, :]
+    lengths = np.stack([hermite_curve(si, L0, L1, [(V0 * dt, V1 * dt)], 1.0) for si in s])
+    s2 = s[:, None, None]
+    # d/dt of the curve: the derivatives of the cubic Hermite basis over dt
+    slopes = ((6 * s2 * s2 - 6 * s2) * (L0 - L1)[None] / dt[None]
+              + (3 * s2 * s2 - 4 * s2 + 1) * V0[None] + (3 * s2 * s2 - 2 * s2) * V1[None])
+    lengths[-1], slopes[-1] = L1, V1
+    return times, lengths, slopes
+
+
+class EnvTap:
+    """What the wrappers read from one env: its muscles' normalised state now, and the
+    records of its last physics steps.
+
+    Args:
+        env: the env (its ``unwrapped`` is used).
+        muscles: the muscle set (:func:`~proprio_env.wrappers.muscles.find_muscles`).
+        substep_source: one of :data:`SUBSTEP_SOURCES`.
+    """
+
+    def __init__(self, env: Any, muscles: Any, substep_source: str = "auto") -> None:
+        from proprio_env.wrappers.muscles import ActuatorKinematics, model_and_data
+
+        if substep_source not in SUBSTEP_SOURCES:
+            raise ValueError(f"substep_source={substep_source!r} is not one of "
+                             f"{SUBSTEP_SOURCES}")
+        self.base = env.unwrapped
+        self.model, self.data = model_and_data(self.base)
+        self.muscles = muscles
+        self.kinematics = ActuatorKinematics(self.model, muscles.ids)
+        self.timestep_s = float(self.model.opt.timestep)
+        reason = frames_hook_reason(self.base)
+        if substep_source == "frames" and reason is not None:
+            raise ValueError(f"substep_source='frames' is not possible here: {reason}")
+        self.recorder = (FrameRecorder(self.base, muscles.ids)
+                         if substep_source != "hermite" and reason is None else None)
+        self.substep_source = "frames" if self.recorder is not None else "hermite"
+        self.why_hermite = reason if self.recorder is None else None
+
+    def now(self) -> tuple[float, np.ndarray, np.ndarray]:
+        """(time s, normalised lengths L0, velocities L0/s) of the env's current state."""
+        length, velocity = self.kinematics.of_data(self.data)
+        return (float(self.data.time), self.muscles.length_L0(length),
+                self.muscles.velocity_L0_s(velocity))
+
+    def frames(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Normalised records since the last call (see :meth:`FrameRecorder.take`), or None."""
+        if self.recorder is None:
+            return None
+        t, length, velocity = self.recorder.take()
+        return t, self.muscles.length_L0(length), self.muscles.velocity_L0_s(velocity)
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.remove()
+
+
+def env_step_knots(t_prev: np.ndarray, L_prev: np.ndarray, V_prev: np.ndarray,
+                   t_end: np.ndarray, L_end: np.ndarray, V_end: np.ndarray,
+                   frames: list, timestep_s: float, moving: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """The knots of one env step of n rows: times (K, n), lengths and slopes (K, n, M), and
+    ``"frames"`` or ``"hermite"``.
+
+    The recorded frames are used when every moving row has them, their first record is the
+    row's previous knot (nothing moved the state in between) and all rows have as many;
+    otherwise the Hermite curve from the previous knot to the end, sampled every physics
+    step. Rows not ``moving`` get copies of the first moving row's times (the bank holds
+    them still).
+    """
+    rows = np.flatnonzero(moving)
+    n, M = L_end.shape
+    usable = [frames[i] for i in rows]
+    if rows.size and all(f is not None and f[0].size >= 1 for f in usable):
+        counts = {f[0].size for f in usable}
+        starts = np.array([f[0][0] for f in usable])
+        if len(counts) == 1 and np.allclose(starts, t_prev[rows], rtol=0, atol=1e-9):
+            K = counts.pop()
+            t = np.empty((K, n))
+            L = np.empty((K, n, M))
+            V = np.empty((K, n, M))
+            for i, f in zip(rows, usable, strict=True):
+                t[:, i] = np.append(f[0][1:], t_end[i])
+                L[:, i] = np.concatenate((f[1][1:], L_end[i][None]))
+                V[:, i] = np.concatenate((f[2][1:], V_end[i][None]))
+            _fill_held(t, L, V, rows, moving)
+            return t, L, V, "frames"
+    span = t_end[rows] - t_prev[rows]
+    counts = np.maximum(1, np.rint(span / timestep_s)).astype(int)
+    if rows.size and np.any(counts != counts[0]):
+        raise ValueError(f"the envs advanced by different times {span.tolist()} s in one step")
+    K = int(counts[0]) if rows.size else 1
+    t, L, V = hermite_knots(t_prev, L_prev, V_prev, np.where(moving, t_end, t_prev + 1.0),
+                            L_end, V_end, K)
+    _fill_held(t, L, V, rows, moving)
+    return t, L, V, "hermite"
+
+
+def _fill_held(t, L, V, rows, moving) -> None:
+    held = np.flatnonzero(~moving)
+    if held.size and rows.size:
+        t[:, held] = t[:, rows[:1]]

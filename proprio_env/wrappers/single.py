@@ -1,0 +1,202 @@
+"""``SpindleAfferents``: Ia and II of every muscle of a MuJoCo env, appended to its observation."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from proprio_env.wrappers.bank import (
+    COUNTERS,
+    ConstantFusimotor,
+    SpindleBank,
+    TemplateFusimotor,
+)
+from proprio_env.wrappers.capture import EnvTap, env_step_knots
+from proprio_env.wrappers.muscles import MuscleSet, find_muscles, model_and_data
+from spindle.params import HUMAN, SpindleParams
+
+OBSERVATION_MODES = ("box", "dict")
+RATE_SCALE_PPS = 100.0
+"""Default divisor of the rates in the observation (pps), as in the elbow envs."""
+DICT_KEYS = ("spindle_ia", "spindle_ii")
+
+
+def afferent_spaces(base: spaces.Space, n_muscles: int, mode: str) -> spaces.Space:
+    """The observation space with the rates added: a Box concatenation (``"box"``, the env's
+    space must be a 1-D Box) or a Dict (``"dict"``: the env's Dict with two more keys, or
+    ``{"observation": the env's space, "spindle_ia", "spindle_ii"}``)."""
+    if mode not in OBSERVATION_MODES:
+        raise ValueError(f"observation={mode!r} is not one of {OBSERVATION_MODES}")
+    if mode == "box":
+        if not (isinstance(base, spaces.Box) and len(base.shape) == 1):
+            raise ValueError(f"observation='box' needs a 1-D Box observation space, the env "
+                             f"has {base}; pass observation='dict'")
+        dtype = base.dtype
+        low = np.concatenate((base.low, np.zeros(2 * n_muscles, dtype=dtype)))
+        high = np.concatenate((base.high, np.full(2 * n_muscles, np.inf, dtype=dtype)))
+        return spaces.Box(low, high, dtype=dtype)
+    rate = spaces.Box(0.0, np.inf, shape=(n_muscles,), dtype=np.float64)
+    if isinstance(base, spaces.Dict):
+        clash = set(DICT_KEYS) & set(base.spaces)
+        if clash:
+            raise ValueError(f"the env's Dict observation already has keys {sorted(clash)}")
+        return spaces.Dict({**base.spaces, DICT_KEYS[0]: rate, DICT_KEYS[1]: rate})
+    return spaces.Dict({"observation": base, DICT_KEYS[0]: rate, DICT_KEYS[1]: rate})
+
+
+def add_afferents(obs: Any, ia: np.ndarray, ii: np.ndarray, mode: str, scale: float,
+                  dtype: Any = None) -> Any:
+    """``obs`` with the rates (pps) added (the last axis is the muscles; a leading env axis
+    for a vector env)."""
+    if mode == "box":
+        parts = (np.asarray(obs), ia / scale, ii / scale)
+        return np.concatenate(parts, axis=-1).astype(dtype or np.asarray(obs).dtype)
+    extra = {DICT_KEYS[0]: ia / scale, DICT_KEYS[1]: ii / scale}
+    if isinstance(obs, dict):
+        return {**obs, **extra}
+    return {"observation": obs, **extra}
+
+
+def bank_info(bank: SpindleBank, measured_L0: np.ndarray, source: str,
+              row: int | None = None) -> dict[str, Any]:
+    """The raw signals of a bank (row ``row``, or every row with a leading axis)."""
+    pick = (lambda a: a[row].copy()) if row is not None else (lambda a: a.copy())
+    info = {
+        "spindle_ia_pps": pick(bank.ia_pps),
+        "spindle_ii_pps": pick(bank.ii_pps),
+        "spindle_length_L0": pick(bank.length_L0),
+        "spindle_measured_length_L0": pick(measured_L0),
+        "spindle_velocity_L0_s": pick(bank.velocity_L0_s),
+        "spindle_gamma_static_pps": pick(bank.gamma_static_pps),
+        "spindle_gamma_dynamic_pps": pick(bank.gamma_dynamic_pps),
+    }
+    for name in COUNTERS:
+        info[f"spindle_{name}"] = pick(bank.counters[name])
+    if row is not None:
+        info["spindle_substep_source"] = source
+        info["spindle_substeps_limited"] = bank.substeps_limited
+        info["spindle_restarts"] = bank.restarts
+    return info
+
+
+class SpindleAfferents(gym.Wrapper):
+    """Muscle-spindle Ia and II afferents (Mileusnic 2006) of every muscle of a MuJoCo env.
+
+    Works on any env whose ``unwrapped`` has a MuJoCo ``model`` and ``data`` (Gymnasium's
+    ``MujocoEnv`` subclasses, MyoSuite-style envs with ``sim.model``/``sim.data``, this
+    project's elbow envs). Each muscle actuator's normalised fibre length and velocity come
+    from MuJoCo's muscle model (:mod:`proprio_env.wrappers.muscles`); within each env step
+    the spindles take 1 ms sub-steps along the lengths after every physics step
+    (:mod:`proprio_env.wrappers.capture`); the rates are appended to the observation.
+
+    Observation: the env's, then Ia of each muscle, then II of each muscle, divided by
+    ``rate_scale_pps`` (``observation="box"``: a Box concatenation, the env's space must be a
+    1-D Box); or a Dict with keys ``"spindle_ia"``, ``"spindle_ii"`` (``observation="dict"``).
+    Muscles are in :attr:`muscle_names` order (actuator ids unless ``muscles`` names them).
+
+    ``info`` gains ``spindle_ia_pps``, ``spindle_ii_pps`` (M,) in pps;
+    ``spindle_length_L0`` (as fed to the spindles: clamped to 0.5-1.5 L0, slew-limited) and
+    ``spindle_measured_length_L0`` (MuJoCo's normalisation, unclamped); ``spindle_velocity_L0_s``;
+    ``spindle_gamma_static_pps``, ``spindle_gamma_dynamic_pps``; per-muscle counters
+    ``spindle_length_clamped``, ``spindle_slew_limited`` (since reset); and
+    ``spindle_substep_source``, ``spindle_substeps_limited``, ``spindle_restarts``.
+
+    Reset: the spindles at equilibrium at the reset lengths with the drive there.
+
+    Args:
+        env: the env to wrap.
+        muscles: actuator names to use (each with a muscle gain); ``None``: every muscle.
+        params: spindle constants (default :data:`spindle.HUMAN`).
+        fusimotor: :class:`~proprio_env.wrappers.ConstantFusimotor` (default: 85 pps static,
+            100 pps dynamic) or :class:`~proprio_env.wrappers.TemplateFusimotor` (the seed
+            paper's PI template and h/g per muscle).
+        observation: ``"box"`` or ``"dict"``.
+        rate_scale_pps: divisor of the rates in the observation.
+        substep_source: ``"auto"``, ``"frames"`` or ``"hermite"`` (see
+            :mod:`proprio_env.wrappers.capture`).
+        method, step_s: the spindle integrator and its largest sub-step (default
+            trapezoidal, 1 ms).
+        max_speed_L0_s: the lengths' slew limit (L0/s).
+
+    Version history: v0 (first release).
+    """
+
+    def __init__(self, env: gym.Env, muscles: Sequence[str] | None = None,
+                 params: SpindleParams = HUMAN,
+                 fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
+                 observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
+                 substep_source: str = "auto", method: str = "trapezoidal",
+                 step_s: float | None = None, max_speed_L0_s: float = 8.0) -> None:
+        super().__init__(env)
+        model, _ = model_and_data(env)
+        self.muscles: MuscleSet = find_muscles(model, muscles)
+        if not (np.isfinite(rate_scale_pps) and rate_scale_pps > 0):
+            raise ValueError(f"rate_scale_pps={rate_scale_pps!r} must be finite and > 0")
+        self.rate_scale_pps = float(rate_scale_pps)
+        self.observation_mode = observation
+        self.observation_space = afferent_spaces(env.observation_space, self.muscles.n,
+                                                 observation)
+        self.tap = EnvTap(env, self.muscles, substep_source)
+        self.bank = SpindleBank(1, self.muscles.range_low_L0, self.muscles.range_high_L0,
+                                params, fusimotor, method, step_s, max_speed_L0_s)
+        self._measured = np.ones((1, self.muscles.n))
+        self._source = self.tap.substep_source
+        self._started = False
+
+    @property
+    def muscle_names(self) -> tuple[str, ...]:
+        return self.muscles.names
+
+    @property
+    def substep_source(self) -> str:
+        """``"frames"`` or ``"hermite"``: how the lengths inside an env step are obtained."""
+        return self.tap.substep_source
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self.tap.frames()  # whatever the reset stepped belongs to no env step
+        self._rest()
+        self._started = True
+        return self._observation(obs), {**info, **self._info()}
+
+    def step(self, action):
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        t, L, V = self.tap.now()
+        t_prev = float(self.bank.t_s[0])
+        frames = self.tap.frames()
+        if t < t_prev or not np.isfinite(t):
+            # the env reset itself inside step (time ran back): start again at rest there
+            self.bank.restarts += 1
+            self._rest()
+        elif t > t_prev:
+            knots = env_step_knots(self.bank.t_s, self.bank.length_L0, self.bank.velocity_L0_s,
+                                   np.array([t]), L[None], V[None], [frames],
+                                   self.tap.timestep_s, np.ones(1, bool))
+            self._source = knots[3]
+            self.bank.advance(*knots[:3])
+            self._measured[0] = L
+        return (self._observation(obs), reward, terminated, truncated,
+                {**info, **self._info()})
+
+    def close(self) -> None:
+        self.tap.close()
+        super().close()
+
+    def _rest(self) -> None:
+        t, L, V = self.tap.now()
+        self.bank.reset(None, np.array([t]), L[None], V[None])
+        self._measured[0] = L
+
+    def _observation(self, obs):
+        return add_afferents(obs, self.bank.ia_pps[0], self.bank.ii_pps[0],
+                             self.observation_mode, self.rate_scale_pps,
+                             getattr(self.observation_space, "dtype", None))
+
+    def _info(self) -> dict[str, Any]:
+        return bank_info(self.bank, self._measured, self._source, row=0)

@@ -1,0 +1,132 @@
+"""The afferents of recorded joint motion: replay ``qpos`` through a model's muscle paths."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from proprio_env.wrappers.bank import (
+    COUNTERS,
+    ConstantFusimotor,
+    SpindleBank,
+    TemplateFusimotor,
+)
+from proprio_env.wrappers.muscles import ActuatorKinematics, find_muscles
+from spindle.params import HUMAN, SpindleParams
+
+UNIFORM_TOLERANCE = 1e-6
+"""Largest relative spread of the sample intervals of a trajectory (it must be uniform)."""
+
+CHUNK_SAMPLES = 2048
+"""Samples per batched advance: bounds the sub-step buffers of a long trajectory."""
+
+
+@dataclass(frozen=True)
+class TrajectoryAfferents:
+    """Per-sample signals of every muscle; arrays are (T, M) unless noted.
+
+    Attributes:
+        t_s: (T,) sample times.
+        muscle_names: the muscles, in column order.
+        ia_pps, ii_pps: afferent rates (pps).
+        length_L0: lengths as fed to the spindles (clamped to 0.5-1.5 L0, slew-limited).
+        measured_length_L0: MuJoCo's normalised lengths, unclamped.
+        velocity_L0_s: normalised velocities (as fed: clipped to the slew limit).
+        gamma_static_pps, gamma_dynamic_pps: the fusimotor drive.
+        counters: the bank's per-muscle counters (M,) over the whole trajectory.
+    """
+
+    t_s: np.ndarray
+    muscle_names: tuple[str, ...]
+    ia_pps: np.ndarray
+    ii_pps: np.ndarray
+    length_L0: np.ndarray
+    measured_length_L0: np.ndarray
+    velocity_L0_s: np.ndarray
+    gamma_static_pps: np.ndarray
+    gamma_dynamic_pps: np.ndarray
+    counters: dict[str, np.ndarray]
+
+
+def afferents_from_trajectory(
+    model: mujoco.MjModel,
+    qpos_t: np.ndarray,
+    t_s: np.ndarray,
+    qvel_t: np.ndarray | None = None,
+    muscles: Sequence[str] | None = None,
+    params: SpindleParams = HUMAN,
+    fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
+    method: str = "trapezoidal",
+    step_s: float | None = None,
+    max_speed_L0_s: float = 8.0,
+) -> TrajectoryAfferents:
+    """Ia and II of every muscle of ``model`` along recorded joint motion.
+
+    Each sample's muscle lengths come from ``qpos`` through the model's kinematics, tendons
+    and transmissions (no dynamics: the motion is imposed, e.g. motion capture or OpenSim
+    inverse kinematics mapped to the model's joints); the velocities from ``qvel_t`` through
+    the moment arms if given, else by differentiating the lengths in time (second order,
+    ``numpy.gradient``). The spindles start at equilibrium at the first sample and follow
+    the same rules and sub-steps as :class:`~proprio_env.wrappers.SpindleAfferents` between
+    samples.
+
+    Args:
+        model: the MuJoCo model.
+        qpos_t: (T, nq) joint positions.
+        t_s: (T,) sample times, uniformly spaced.
+        qvel_t: (T, nv) joint velocities, or None.
+        muscles, params, fusimotor, method, step_s, max_speed_L0_s: as the wrapper's.
+
+    Returns:
+        :class:`TrajectoryAfferents`.
+    """
+    q = np.asarray(qpos_t, dtype=float)
+    t = np.asarray(t_s, dtype=float)
+    if q.ndim != 2 or q.shape[1] != model.nq or t.shape != (q.shape[0],):
+        raise ValueError(f"qpos_t has shape {q.shape} and t_s {t.shape}; expected "
+                         f"(T, {model.nq}) and (T,)")
+    if t.size < 2:
+        raise ValueError(f"a trajectory needs at least 2 samples, got {t.size}")
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
+        raise ValueError("qpos_t and t_s must be finite")
+    dt = np.diff(t)
+    if not (dt.min() > 0 and dt.max() - dt.min() <= UNIFORM_TOLERANCE * dt.mean()):
+        raise ValueError(f"t_s must be increasing and uniform: sample intervals range over "
+                         f"[{dt.min()!r}, {dt.max()!r}] s")
+    if qvel_t is not None:
+        qv = np.asarray(qvel_t, dtype=float)
+        if qv.shape != (t.size, model.nv) or not np.all(np.isfinite(qv)):
+            raise ValueError(f"qvel_t has shape {qv.shape}; expected finite (T, {model.nv})")
+    muscle_set = find_muscles(model, muscles)
+    kinematics = ActuatorKinematics(model, muscle_set.ids)
+    zero = np.zeros(model.nv)
+    length_m = np.empty((t.size, muscle_set.n))
+    velocity_m_s = np.empty_like(length_m)
+    for i in range(t.size):
+        length_m[i], velocity_m_s[i] = kinematics.compute(
+            q[i], zero if qvel_t is None else qv[i])
+    if qvel_t is None:
+        velocity_m_s = np.gradient(length_m, t, axis=0)
+    L = muscle_set.length_L0(length_m)
+    V = muscle_set.velocity_L0_s(velocity_m_s)
+
+    bank = SpindleBank(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
+                       fusimotor, method, step_s, max_speed_L0_s)
+    bank.reset(None, t[:1], L[:1], V[:1])
+    out = {key: np.empty_like(L) for key in ("ia_pps", "ii_pps", "length_L0", "velocity_L0_s",
+                                              "gamma_static_pps", "gamma_dynamic_pps")}
+    out["ia_pps"][0], out["ii_pps"][0] = bank.ia_pps[0], bank.ii_pps[0]
+    out["length_L0"][0], out["velocity_L0_s"][0] = bank.length_L0[0], bank.velocity_L0_s[0]
+    out["gamma_static_pps"][0] = bank.gamma_static_pps[0]
+    out["gamma_dynamic_pps"][0] = bank.gamma_dynamic_pps[0]
+    for i0 in range(1, t.size, CHUNK_SAMPLES):
+        i1 = min(i0 + CHUNK_SAMPLES, t.size)
+        bank.advance(t[i0:i1, None], L[i0:i1, None], V[i0:i1, None], record=True)
+        for key in out:
+            out[key][i0:i1] = bank.knots[key][:, 0]
+    counters = {name: bank.counters[name][0].copy() for name in COUNTERS}
+    return TrajectoryAfferents(t_s=t.copy(), muscle_names=muscle_set.names,
+                               measured_length_L0=L, counters=counters, **out)

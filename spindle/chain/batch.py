@@ -1,0 +1,696 @@
+"""The prosthesis chain over a leading axis of arms: every arm of a batch in one call per sample.
+
+:class:`BatchedArmChain` is :class:`spindle.chain.arm.ArmChain` for ``n_arms`` independent
+arms (a vector env's): each arm has its own median window, calibration stage, slew limit,
+clamp, tracking low-pass, PI predictor (on its own update grid from its own reset time),
+gamma drive, spindles, counters, handling of bad samples, gaps, bridges, restarts and clock
+resyncs, exactly as the module docstring of :mod:`spindle.chain.arm` describes them. One
+push gives every arm its own sample (or none: ``active``); arm k then equals a single
+``ArmChain`` fed the same samples in the same order (same counters; same outputs to rounding,
+the spindle step of many spindles runs in :mod:`spindle.batched` where one arm's runs on
+floats).
+
+Per-muscle arrays are (n_arms, 2) in :data:`~spindle.chain.config.MUSCLES` order; the
+spindles are one :class:`~spindle.core.SpindleState` of 2 n_arms spindles, arm-major (arm i:
+BRA 2i, TRImed 2i + 1), stepped by :func:`spindle.core.advance` once per sub-step for every
+arm that shares the step size (all arms, when they share their sample times). Arms whose
+intervals differ (an encoder's jittered times) are stepped in groups of equal sub-step size:
+the core takes one step size per call.
+
+The common push (every arm active, accepted, no restart) runs without a loop over arms;
+rejected samples, restarts and resyncs are handled with masks on the arms concerned. A push
+(and a whole block push) is atomic: if it raises, every arm is left exactly as it was.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from spindle import core
+from spindle.chain.arm import LENGTH_RANGE_POINTS
+from spindle.chain.conditioning import natural_rad_s, tracking_step
+from spindle.chain.config import COUNTERS, MUSCLES, ArmSample, ChainConfig, real_array
+from spindle.chain.fusimotor import BatchedFusimotor
+from spindle.chain.length_model import LengthFits, load_length_fits
+from spindle.chain.sensor import BatchedMedianFilter, valid_readings
+from spindle.methods import get_method
+from spindle.substeps import hermite_curve
+
+_COUNTER = {name: i for i, name in enumerate(COUNTERS)}
+_SPINDLE_ARRAYS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activation",
+                   "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
+_OUTPUTS = tuple(f.name for f in fields(ArmSample) if f.name != "accepted")
+_ALL = slice(None)
+MAX_STEP_GROUPS = 10
+"""Most groups of arms with distinct sub-step sizes stepped one core call each; beyond, the
+arms are stepped with a step size per spindle (see ``BatchedArmChain._advance_group``). With
+jittered times (a group per arm), push_counts took 5.1 ms per group call vs 5.8 ms with a
+step size per spindle at 8 arms, 7.3 vs 5.6 at 16, 23.5 vs 4.9 at 64 (idle 2-core machine,
+2026-12-01)."""
+
+
+@dataclass(frozen=True)
+class BatchSample:
+    """The outputs of every arm after one push: :class:`~spindle.chain.config.ArmSample`'s
+    fields with a leading axis of arms.
+
+    Attributes:
+        t_s, accepted, counts, counts_filtered, angle_deg: (n_arms,) each.
+        length_L0, velocity_L0_s, acceleration_L0_s2, template_L0, gamma_static_pps,
+            gamma_dynamic_pps, ia_pps, ii_pps: (n_arms, 2) each, muscles in ``MUSCLES``
+            order.
+
+    An arm whose sample was rejected, or that got none, repeats its last output with
+    ``accepted`` False. The arrays are read-only (the chain shares them with its state).
+    """
+
+    t_s: np.ndarray
+    accepted: np.ndarray
+    counts: np.ndarray
+    counts_filtered: np.ndarray
+    angle_deg: np.ndarray
+    length_L0: np.ndarray
+    velocity_L0_s: np.ndarray
+    acceleration_L0_s2: np.ndarray
+    template_L0: np.ndarray
+    gamma_static_pps: np.ndarray
+    gamma_dynamic_pps: np.ndarray
+    ia_pps: np.ndarray
+    ii_pps: np.ndarray
+
+    def arm(self, k: int) -> ArmSample:
+        """Arm ``k``'s output as the single chain's :class:`ArmSample`."""
+        return ArmSample(
+            t_s=float(self.t_s[k]), accepted=bool(self.accepted[k]),
+            counts=float(self.counts[k]), counts_filtered=float(self.counts_filtered[k]),
+            angle_deg=float(self.angle_deg[k]),
+            **{name: getattr(self, name)[k].copy() for name in _OUTPUTS[4:]})
+
+
+class BatchedArmChain:
+    """The streaming chain of ``n_arms`` independent arms (BRA and TRImed each), in numpy.
+
+    Call :meth:`reset` once (every arm), then push one sample per arm per call, each arm's
+    samples in increasing time. Arm k behaves exactly as a single
+    :class:`~spindle.chain.arm.ArmChain` with the same config and fits fed the same samples.
+
+    Args:
+        n_arms: number of arms (>= 1).
+        config: :class:`~spindle.chain.config.ChainConfig` shared by every arm (its
+            ``backend`` may not be ``"c"``: :func:`spindle.chain.make_batched_chain` builds
+            the C batch).
+        fits: the length fits (default: ``config.fits_path``'s).
+    """
+
+    def __init__(self, n_arms: int, config: ChainConfig | None = None,
+                 fits: LengthFits | None = None):
+        if (isinstance(n_arms, bool | np.bool_) or not isinstance(n_arms, int | np.integer)
+                or n_arms < 1):
+            raise ValueError(f"n_arms={n_arms!r} must be an integer >= 1")
+        self.n_arms = int(n_arms)
+        self.config = ChainConfig() if config is None else config
+        if self.config.backend == "c":
+            raise ValueError(
+                "BatchedArmChain is the numpy batch, but config.backend='c'; build the batch "
+                "with spindle.chain.make_batched_chain(n_arms, config, fits)")
+        self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
+        if self.fits.muscles != MUSCLES:
+            raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
+        lo_rad, hi_rad = self.fits.valid_range_rad
+        self.angle_range_deg = (math.degrees(lo_rad), math.degrees(hi_rad))
+        span = self.fits.length_L0(np.linspace(lo_rad, hi_rad, LENGTH_RANGE_POINTS))
+        self.length_min_L0 = span.min(axis=0)
+        self.length_max_L0 = span.max(axis=0)
+        self._theta = get_method(self.config.method).theta
+        self._columns = core.columns(self.config.params)
+        self._omega = (None if self.config.lowpass_hz is None
+                       else natural_rad_s(self.config.lowpass_hz))
+        n = self.n_arms
+        self._median = BatchedMedianFilter(n, self.config.median_window)
+        self._fusimotor = BatchedFusimotor(n, self.length_min_L0, self.length_max_L0,
+                                           self.config.fusimotor)
+        self._ready = np.zeros(n, dtype=bool)  # reset at least once
+        self._intended = np.full((n, 2), math.nan)  # NaN rows: the measured motion
+        self._counters = np.zeros((n, len(COUNTERS)), dtype=np.int64)
+        self._behind = np.zeros(n, dtype=np.int64)  # samples older than the last accepted
+        self._no_behind = self._behind  # (arrays are rebound, never written: one zero array)
+        self._t = np.zeros(n)
+        self._angle = np.zeros(n)
+        self._u = np.ones((n, 2))  # the last accepted lengths (the low-pass's input)
+        self._x = np.ones((n, 2))
+        self._v = np.zeros((n, 2))
+        self._a = np.zeros((n, 2))
+        self._state = core.equilibrium_state(np.ones(2 * n), 0.0, 0.0, self.config.params)
+        self._out = _read_only({name: np.full((n, 2) if i >= 4 else n, math.nan)
+                                for i, name in enumerate(_OUTPUTS)})
+
+    # -- state ---------------------------------------------------------------------------
+    @property
+    def counters(self) -> dict[str, np.ndarray]:
+        """Each counter of :data:`~spindle.chain.config.COUNTERS`, (n_arms,) int64 (copies)."""
+        return {name: self._counters[:, i].copy() for name, i in _COUNTER.items()}
+
+    @property
+    def last(self) -> BatchSample:
+        """Every arm's latest output (``accepted`` True: the output of its last accepted
+        sample or reset, as :attr:`ArmChain.last`)."""
+        if not self._ready.all():
+            raise RuntimeError(f"call BatchedArmChain.reset for every arm before using the "
+                               f"chain (arms {np.flatnonzero(~self._ready).tolist()} never were)")
+        return self._sample(np.ones(self.n_arms, dtype=bool))
+
+    @property
+    def spindle_state(self) -> core.SpindleState:
+        """A copy of the spindles' state: 2 n_arms spindles, arm i's BRA 2i, TRImed 2i + 1."""
+        return self._state.copy()
+
+    def reset(self, angle_deg: np.ndarray, t_s: float | np.ndarray = 0.0,
+              length_L0: np.ndarray | None = None,
+              arms: np.ndarray | None = None) -> BatchSample:
+        """Arms at rest at ``angle_deg`` (and, if given, exact ``length_L0``) at ``t_s``.
+
+        ``arms`` None: every arm, ``angle_deg`` (n_arms,), ``t_s`` a scalar or (n_arms,),
+        ``length_L0`` None or (n_arms, 2). ``arms`` an index array (m,): only those arms
+        (the others are untouched), the values then (m,), (m,) and (m, 2). Each reset arm is
+        :meth:`ArmChain.reset`: filters on its angle, template on its lengths, spindles at
+        equilibrium, counters at zero (``angle_clamped`` counts a clamped angle), the switch
+        back to the measured motion. Bad values raise ``ValueError`` naming the arm; nothing
+        changes then. Returns every arm's output (``accepted`` True for the reset arms).
+        """
+        rows = self._arms_index(arms)
+        m = rows.size
+        angle = self._per_arm("angle_deg", angle_deg, (m,), rows)
+        t = np.broadcast_to(real_array(t_s), (m,)) if np.ndim(t_s) == 0 else \
+            self._per_arm("t_s", t_s, (m,), rows)
+        _check_finite("t_s", t, rows)
+        _check_finite("angle_deg", angle, rows)
+        lo, hi = self.angle_range_deg
+        if length_L0 is None:
+            clamped = (angle < lo) | (angle > hi)
+            recorded = np.minimum(np.maximum(angle, lo), hi)
+            L = self.fits.length_L0(np.radians(recorded))
+        else:
+            clamped = np.zeros(m, dtype=bool)
+            recorded = angle.copy()
+            L = self._per_arm("length_L0", length_L0, (m, 2), rows)
+            bad = ~_lengths_valid(L)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise ValueError(f"length_L0 of arm {int(rows[i])} is {L[i]!r}; it must be 2 "
+                                 f"finite lengths within {core.LENGTH_RANGE_L0} L0")
+        saved = self._snapshot()
+        try:
+            self._intended = self._intended.copy()
+            self._intended[rows] = math.nan
+            minus_one = np.full(m, -1.0)
+            self._rest(rows, np.array(t, dtype=float), recorded, L, self._rest_reading(angle),
+                       minus_one, minus_one)
+            counters = self._counters.copy()
+            counters[rows] = 0
+            counters[rows, _COUNTER["angle_clamped"]] = clamped
+            self._counters = counters
+            ready = self._ready.copy()
+            ready[rows] = True
+            self._ready = ready
+        except BaseException:
+            self._restore(saved)
+            raise
+        accepted = np.zeros(self.n_arms, dtype=bool)
+        accepted[rows] = True
+        return self._sample(accepted)
+
+    def set_intended_angle(self, angle_deg: np.ndarray | None) -> None:
+        """The switch of every arm: drive its template from an intended elbow angle (deg).
+
+        ``None``: every arm follows its measured motion; else (n_arms,), NaN for an arm that
+        follows its measured motion. An angle outside the length model's range is clamped to
+        it; an infinite one raises ``ValueError``. Holds until changed.
+        """
+        n = self.n_arms
+        if angle_deg is None:
+            self._intended = np.full((n, 2), math.nan)
+            return
+        angle = self._per_arm("angle_deg", angle_deg, (n,), np.arange(n))
+        if np.isinf(angle).any():
+            i = int(np.argmax(np.isinf(angle)))
+            raise ValueError(f"angle_deg of arm {i} is {angle[i]!r}; it must be a finite real "
+                             "number (NaN: the measured motion)")
+        lo, hi = self.angle_range_deg
+        given = ~np.isnan(angle)
+        intended = np.full((n, 2), math.nan)
+        if given.any():
+            clamped = np.minimum(np.maximum(angle[given], lo), hi)
+            intended[given] = self.fits.length_L0(np.radians(clamped))
+        self._intended = intended
+
+    # -- pushes ----------------------------------------------------------------------------
+    def push_counts(self, t_s: np.ndarray, counts: np.ndarray,
+                    active: np.ndarray | None = None) -> BatchSample:
+        """One encoder reading per arm: ``counts`` (n_arms,) taken at ``t_s`` (n_arms,).
+
+        ``active`` (n_arms,) bool, None for all: an inactive arm gets no sample (state and
+        counters untouched; its output repeats its last, ``accepted`` False).
+        """
+        return self._push("counts", t_s, counts, active, ())
+
+    def push_angle(self, t_s: np.ndarray, angle_deg: np.ndarray,
+                   active: np.ndarray | None = None) -> BatchSample:
+        """One clean elbow angle (deg) per arm, (n_arms,), skipping the sensor stage."""
+        return self._push("angle_deg", t_s, angle_deg, active, ())
+
+    def push_lengths(self, t_s: np.ndarray, length_L0: np.ndarray,
+                     active: np.ndarray | None = None) -> BatchSample:
+        """The two fibre lengths (L0) of every arm, (n_arms, 2), skipping the sensor and the
+        length model (the recorded angle stays the arm's last)."""
+        return self._push("length_L0", t_s, length_L0, active, (2,))
+
+    def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray,
+                          n_samples: np.ndarray | None = None) -> BatchSample:
+        """Arm i pushes its readings ``counts[i, :n_samples[i]]`` taken at ``t_s[i, ...]``.
+
+        ``t_s`` and ``counts`` are (n_arms, k); ``n_samples`` (n_arms,) integers in 0..k
+        (None: k each), entries past it are padding and ignored. Exactly
+        :meth:`push_counts` column by column; atomic as a whole. Returns each arm's last
+        output (as :meth:`ArmChain.push_counts_block`; an arm with no sample repeats its
+        last with ``accepted`` False).
+        """
+        return self._block("counts", t_s, counts, n_samples, ())
+
+    def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray,
+                         n_samples: np.ndarray | None = None) -> BatchSample:
+        """:meth:`push_angle` over (n_arms, k) times and angles; see
+        :meth:`push_counts_block`."""
+        return self._block("angle_deg", t_s, angle_deg, n_samples, ())
+
+    def push_lengths_block(self, t_s: np.ndarray, length_L0: np.ndarray,
+                           n_samples: np.ndarray | None = None) -> BatchSample:
+        """:meth:`push_lengths` over (n_arms, k) times and (n_arms, k, 2) lengths; see
+        :meth:`push_counts_block`."""
+        return self._block("length_L0", t_s, length_L0, n_samples, (2,))
+
+    # -- the push --------------------------------------------------------------------------
+    def _push(self, kind: str, t_s, signal, active, sample_shape) -> BatchSample:
+        n = self.n_arms
+        t = _shaped("t_s", t_s, (n,), "(n_arms,)")
+        x = _shaped(kind, signal, (n, *sample_shape), f"(n_arms{', 2' if sample_shape else ''})")
+        if active is not None:
+            active = np.asarray(active)
+            if active.shape != (n,) or active.dtype != bool:
+                raise ValueError(f"active has shape {active.shape} and dtype {active.dtype}; "
+                                 f"expected ({n},) bool")
+            if active.all():
+                active = None
+        self._check_ready(active)
+        saved = self._snapshot()
+        try:
+            accepted = self._column(kind, t, x, active)
+        except BaseException:
+            self._restore(saved)
+            raise
+        return self._sample(accepted)
+
+    def _block(self, kind: str, t_s, signal, n_samples, sample_shape) -> BatchSample:
+        n = self.n_arms
+        t = real_array(t_s)
+        if t.ndim != 2 or t.shape[0] != n:
+            raise ValueError(f"t_s has shape {t.shape}; expected ({n}, k) (n_arms, k)")
+        k = t.shape[1]
+        x = _shaped(kind, signal, (n, k, *sample_shape),
+                    f"(n_arms, k{', 2' if sample_shape else ''}) like t_s")
+        if n_samples is None:
+            count = np.full(n, k)
+        else:
+            count = np.asarray(n_samples)
+            if (count.shape != (n,) or count.dtype == bool
+                    or not np.issubdtype(count.dtype, np.integer)):
+                raise ValueError(f"n_samples has shape {count.shape} and dtype {count.dtype}; "
+                                 f"expected ({n},) integers")
+            if count.size and (count.min() < 0 or count.max() > k):
+                raise ValueError(f"n_samples must lie in 0..{k} (the block's k), got "
+                                 f"{count.min()}..{count.max()}")
+        self._check_ready(None if count.min() > 0 else count > 0)
+        saved = self._snapshot()
+        try:
+            for j in range(int(count.max()) if n else 0):
+                active = count > j
+                self._column(kind, t[:, j], x[:, j], None if active.all() else active)
+        except BaseException:
+            self._restore(saved)
+            raise
+        return self._sample(count > 0)
+
+    def _column(self, kind: str, t: np.ndarray, x: np.ndarray,
+                active: np.ndarray | None) -> np.ndarray:
+        """One sample per active arm (``active`` None: every arm); returns the accepted mask.
+
+        Rebinds the chain's arrays (never writes into them) except the median windows, the
+        predictors and the spindles, which the caller's snapshot covers. ``t`` and ``x`` are
+        the caller's own copies (the chain keeps them)."""
+        cfg = self.config
+        counters = self._counters.copy()
+        given = np.isfinite(t)
+        if active is not None:
+            given &= active
+        with np.errstate(invalid="ignore"):  # inf - inf where a time is not finite
+            dt = t - self._t
+        time_ok = given & (dt > 0.0)
+        back = given & (dt < 0.0)
+        any_back = back.any()
+        if any_back:
+            behind = self._behind + back
+            time_ok |= back & (behind >= cfg.resync_after_samples)
+        else:
+            behind = self._behind
+        if kind == "counts":
+            valid, bad_name = valid_readings(x, cfg.encoder.max_count), "invalid_reading"
+        elif kind == "angle_deg":
+            valid, bad_name = np.isfinite(x), "invalid_angle"
+        else:
+            valid, bad_name = _lengths_valid(x), "invalid_length"
+        ok = time_ok & valid
+        all_ok = ok.all()
+        if not all_ok:
+            if active is None:
+                counters[:, _COUNTER["bad_time"]] += ~np.isfinite(t)
+            else:
+                counters[:, _COUNTER["bad_time"]] += active & ~np.isfinite(t)
+            counters[:, _COUNTER["repeated_time"]] += given & (dt == 0.0)
+            if any_back:
+                counters[:, _COUNTER["time_backwards"]] += back & ~time_ok
+            counters[:, _COUNTER[bad_name]] += time_ok & ~valid
+        # an accepted sample starts the count of late ones anew
+        self._behind = self._no_behind if all_ok else np.where(ok, 0, behind)
+        if not all_ok and not ok.any():
+            self._counters = counters
+            return ok
+        S = _ALL if all_ok else np.flatnonzero(ok)
+        if S is not _ALL:
+            t, x, dt = t[S], x[S], dt[S]
+        restart = (dt < 0.0) | (dt > cfg.max_bridge_s)
+        counters[S, _COUNTER["gaps"]] += dt > cfg.gap_s
+        counters[S, _COUNTER["accepted"]] += 1
+        any_restart = bool(restart.any())
+        normal = ~restart
+        given_angle = None
+        if kind == "length_L0":
+            L, angle = x, self._angle[S]
+            counts = filtered = np.full(t.size, -1.0)
+        else:
+            if kind == "counts":
+                counts = x
+                if not any_restart:
+                    filtered = self._median.push(x, None if S is _ALL else S)
+                else:  # a restart starts the window afresh on its reading
+                    filtered = x.copy()
+                    i = np.flatnonzero(normal)
+                    if i.size:
+                        filtered[i] = self._median.push(x[i], _rows(S, i))
+                angle = cfg.calibration.angle_deg(filtered)
+            else:
+                angle = x
+                counts = filtered = np.full(t.size, -1.0)
+            given_angle = angle
+            limit = cfg.max_speed_deg_s * dt
+            last_angle = self._angle[S]
+            change = angle - last_angle
+            slew = np.abs(change) > limit
+            if any_restart:
+                slew &= normal
+            if slew.any():
+                counters[S, _COUNTER["slew_limited"]] += slew
+                angle = np.where(slew, last_angle + np.copysign(limit, change), angle)
+            lo, hi = self.angle_range_deg
+            outside = (angle < lo) | (angle > hi)
+            if outside.any():
+                counters[S, _COUNTER["angle_clamped"]] += outside
+                angle = np.minimum(np.maximum(angle, lo), hi)
+            L = self.fits.length_L0(np.radians(angle))
+        if any_restart:
+            counters[S, _COUNTER["restarts"]] += restart
+            counters[S, _COUNTER["clock_resyncs"]] += restart & (dt < 0.0)
+            i = np.flatnonzero(restart)
+            reading = counts[i].copy()
+            from_angle = reading < 0
+            if from_angle.any():
+                # the window restarts on the sample's own reading (an encoder's, or the one
+                # of the angle as given, as reset does)
+                source = angle if given_angle is None else given_angle
+                reading[from_angle] = self._rest_reading(source[i][from_angle])
+            self._rest(_rows(S, i), t[i], angle[i], L[i], reading, counts[i], filtered[i])
+            i = np.flatnonzero(normal)
+            if i.size == 0:
+                self._counters = counters
+                return ok
+            S = _rows(S, i)
+            t, dt, L, angle, counts, filtered = (a[i] for a in (t, dt, L, angle, counts,
+                                                                 filtered))
+        self._step(S, t, dt, L, angle, counts, filtered, counters)
+        self._counters = counters
+        return ok
+
+    def _step(self, S, t, dt, L_in, angle, counts, filtered, counters) -> None:
+        """An accepted sample that continues arms ``S`` (slice or index array)."""
+        cfg = self.config
+        u0, x0, v0 = self._u[S], self._x[S], self._v[S]
+        limit = cfg.max_speed_L0_s * dt
+        change = L_in - u0
+        slew = (np.abs(change) > limit[:, None]).any(axis=1)
+        if slew.any():
+            counters[S, _COUNTER["slew_limited"]] += slew
+            limited = L_in - change + np.clip(change, -limit[:, None], limit[:, None])
+            L_in = np.where(slew[:, None], limited, L_in)
+        dt_col = dt[:, None]
+        if self._omega is None:
+            x1 = L_in
+            v1 = (x1 - x0) / dt_col
+            a1 = (v1 - v0) / dt_col
+        else:
+            x1, v1, a1 = tracking_step(x0, v0, u0, L_in, dt_col, self._omega)
+        rows = None if S is _ALL else S
+        intended = self._intended[S]
+        template_in = np.where(np.isnan(intended), x1, intended)
+        template, gs, gd = self._fusimotor.update(t, template_in, rows)
+        ia, ii = self._advance_spindles(S, x0, v0, x1, v1, gd, gs, dt)
+        self._set(S, t=t, angle=angle, u=L_in, x=x1, v=v1, a=a1)
+        self._set_out(S, t, counts, filtered, angle, x1, v1, a1, template, gs, gd, ia, ii)
+
+    def _advance_spindles(self, S, x0, v0, x1, v1, gd, gs, dt):
+        """Arms ``S`` from their last sample to the new one (``ArmChain._advance_spindles``),
+        in groups of equal sub-steps; returns (Ia, II), each (m, 2)."""
+        step_s = self.config.spindle_step_s
+        k = np.maximum(np.ceil(dt / step_s * (1 - 1e-12)), 1.0)
+        h = dt / k
+        if (dt == dt[0]).all():  # shared sample times: one group
+            return self._advance_group(S, int(k[0]), h[0], x0, v0, x1, v1, gd, gs, dt)
+        keys = np.stack((k, h), axis=1)
+        _, group = np.unique(keys, axis=0, return_inverse=True)
+        group = group.reshape(-1)
+        per_arm_h = group.max() + 1 > MAX_STEP_GROUPS
+        if per_arm_h:  # each arm its own h: group by the number of sub-steps only
+            _, group = np.unique(k, return_inverse=True)
+            group = group.reshape(-1)
+        ia, ii = np.empty_like(x1), np.empty_like(x1)
+        order = np.argsort(group, kind="stable")
+        bounds = np.flatnonzero(np.diff(group[order])) + 1
+        for i in np.split(order, bounds):
+            ia[i], ii[i] = self._advance_group(
+                _rows(S, i), int(k[i[0]]), h[i] if per_arm_h else h[i[0]], x0[i], v0[i],
+                x1[i], v1[i], gd[i], gs[i], dt[i])
+        return ia, ii
+
+    def _advance_group(self, S, k, h, x0, v0, x1, v1, gd, gs, dt):
+        """Arms ``S`` sharing ``k`` sub-steps of ``h`` (a float, or (m,) per arm): the
+        Hermite curve between their states, kept in range and within the slew limit (as
+        ``ArmChain`` does), then the spindle steps of all of them at once."""
+        c = self._columns
+        whole = S is _ALL or (S.size == self.n_arms and np.array_equal(S, np.arange(S.size)))
+        state = self._state if whole else _gather(self._state, _spindles(S))
+        gd_flat, gs_flat = gd.reshape(-1), gs.reshape(-1)
+        if np.ndim(h):
+            # The core's fast steps take one h per call; the plain step broadcasts one per
+            # spindle. Jittered times (an encoder per arm) are one group per arm otherwise
+            # (the figures are at MAX_STEP_GROUPS).
+            h_spindles = np.repeat(h, 2)
+            reach = self.config.max_speed_L0_s * h[:, None]
+
+            def advance(L):
+                return core.plain_advance(state, L, gd_flat, gs_flat, h_spindles, self._theta, c)
+        else:
+            h = float(h)
+            reach = self.config.max_speed_L0_s * h
+
+            def advance(L):
+                return core.advance(state, L, gd_flat, gs_flat, h, self._theta, c)
+        lo, hi = core.LENGTH_RANGE_L0
+        dt_col = dt[:, None]
+        previous = x0
+        for j in range(1, k):
+            # hermite_curve scales its dt argument in place: give it a copy
+            Ls = hermite_curve(j / k, x0, x1, [(v0, v1)], dt_col.copy())
+            left = reach * (k - j)
+            Ls = np.minimum(np.maximum(Ls, previous - reach), previous + reach)
+            Ls = np.minimum(np.maximum(Ls, x1 - left), x1 + left)
+            Ls = np.minimum(np.maximum(Ls, lo), hi)
+            flat = Ls.reshape(-1)
+            core.commit(state, advance(flat), flat, gd_flat, gs_flat)
+            previous = Ls
+        flat = x1.reshape(-1)
+        new = advance(flat)
+        core.commit(state, new, flat, gd_flat, gs_flat)
+        ia, ii = core.afferents_from_tension(new[0], flat, c)
+        if not whole:
+            _scatter(self._state, _spindles(S), state)
+        return ia.reshape(-1, 2), ii.reshape(-1, 2)
+
+    def _rest(self, rows, t, angle, L, reading, counts, filtered) -> None:
+        """Arms ``rows`` at rest (``ArmChain._rest``): what reset and a restart share."""
+        intended = self._intended[rows]
+        template_in = np.where(np.isnan(intended), L, intended)
+        template, gs, gd = self._fusimotor.reset(t, template_in, rows)
+        state = core.equilibrium_state(L.reshape(-1), gd.reshape(-1), gs.reshape(-1),
+                                       self.config.params)
+        ia, ii = core.afferents(state, self.config.params)
+        self._median.reset(reading, rows)
+        _scatter(self._state, _spindles(rows), state)
+        zeros = np.zeros_like(L)
+        self._set(rows, t=t, angle=angle, u=L, x=L, v=zeros, a=zeros)
+        self._behind = self._behind.copy()
+        self._behind[rows] = 0
+        self._set_out(rows, t, counts, filtered, angle, L, zeros, zeros, template, gs, gd,
+                      ia.reshape(-1, 2), ii.reshape(-1, 2))
+
+    def _set(self, S, **values) -> None:
+        for name, value in values.items():
+            attr = "_" + name
+            if S is _ALL:
+                setattr(self, attr, value)
+            else:
+                new = getattr(self, attr).copy()
+                new[S] = value
+                setattr(self, attr, new)
+
+    def _set_out(self, S, *values) -> None:
+        if S is _ALL:
+            self._out = _read_only(dict(zip(_OUTPUTS, values, strict=True)))
+            return
+        out = {}
+        for name, value in zip(_OUTPUTS, values, strict=True):
+            new = self._out[name].copy()
+            new[S] = value
+            out[name] = new
+        self._out = _read_only(out)
+
+    # -- helpers ---------------------------------------------------------------------------
+    def _sample(self, accepted: np.ndarray) -> BatchSample:
+        accepted.flags.writeable = False
+        return BatchSample(accepted=accepted, **self._out)
+
+    def _snapshot(self) -> tuple:
+        # The chain's own arrays are rebound, never written into, so holding them is enough;
+        # the median windows, predictors and spindles are written in place: copies.
+        return (dict(self.__dict__), self._median.snapshot(),
+                self._fusimotor.predictor.snapshot(),
+                [getattr(self._state, name).copy() for name in _SPINDLE_ARRAYS])
+
+    def _restore(self, saved: tuple) -> None:
+        attributes, median, predictor, spindles = saved
+        self.__dict__.update(attributes)
+        self._median.restore(median)
+        self._fusimotor.predictor.restore(predictor)
+        for name, array in zip(_SPINDLE_ARRAYS, spindles, strict=True):
+            getattr(self._state, name)[...] = array
+
+    def _check_ready(self, active: np.ndarray | None) -> None:
+        waiting = ~self._ready if active is None else active & ~self._ready
+        if waiting.any():
+            raise RuntimeError("call BatchedArmChain.reset before pushing samples (arms "
+                               f"{np.flatnonzero(waiting).tolist()} were never reset)")
+
+    def _arms_index(self, arms) -> np.ndarray:
+        n = self.n_arms
+        if arms is None:
+            return np.arange(n)
+        rows = np.asarray(arms)
+        if rows.ndim != 1 or rows.dtype == bool or not (
+                rows.size == 0 or np.issubdtype(rows.dtype, np.integer)):
+            raise ValueError(f"arms has shape {rows.shape} and dtype {rows.dtype}; expected a "
+                             "1-D array of arm indices")
+        if rows.size and (rows.min() < 0 or rows.max() >= n):
+            raise ValueError(f"arms holds {rows.min()}..{rows.max()}; arm indices lie in "
+                             f"0..{n - 1}")
+        if np.unique(rows).size != rows.size:
+            raise ValueError(f"arms={rows.tolist()} names an arm twice")
+        return rows.astype(np.intp)
+
+    @staticmethod
+    def _per_arm(name: str, value, shape: tuple[int, ...], rows: np.ndarray) -> np.ndarray:
+        return _shaped(name, value, shape, "(m,) for m arms" if len(shape) == 1
+                       else "(m, 2) for m arms")
+
+    def _rest_reading(self, angle: np.ndarray) -> np.ndarray:
+        # The reading at that angle, clamped to what an encoder can read: with exact lengths
+        # the angle is only recorded and may lie anywhere.
+        with np.errstate(over="ignore"):
+            counts = self.config.calibration.counts(angle)
+        return np.minimum(np.maximum(counts, 0.0), float(self.config.encoder.max_count))
+
+
+def _shaped(name: str, value, shape: tuple[int, ...], meaning: str) -> np.ndarray:
+    """``value`` as a float array (NaN for non-real entries) of exactly ``shape``."""
+    array = np.array(real_array(value), dtype=float)  # a copy: the chain keeps its inputs
+    if array.shape != shape:
+        raise ValueError(f"{name} has shape {array.shape}; expected {shape} {meaning}")
+    return array
+
+
+def _check_finite(name: str, values: np.ndarray, rows: np.ndarray) -> None:
+    bad = ~np.isfinite(values)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"{name} of arm {int(rows[i])} is {values[i]!r}; it must be a finite "
+                         "real number")
+
+
+def _lengths_valid(L: np.ndarray) -> np.ndarray:
+    """Per row of (m, 2): 2 finite lengths within the spindle's range."""
+    lo, hi = core.LENGTH_RANGE_L0
+    # NaN and infinities fail one of the comparisons
+    return ((L >= lo) & (L <= hi)).all(axis=-1)
+
+
+def _rows(S, i: np.ndarray) -> np.ndarray:
+    """The arm indices of positions ``i`` of the subset ``S`` (a slice of all, or indices)."""
+    return i if S is _ALL else S[i]
+
+
+def _spindles(rows) -> np.ndarray:
+    """The spindle indices (arm-major: BRA 2i, TRImed 2i + 1) of arms ``rows``."""
+    rows = np.asarray(rows)
+    return np.stack((2 * rows, 2 * rows + 1), axis=1).reshape(-1)
+
+
+def _gather(state: core.SpindleState, spindles: np.ndarray) -> core.SpindleState:
+    """The spindles ``spindles`` of ``state`` as a new state (fibre-major, as the core keeps
+    its states)."""
+    return core.SpindleState(*(
+        getattr(state, name).T[:, spindles].T if getattr(state, name).ndim == 2
+        else getattr(state, name)[spindles] for name in _SPINDLE_ARRAYS))
+
+
+def _scatter(state: core.SpindleState, spindles: np.ndarray, part: core.SpindleState) -> None:
+    """Write ``part`` into the spindles ``spindles`` of ``state``."""
+    for name in _SPINDLE_ARRAYS:
+        target, source = getattr(state, name), getattr(part, name)
+        if target.ndim == 2:
+            target.T[:, spindles] = source.T
+        else:
+            target[spindles] = source
+
+
+def _read_only(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    for array in arrays.values():
+        array.flags.writeable = False
+    return arrays

@@ -1,0 +1,83 @@
+"""The spindle-afferent wrappers on myo-sim's published models (the ``myo`` extra)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+pytest.importorskip("myo_sim", reason="myo-sim is not installed (the 'myo' extra: "
+                    "pip install --no-deps myo-sim==0.2.4)")
+pytest.importorskip("imageio", reason="gymnasium.envs.mujoco needs imageio")
+
+from proprio_env.wrappers import SpindleAfferents, SpindleAfferentsVector
+from proprio_env.wrappers.mjcf_env import MuscleModelEnv, myo_sim_model_path
+
+MAX_RATE_PPS = 1000.0
+"""Physiological bound of the soak (as the fault soak's): human afferents fire below
+~300 pps."""
+
+MODELS = {"elbow": 6, "legs_osl": 54}
+
+
+def make(name: str, episode_steps: int = 100):
+    return lambda: gym.wrappers.TimeLimit(
+        MuscleModelEnv(myo_sim_model_path(name), frame_skip=10),
+        max_episode_steps=episode_steps)
+
+
+def soak(name: str, steps: int, n_envs: int) -> dict[str, float]:
+    """Random controls through the vector wrapper; every afferent checked at every step."""
+    vec = SpindleAfferentsVector(gym.vector.SyncVectorEnv([make(name)] * n_envs))
+    assert vec.muscles.n == MODELS[name]
+    obs, _ = vec.reset(seed=0)
+    space = vec.single_observation_space
+    highest = 0.0
+    for _ in range(steps // n_envs):
+        obs, _, _, _, info = vec.step(vec.action_space.sample())
+        ia, ii = info["spindle_ia_pps"], info["spindle_ii_pps"]
+        assert np.all(np.isfinite(obs))
+        assert ia.min() >= 0 and ii.min() >= 0
+        highest = max(highest, ia.max(), ii.max())
+        assert highest <= MAX_RATE_PPS
+        lengths = info["spindle_length_L0"]
+        assert lengths.min() >= 0.5 and lengths.max() <= 1.5
+    assert all(space.contains(o) for o in obs)
+    return {"highest_pps": highest, "clamped": int(info["spindle_length_clamped"].sum()),
+            "restarts": info["spindle_restarts"]}
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_random_controls_give_finite_bounded_afferents(name):
+    soak(name, steps=240, n_envs=4)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_single_wrapper_records_every_physics_step(name):
+    env = SpindleAfferents(make(name)())
+    assert env.substep_source == "frames"
+    obs, info = env.reset(seed=1)
+    assert obs.shape == (env.unwrapped.observation_space.shape[0] + 2 * MODELS[name],)
+    for _ in range(5):
+        obs, _, _, _, info = env.step(env.action_space.sample())
+        assert info["spindle_substep_source"] == "frames"
+        assert np.all(np.isfinite(obs))
+
+
+def test_legs_name_their_muscles_and_skip_the_prosthesis_motors():
+    env = SpindleAfferents(make("legs_osl")())
+    names = env.muscle_names
+    assert len(names) == 54
+    assert not any(n.startswith("osl_") for n in names)
+    one = SpindleAfferents(make("legs_osl")(), muscles=[names[3], names[0]])
+    _, info = one.reset(seed=0)
+    assert one.muscle_names == (names[3], names[0])
+    assert info["spindle_ia_pps"].shape == (2,)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_soak_1e5_steps(name):
+    """10^5 env steps of random controls (16 envs), episodes of 100 steps."""
+    result = soak(name, steps=100_000, n_envs=16)
+    assert result["restarts"] == 0
