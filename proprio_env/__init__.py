@@ -12,12 +12,18 @@ only when ``gymnasium.make`` builds one):
 
 from proprio_env.model import JOINT, MUSCLES, model_path
 
-__all__ = ["ENV_IDS", "JOINT", "MUSCLES", "model_path", "register_envs"]
+__all__ = ["ENV_IDS", "JOINT", "MUSCLES", "VECTOR_ENTRY_POINTS", "model_path", "register_envs"]
 
 ENV_IDS = {
     "proprio_env/ElbowReach-v0": "proprio_env.envs.elbow_reach:ElbowReachEnv",
     "proprio_env/ProsthesisElbow-v0": "proprio_env.envs.prosthesis_elbow:ProsthesisElbowEnv",
 }
+VECTOR_ENTRY_POINTS = {
+    "proprio_env/ElbowReach-v0": "proprio_env.envs.vector:ElbowReachVectorEnv",
+    "proprio_env/ProsthesisElbow-v0": "proprio_env.envs.vector:ProsthesisElbowVectorEnv",
+}
+"""What ``gymnasium.make_vec(id, num_envs=n)`` builds: native vector envs (one physics call and
+one batched chain call per step for all n envs)."""
 MAX_EPISODE_STEPS = 200
 """Truncation of the registered envs: 200 steps, 4 s at the default 50 Hz."""
 
@@ -31,6 +37,7 @@ def register_envs() -> None:
     for env_id, entry_point in ENV_IDS.items():
         if env_id not in gymnasium.registry:
             gymnasium.register(id=env_id, entry_point=entry_point,
+                               vector_entry_point=VECTOR_ENTRY_POINTS[env_id],
                                max_episode_steps=MAX_EPISODE_STEPS)
 
 

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     import mujoco
 
 __all__ = [
+    "FibreLengths",
     "MuscleGeometry",
     "Sweep",
     "check_angle_rad",
@@ -92,10 +93,37 @@ def _along_tendon_m(mtu_length_m: np.ndarray | float, geometry: MuscleGeometry) 
     return along
 
 
+def _fibre_length(along_m, width_m, optimal_m):
+    return np.hypot(along_m, width_m) / optimal_m
+
+
 def fibre_length_L0(mtu_length_m: np.ndarray | float, geometry: MuscleGeometry) -> np.ndarray:
     """Normalised fibre length (L0) for MTU length(s) ``mtu_length_m`` (m), same shape."""
     along = _along_tendon_m(mtu_length_m, geometry)
-    return np.hypot(along, geometry.width_m) / geometry.optimal_fibre_length_m
+    return _fibre_length(along, geometry.width_m, geometry.optimal_fibre_length_m)
+
+
+class FibreLengths:
+    """:func:`fibre_length_L0` of several muscles at once: called with MTU lengths (..., m)
+    (m), the last axis in the order of ``geometries``, returns fibre lengths (..., m) (L0).
+    The same checks and errors, in a few array operations for all muscles (the envs call it
+    at every step).
+    """
+
+    def __init__(self, geometries: tuple[MuscleGeometry, ...]) -> None:
+        self.geometries = tuple(geometries)
+        self._slack_m, self._width_m, self._optimal_m = (
+            np.array([getattr(g, name) for g in self.geometries])
+            for name in ("tendon_slack_length_m", "width_m", "optimal_fibre_length_m"))
+
+    def __call__(self, mtu_length_m: np.ndarray) -> np.ndarray:
+        mtu = np.asarray(mtu_length_m, dtype=float)
+        along = mtu - self._slack_m
+        # NaN fails both comparisons; a bad length is reported by the one-muscle function
+        if along.size and not (along.min() > 0.0 and along.max() < np.inf):
+            for j, g in enumerate(self.geometries):
+                _along_tendon_m(mtu[..., j], g)
+        return _fibre_length(along, self._width_m, self._optimal_m)
 
 
 def pennation_rad(mtu_length_m: np.ndarray | float, geometry: MuscleGeometry) -> np.ndarray:

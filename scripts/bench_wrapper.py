@@ -1,21 +1,25 @@
 """Cost of the spindle-afferent wrapper per muscle per env step, and against the physics.
 
 For myo-sim's 6-muscle elbow and 54-muscle legs (``MuscleModelEnv``, 10 physics steps per
-env step), single env and a ``SyncVectorEnv`` of ``--envs`` envs: the bare env and the
-wrapped env step the same random actions, alternately in ``--repeats`` rounds (CPU time,
-median). The wrapper's cost is the difference; the physics is ``mj_step`` x 10 on the same
-model in the same run. The numpy core is the only one that runs many independent spindles
-per call (the C core steps one spindle per call: ``spindle.native.spindle``).
+env step), single env and ``SyncVectorEnv`` of 16 and 64 envs (``--envs``), numpy and C
+spindle backends side by side: the bare env and the wrapped envs step the same random
+actions, in turn in ``--repeats`` rounds (CPU time, median). The wrapper's cost is the
+difference; "x physics" divides it by the bare env's own step time measured in the same
+round (physics plus Gymnasium's own work: ``mj_step`` x 10 is ~95 % of it on the legs).
 
 Also: the lengths of the Hermite fallback against the recorded physics steps on this
 project's elbow during a fast bang-bang movement.
 
-Last line: ``bench_wrapper legs_vec_numpy_vs_physics=... legs_single_numpy_vs_physics=...
-elbow_vec_numpy_vs_physics=... hermite_max_length_error_L0=...``.
+Last line: ``bench_wrapper legs_vector16_numpy_vs_physics=... legs_vector16_c_vs_physics=...``
+and the same for the other rows. Targets (legs, >= 16 envs): numpy <= 0.3, C <= 0.1.
 
-Usage: ``PYTHONPATH=. python scripts/bench_wrapper.py [--envs 16] [--steps 40]
-[--repeats 3]`` (needs the ``myo`` extra); ``--figure docs/img/wrapper_legs_afferents.png``
-draws the docs figure instead.
+``--myosuite-python PATH``: also run MyoSuite envs (their own venv: MyoSuite pins gymnasium
+< 1.3) bare and wrapped in a subprocess of that interpreter with this repository on
+``PYTHONPATH``, side by side (``--myosuite-envs``).
+
+Usage: ``PYTHONPATH=. python scripts/bench_wrapper.py [--envs 16 64] [--steps 40]
+[--repeats 3] [--myosuite-python /work/myovenv/bin/python]`` (needs the ``myo`` extra);
+``--figure docs/img/wrapper_legs_afferents.png`` draws the docs figure instead.
 """
 
 from __future__ import annotations
@@ -63,15 +67,20 @@ def env_step_s(env, actions) -> float:
     return (time.process_time() - t) / len(actions)
 
 
-def compare(make_bare, make_wrapped, actions, repeats: int) -> tuple[float, float]:
-    """Median CPU seconds per step of the bare and the wrapped env, measured alternately."""
-    bare, wrapped = make_bare(), make_wrapped()
-    b, w = [], []
+def compare(make_bare, makers: dict, actions, repeats: int) -> tuple[float, dict]:
+    """Median CPU seconds per step of the bare env and of each wrapped env, measured in turn
+    (the order rotates from round to round)."""
+    envs = {"bare": make_bare(), **{k: m() for k, m in makers.items()}}
+    times: dict[str, list[float]] = {k: [] for k in envs}
+    names = list(envs)
     for r in range(repeats):
-        pair = [(bare, b), (wrapped, w)]
-        for env, out in (pair if r % 2 == 0 else pair[::-1]):
-            out.append(env_step_s(env, actions))
-    return float(np.median(b)), float(np.median(w))
+        order = names[r % len(names):] + names[:r % len(names)]
+        for k in order:
+            times[k].append(env_step_s(envs[k], actions))
+    for env in envs.values():
+        env.close()
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    return med.pop("bare"), med
 
 
 def hermite_error_L0(steps: int = 150) -> float:
@@ -147,57 +156,131 @@ def figure(path: str) -> None:
     print(f"wrote {path}")
 
 
+def bench_rows(name: str, args, backends: tuple[str, ...], ratios: dict) -> None:
+    """Print the rows of one model: single env and each vector size, every backend."""
+    path = myo_sim_model_path(name)
+    rng = np.random.default_rng(0)
+
+    def bare(path=path):
+        return MuscleModelEnv(path, frame_skip=FRAME_SKIP)
+
+    probe = bare()
+    n_muscles = len(find_muscles(probe.model).names)
+    physics = physics_step_s(path, args.repeats) * FRAME_SKIP
+    low, high = probe.action_space.low, probe.action_space.high
+    setups = [("single", 1)] + [(f"vector{n}", n) for n in args.envs]
+    for mode, n in setups:
+        if n == 1:
+            actions = [probe.action_space.sample() for _ in range(args.steps)]
+            make_bare = bare
+            makers = {b: (lambda b=b: SpindleAfferents(bare(), backend=b)) for b in backends}
+        else:
+            actions = [rng.uniform(low, high, (n, low.size)).astype(np.float32)
+                       for _ in range(max(4, args.steps // 4))]
+
+            def make_bare(n=n):
+                return gym.vector.SyncVectorEnv([bare] * n)
+
+            makers = {b: (lambda b=b, n=n: SpindleAfferentsVector(
+                gym.vector.SyncVectorEnv([bare] * n), backend=b)) for b in backends}
+        b, wrapped = compare(make_bare, makers, actions, args.repeats)
+        cells = []
+        for backend in backends:
+            added = wrapped[backend] - b
+            ratio = added / b
+            ratios[f"{'legs' if name == 'legs_osl' else name}_{mode}_{backend}_vs_physics"] = \
+                ratio
+            cells.append(f"{added / (n_muscles * n) * 1e6:9.2f} {ratio:7.3f}")
+        print(f"{name:9s} {mode:9s} {n_muscles * n:7d} {b * 1e3:9.3f} "
+              f"{physics * n * 1e3:10.3f} " + " ".join(cells))
+
+
+def myosuite_child(env_ids: list[str], steps: int, repeats: int) -> None:
+    """Runs inside MyoSuite's interpreter: each env bare and wrapped (numpy and C), side by
+    side; prints one line per env."""
+    import myosuite  # noqa: F401  (registers the envs)
+
+    from spindle.chain import resolve_backend
+
+    backends = ("numpy", "c") if resolve_backend("auto") == "c" else ("numpy",)
+    for env_id in env_ids:
+        probe = SpindleAfferents(gym.make(env_id))
+        source, n = probe.substep_source, probe.muscles.n
+        rng = np.random.default_rng(0)
+        space = probe.action_space
+        actions = [rng.uniform(space.low, space.high).astype(np.float32) for _ in range(steps)]
+        probe.close()
+        makers = {b: (lambda b=b, e=env_id: SpindleAfferents(gym.make(e), backend=b))
+                  for b in backends}
+        b, wrapped = compare(lambda e=env_id: gym.make(e), makers, actions, repeats)
+        cells = " ".join(f"{b_}: +{(w - b) * 1e3:.3f} ms = {(w - b) / (n * 1e-6):.2f} us/muscle "
+                         f"= {(w - b) / b:.3f}x" for b_, w in wrapped.items())
+        print(f"MYOSUITE {env_id} muscles={n} substep_source={source} bare={b * 1e3:.3f} ms "
+              f"{cells}", flush=True)
+
+
+def run_myosuite(python: str, env_ids: list[str], steps: int, repeats: int) -> list[str]:
+    """:func:`myosuite_child` in MyoSuite's interpreter; its result lines."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": repo + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    cmd = [python, str(Path(__file__).resolve()), "--myosuite-child", *env_ids,
+           "--steps", str(steps), "--repeats", str(repeats)]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("MYOSUITE ")]
+    if out.returncode != 0:
+        print(out.stderr[-2000:], file=sys.stderr)
+        raise SystemExit(f"the MyoSuite run failed ({python}, exit {out.returncode})")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--envs", type=int, default=16)
+    parser.add_argument("--envs", type=int, nargs="+", default=[16, 64])
     parser.add_argument("--steps", type=int, default=40, help="env steps per measurement")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--backends", nargs="+", default=None,
+                        help="default: numpy and c (c if it builds here)")
     parser.add_argument("--figure", metavar="PNG",
                         help="only draw the docs figure (needs matplotlib) to this path")
+    parser.add_argument("--myosuite-python", metavar="PATH",
+                        help="also run MyoSuite envs in this interpreter (MyoSuite's venv)")
+    parser.add_argument("--myosuite-envs", nargs="+",
+                        default=["myoElbowPoseTaskRandom-v0", "myoLegStandRandom-v0"])
+    parser.add_argument("--myosuite-child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.myosuite_child:
+        myosuite_child(args.myosuite_child, args.steps, args.repeats)
+        return
     if args.figure:
         figure(args.figure)
         return
-    rng = np.random.default_rng(0)
-    ratios = {}
-    print(f"{'model':10s} {'mode':8s} {'muscles':>7s} {'bare ms':>9s} {'wrapped ms':>10s} "
-          f"{'+ms/step':>9s} {'us/muscle':>9s} {'physics ms':>10s} {'x physics':>9s}")
+    from spindle.chain import resolve_backend
+
+    backends = tuple(args.backends or (("numpy", "c") if resolve_backend("auto") == "c"
+                                       else ("numpy",)))
+    ratios: dict[str, float] = {}
+    head = " ".join(f"{'us/mus ' + b:>9s} {'x phys':>7s}" for b in backends)
+    print(f"{'model':9s} {'mode':9s} {'muscles':>7s} {'bare ms':>9s} {'mj_step ms':>10s} {head}")
     for name in ("elbow", "legs_osl"):
-        path = myo_sim_model_path(name)
-        physics = physics_step_s(path, args.repeats) * FRAME_SKIP  # one env's physics
-
-        def bare(path=path):
-            return MuscleModelEnv(path, frame_skip=FRAME_SKIP)
-
-        n_muscles = len(find_muscles(bare().model).names)
-        probe = bare()
-        single = [probe.action_space.sample() for _ in range(args.steps)]
-        b, w = compare(bare, lambda bare=bare: SpindleAfferents(bare()), single, args.repeats)
-        rows = [("single", 1, b, w)]
-        n = args.envs
-        batch = [rng.uniform(probe.action_space.low, probe.action_space.high,
-                             (n, probe.action_space.shape[0])).astype(np.float32)
-                 for _ in range(max(4, args.steps // 4))]
-        b, w = compare(lambda bare=bare, n=n: gym.vector.SyncVectorEnv([bare] * n),
-                       lambda bare=bare, n=n: SpindleAfferentsVector(
-                           gym.vector.SyncVectorEnv([bare] * n)), batch, args.repeats)
-        rows.append((f"vec{n}", n, b, w))
-        for mode, n_envs, b, w in rows:
-            added = w - b
-            ratio = added / (physics * n_envs)
-            ratios[f"{name}_{'vec' if n_envs > 1 else 'single'}"] = ratio
-            print(f"{name:10s} {mode:8s} {n_muscles * n_envs:7d} {b * 1e3:9.3f} {w * 1e3:10.3f} "
-                  f"{added * 1e3:9.3f} {added / (n_muscles * n_envs) * 1e6:9.2f} "
-                  f"{physics * n_envs * 1e3:10.3f} {ratio:9.3f}")
-    print("C core: none runs many independent spindles per call (spindle.native.spindle "
-          "steps one spindle per ctypes call), so no C column")
+        bench_rows(name, args, backends, ratios)
+    if "c" not in backends:
+        print("C backend: not available here (no C compiler or cached build)")
     error = hermite_error_L0()
     print(f"Hermite fallback vs recorded physics steps, elbow, bang-bang: max |dL| = "
           f"{error:.4f} L0")
-    print(f"bench_wrapper legs_vec_numpy_vs_physics={ratios['legs_osl_vec']:.3f} "
-          f"legs_single_numpy_vs_physics={ratios['legs_osl_single']:.3f} "
-          f"elbow_vec_numpy_vs_physics={ratios['elbow_vec']:.3f} "
-          f"hermite_max_length_error_L0={error:.4f}")
+    if args.myosuite_python:
+        for line in run_myosuite(args.myosuite_python, args.myosuite_envs, args.steps,
+                                 args.repeats):
+            print(line)
+    keys = [k for k in ratios if k.startswith("legs_vector")] + \
+        [k for k in ratios if not k.startswith("legs_vector")]
+    print("bench_wrapper " + " ".join(f"{k}={ratios[k]:.3f}" for k in keys)
+          + f" hermite_max_length_error_L0={error:.4f}")
 
 
 if __name__ == "__main__":

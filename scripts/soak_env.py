@@ -1,7 +1,11 @@
 """Soak test of the envs: many random-action steps; no NaN/inf and the state stays bounded.
 
     python scripts/soak_env.py --steps 1000000 [--env proprio_env/ElbowReach-v0] [--seed 0]
-        [--max-minutes M]
+        [--max-minutes M] [--num-envs N [--num-threads T]]
+
+With ``--num-envs N`` the native vector env (``gymnasium.make_vec``) is soaked instead:
+``--steps`` env steps, N per vector step, random and corner actions, autoresets; every
+observation finite and inside the observation space.
 
 Prints progress (steps/s, ETA) and a summary with the extremes seen; exits non-zero on the
 first violation. The checks are :mod:`proprio_env.experiments.soak`'s.
@@ -13,7 +17,7 @@ import argparse
 import math
 import sys
 
-from proprio_env.experiments.soak import SoakError, soak
+from proprio_env.experiments.soak import SoakError, soak, soak_vector
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -22,8 +26,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--afferent-source", default=None)
-    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
+    parser.add_argument("--backend", choices=("auto", "c", "numpy"), default="c",
                         help="spindle chain backend (c: compiled on first use)")
+    parser.add_argument("--num-envs", type=int, default=0,
+                        help="soak the vector env with this many sub-envs (0: single env)")
+    parser.add_argument("--num-threads", type=int, default=1,
+                        help="physics threads of the vector env")
     parser.add_argument("--report-every", type=int, default=10_000)
     parser.add_argument("--max-minutes", type=float, default=math.inf,
                         help="stop (and report the steps done) after this wall time")
@@ -34,8 +42,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.afferent_source is not None:
         kwargs["afferent_source"] = args.afferent_source
     try:
-        result = soak(args.env, args.steps, args.seed, args.report_every,
-                      args.max_minutes, **kwargs)
+        if args.num_envs > 0:
+            result = soak_vector(args.env, args.steps, args.num_envs, args.seed,
+                                 args.report_every, args.max_minutes,
+                                 num_threads=args.num_threads, **kwargs)
+        else:
+            result = soak(args.env, args.steps, args.seed, args.report_every,
+                          args.max_minutes, **kwargs)
     except SoakError as exc:
         print(f"SOAK FAILED: {exc}")
         return 1

@@ -329,3 +329,67 @@ def test_plan_refuses_bad_setup_and_inputs():
         code = lib.ps_spindle_step_plan(ctypes.byref(s), ctypes.byref(plan), *args, None, None)
         assert names(code) == status
         assert state_bytes(s) == before
+
+
+# ---- batches of independent spindles (ps_spindle_batch_step, SpindleBatch) ---------------
+
+def batch_inputs(seed: int = 5, n: int = 48, duration_s: float = 1.5):
+    """Smooth random lengths of n spindles at 1 ms steps, each with its own stepwise random
+    drive (drive changes exercise the activation filter's a0 != a1 path)."""
+    length, _, _, gd, gs, _ = random_trajectories(seed, n=n, duration_s=duration_s, dt_s=1e-3)
+    return length, gd, gs
+
+
+@pytest.mark.parametrize("theta", [0.5, 1.0])
+def test_batch_step_matches_the_numpy_core(theta):
+    """n spindles in one ps_spindle_batch_step call per step = spindle.core.step on the same
+    inputs (HUMAN constants), to 1e-9 pps over 1.5 s of 1 ms steps."""
+    length, gd, gs = batch_inputs()
+    ref = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)
+    batch = native_spindle.SpindleBatch(ref.copy(), spindle.HUMAN, 1e-3, theta)
+    for got, want in zip(batch.afferents(), core.afferents(ref, spindle.HUMAN), strict=True):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    method = "trapezoidal" if theta == 0.5 else "backward_euler"
+    worst, top = 0.0, 0.0
+    for j in range(1, length.shape[0]):
+        ia, ii = batch.step(length[j], gd[j], gs[j])
+        ref_ia, ref_ii = core.step(ref, length[j], gd[j], gs[j], 1e-3, spindle.HUMAN, method)
+        worst = max(worst, np.abs(ia - ref_ia).max(), np.abs(ii - ref_ii).max())
+        top = max(top, ref_ia.max())
+    assert top > 50  # the comparison covers real firing
+    assert worst <= 1e-9
+    state = batch.state()
+    np.testing.assert_allclose(state.tension_FU, ref.tension_FU, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(state.length_L0, ref.length_L0)
+
+
+def test_batch_step_is_atomic_and_names_the_failing_spindle():
+    length, gd, gs = batch_inputs(n=6, duration_s=0.01)
+    state = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)
+    batch = native_spindle.SpindleBatch(state, spindle.HUMAN)
+    batch.step(length[1], gd[1], gs[1])
+    before = batch.fields.copy()
+    for bad, error, status in ((1.6, ValueError, "PS_ERR_LENGTH_RANGE"),
+                               (math.nan, ValueError, "PS_ERR_NONFINITE"),
+                               (length[1][4] + 0.02, ValueError, "PS_ERR_SPEED")):
+        L = length[2].copy()
+        L[4] = bad  # spindles 0-3 step first, then 4 fails: they must be put back
+        with pytest.raises(error, match=f"spindle 4 of 6 failed with {status}"):
+            batch.step(L, gd[2], gs[2])
+        np.testing.assert_array_equal(batch.fields, before)
+    with pytest.raises(ValueError, match=r"each must be \(6,\)"):
+        batch.step(length[2][:5], gd[2], gs[2])
+    # the C entry points' argument checks
+    lib = batch.lib
+    failed = ctypes.c_long(7)
+    args = (batch.lib, batch._address, ctypes.byref(batch._plan))
+    assert lib.ps_spindle_batch_step(args[1], -1, args[2], None, None, None, None, None, None,
+                                     ctypes.byref(failed)) == abi.Status.PS_ERR_ARGUMENT
+    assert failed.value == -1
+    assert lib.ps_spindle_batch_step(args[1], 6, args[2], None, None, None, None, None, None,
+                                     None) == PS_ERR_NULL
+    assert lib.ps_spindle_batch_step(None, 0, None, None, None, None, None, None, None,
+                                     None) == PS_OK
+    assert lib.ps_spindle_batch_afferents(args[1], 6, args[2], None, None) == PS_ERR_NULL
+    np.testing.assert_array_equal(batch.fields, before)
+    batch.step(length[2], gd[2], gs[2])  # still usable

@@ -31,3 +31,14 @@ def test_soak_checker_catches_violations():
         soak_env.check_step(np.array([np.nan] * 5), info, (0, 130), 1)
     with pytest.raises(soak_env.SoakError, match="angle"):
         soak_env.check_step(np.zeros(5), {**info, "angle_deg": 200.0}, (0, 130), 1)
+
+
+@pytest.mark.parametrize("env_id", ["proprio_env/ElbowReach-v0",
+                                    "proprio_env/ProsthesisElbow-v0"])
+def test_vector_env_soak_short(env_id):
+    """A short soak of the vector env (random and corner actions, autoresets); the long one
+    is ``python scripts/soak_env.py --num-envs 64 --steps 1000000``."""
+    result = soak_env.soak_vector(env_id, 8 * 230, num_envs=8, seed=2)
+    assert result["steps"] == 8 * 230 and result["episodes"] == 8 + 8
+    lo, hi = result["extremes"]["angle_deg"]
+    assert -5 <= lo and hi <= 135

@@ -31,10 +31,11 @@ from proprio_env.envs.arguments import (
     check_real_array,
     check_str,
 )
+from proprio_env.envs.physics import PhysicsBatch, load_sensed_model
 from proprio_env.length_fitting import fits_for_model
-from proprio_env.model import JOINT, MUSCLES, load_model, model_path
-from proprio_env.muscle_length import fibre_length_L0, muscle_geometry
-from spindle.chain import BACKENDS, ArmSample, ChainConfig
+from proprio_env.model import JOINT, MUSCLES, model_path
+from proprio_env.muscle_length import FibreLengths, muscle_geometry
+from spindle.chain import BACKEND_CHOICES, ArmSample, ChainConfig, resolve_backend
 from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.chain.sensor import AX12, EncoderParams
 
@@ -48,6 +49,95 @@ one step."""
 MUSCLE_GROUP_BIT = 1 << 1
 SERVO_GROUP_BIT = 1 << 2
 """``model.opt.disableactuator`` bits: actuator group 1 = muscles, group 2 = servo."""
+
+def observations(ia_pps: np.ndarray, ii_pps: np.ndarray, gamma_static_pps: np.ndarray,
+                 gamma_dynamic_pps: np.ndarray, target_rad: np.ndarray | float,
+                 include_fusimotor: bool) -> np.ndarray:
+    """(..., 5) or (..., 9) float32 observations from (..., 2) rates (pps) and targets (rad)
+    of shape (...): one env (2,) and a float, or n envs (n, 2) and (n,). The rates are
+    divided in float64, then rounded once to float32."""
+    obs = np.empty((*ia_pps.shape[:-1], 9 if include_fusimotor else 5), dtype=np.float32)
+    np.divide(ia_pps, RATE_SCALE_PPS, out=obs[..., 0:2], casting="same_kind")
+    np.divide(ii_pps, RATE_SCALE_PPS, out=obs[..., 2:4], casting="same_kind")
+    obs[..., 4] = target_rad
+    if include_fusimotor:
+        np.divide(gamma_static_pps, RATE_SCALE_PPS, out=obs[..., 5:7], casting="same_kind")
+        np.divide(gamma_dynamic_pps, RATE_SCALE_PPS, out=obs[..., 7:9], casting="same_kind")
+    return obs
+
+
+def check_observations(obs: np.ndarray, t_s: Any) -> None:
+    """RuntimeError naming the env if an observation is not finite (never observed); one
+    observation (k,) or n of them (n, k)."""
+    if np.isfinite(obs).all():
+        return
+    if obs.ndim == 1:
+        raise RuntimeError(f"non-finite observation {obs.tolist()} (chain output t={t_s!r})")
+    i = int(np.flatnonzero(~np.isfinite(obs).all(axis=1))[0])
+    raise RuntimeError(f"non-finite observation {obs[i].tolist()} in env {i} (chain "
+                       f"output t={t_s[i]!r})")
+
+
+def rewards(angle_deg: np.ndarray, target_deg: np.ndarray, actions: np.ndarray,
+            distance_weight: float, control_weight: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(reward, reward_distance, reward_control), each (n,): the distance term
+    ``-w_dist |angle - target|`` (rad) and the control cost ``-w_ctrl |a|^2``."""
+    distance = -distance_weight * np.abs(np.radians(angle_deg - target_deg))
+    control = -control_weight * np.einsum("ij,ij->i", actions, actions)
+    return distance + control, distance, control
+
+
+def step_info(sample: Any, time_s: Any, angle_deg: Any, velocity_deg_s: Any, target_deg: Any,
+              pushed: Any, reward_distance: Any, reward_control: Any) -> dict[str, Any]:
+    """The raw signals of a step (``info``), scalars or arrays alike; ``sample`` is an
+    :class:`~spindle.chain.ArmSample` or a batch of them (its arrays are copied: the chain
+    may share them with its state)."""
+    return {
+        "time_s": time_s,
+        "angle_deg": angle_deg,
+        "angular_velocity_deg_s": velocity_deg_s,
+        "target_deg": target_deg,
+        "angle_error_deg": angle_deg - target_deg,
+        "length_L0": np.array(sample.length_L0),
+        "velocity_L0_s": np.array(sample.velocity_L0_s),
+        "gamma_static_pps": np.array(sample.gamma_static_pps),
+        "gamma_dynamic_pps": np.array(sample.gamma_dynamic_pps),
+        "ia_pps": np.array(sample.ia_pps),
+        "ii_pps": np.array(sample.ii_pps),
+        "sensor_time_s": sample.t_s,
+        "sensor_samples": pushed,
+        "reward_distance": reward_distance,
+        "reward_control": reward_control,
+    }
+
+
+def check_actions(actions: Any, space: spaces.Box, shape: tuple[int, ...], clip: bool,
+                  bounds: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """``actions`` as float64 of ``shape`` inside ``space`` (clipped if ``clip``), else
+    ValueError naming the action and the box. ``bounds``: the box's (low, high) as float64,
+    if the caller keeps them."""
+    low, high = ((space.low.astype(np.float64), space.high.astype(np.float64))
+                 if bounds is None else bounds)
+    # the common case in a few array operations: a float array of the right shape inside
+    # the box (NaN fails both comparisons and takes the checked path below)
+    if (isinstance(actions, np.ndarray) and actions.dtype.char in "fd"
+            and actions.shape == shape):
+        a = actions.astype(np.float64)
+        if ((a >= low) & (a <= high)).all():
+            return a
+    a = check_real_array("action", actions)
+    if a.shape != shape:
+        raise ValueError(f"action has shape {a.shape}, expected {shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"action {a.tolist()} holds NaN or inf")
+    if np.any(a < low) or np.any(a > high):
+        if not clip:
+            raise ValueError(
+                f"action {a.tolist()} is outside the action box [{low.tolist()}, "
+                f"{high.tolist()}] (pass clip_actions=True to clip instead)")
+        a = np.clip(a, low, high)
+    return a
 
 
 def make_renderer(model: mujoco.MjModel, width: int, height: int) -> mujoco.Renderer:
@@ -120,7 +210,7 @@ class ElbowProprioEnv(gym.Env):
         *,
         control_hz: float = 50.0,
         afferent_source: str | None = None,
-        backend: str = "numpy",
+        backend: str = "auto",
         chain_config: ChainConfig | None = None,
         encoder_params: EncoderParams = AX12,
         include_fusimotor: bool = False,
@@ -146,22 +236,26 @@ class ElbowProprioEnv(gym.Env):
         self.initial_angle_ranges_deg = check_ranges_deg(
             "initial_angle_ranges_deg", initial_angle_ranges_deg, self.joint_range_deg)
         self._geometries = tuple(muscle_geometry(self.model, m) for m in MUSCLES)
+        self._fibre_lengths_of = FibreLengths(self._geometries)
         self._tendon_ids = np.array([self.model.tendon(m).id for m in MUSCLES])
         config = replace(ChainConfig() if chain_config is None else chain_config,
                          backend=backend)
         self.length_fits = self._length_fits(model_file, config)
-        self.afferents = AfferentReadout(source, config, encoder_params, self.length_fits)
+        self.afferents = AfferentReadout(source, config, encoder_params, self.length_fits,
+                                         step_s=self.dt)
         self.afferent_source = source
         self.backend = backend
         self.observation_space = self._make_observation_space()
         self.action_space = self._make_action_space()
+        self._action_bounds = (self.action_space.low.astype(np.float64),
+                               self.action_space.high.astype(np.float64))
 
         self._target_deg = 0.5 * sum(self.joint_range_deg)
+        self._target_rad = math.radians(self._target_deg)
         self._sample: ArmSample | None = None
         self._renderer: mujoco.Renderer | None = None
-        self._t_buf = np.empty(self.frame_skip)
-        self._angle_buf = np.empty(self.frame_skip)
-        self._mtu_buf = np.empty((self.frame_skip, 2))
+        self._physics = PhysicsBatch(self.model, 1, self.frame_skip, scratch=[self.data],
+                                     qadr=self._qadr, vadr=self._vadr)
 
     def _check_arguments(self, render_mode, control_hz, afferent_source, backend, chain_config,
                          encoder_params, include_fusimotor, clip_actions,
@@ -175,7 +269,7 @@ class ElbowProprioEnv(gym.Env):
         source = check_str("afferent_source",
                            self.default_source if afferent_source is None else afferent_source,
                            SOURCES)
-        backend = check_str("backend", backend, BACKENDS)
+        backend = resolve_backend(check_str("backend", backend, BACKEND_CHOICES))
         if chain_config is not None:
             check_instance("chain_config", chain_config, ChainConfig)
         check_instance("encoder_params", encoder_params, EncoderParams)
@@ -191,7 +285,7 @@ class ElbowProprioEnv(gym.Env):
     def _load_model(self, model_file: Path, width, height, control_hz: float) -> None:
         """The MuJoCo model and data, the render size, the physics steps per env step and
         the elbow joint's addresses and range."""
-        self.model = load_model(model_file)
+        self.model = load_sensed_model(model_file)
         self.width = check_positive_int("width", width,
                                         high=int(self.model.vis.global_.offwidth))
         self.height = check_positive_int("height", height,
@@ -231,12 +325,6 @@ class ElbowProprioEnv(gym.Env):
     def _make_action_space(self) -> spaces.Box:
         raise NotImplementedError
 
-    def _apply_action(self, action: np.ndarray) -> None:
-        raise NotImplementedError
-
-    def _control_cost(self, action: np.ndarray) -> float:
-        return self.control_cost_weight * float(np.dot(action, action))
-
     # -- gymnasium API ----------------------------------------------------------------------
     @property
     def dt(self) -> float:
@@ -247,58 +335,43 @@ class ElbowProprioEnv(gym.Env):
         """Start an episode. ``options`` may fix ``"target_deg"`` and ``"angle_deg"``
         (elbow flexion, deg, inside the joint range) instead of drawing them."""
         super().reset(seed=seed)
-        options = {} if options is None else dict(options)
-        unknown = set(options) - {"target_deg", "angle_deg"}
-        if unknown:
-            raise ValueError(f"unknown reset options {sorted(unknown)}; "
-                             "known: 'target_deg', 'angle_deg'")
         rng = self.np_random
-        target = (self._fixed_angle("target_deg", options["target_deg"])
-                  if "target_deg" in options else draw_from_ranges(rng, self.target_ranges_deg))
-        angle = (self._fixed_angle("angle_deg", options["angle_deg"])
-                 if "angle_deg" in options
-                 else draw_from_ranges(rng, self.initial_angle_ranges_deg))
+        target, angle = self.draw_start(rng, {} if options is None else dict(options))
         self._target_deg = target
-        m, d = self.model, self.data
-        mujoco.mj_resetData(m, d)
-        d.qpos[self._qadr] = math.radians(angle)
-        self._reset_controls(angle)
-        mujoco.mj_forward(m, d)
-        length = self._fibre_lengths(d.ten_length[self._tendon_ids][None, :])[0]
-        self._sample = self.afferents.reset(d.time, angle, length, rng)
+        self._target_rad = math.radians(target)
+        length = self.reset_physics(self.data, angle)
+        self._physics.store(0, self.data)
+        self._sample = self.afferents.reset(self.data.time, angle, length, rng)
         return self._observation(), self._info(0, 0.0, 0.0)
 
     def step(self, action):
+        # Python work per step counts against the physics (~10 mj_step): scalars stay
+        # Python floats, arrays come straight from the physics buffers.
         if self._sample is None:
             raise RuntimeError("call reset() before step()")
         action = self._check_action(action)
-        self._apply_action(action)
-        m, d = self.model, self.data
-        t_buf, a_buf, mtu = self._t_buf, self._angle_buf, self._mtu_buf
-        exact = self.afferent_source == "exact"
-        n = self.frame_skip
-        for k in range(n):
-            mujoco.mj_step(m, d)
-            t_buf[k] = d.time
-            a_buf[k] = d.qpos[self._qadr]
-            if exact and k:
-                # after mj_step, ten_length is the length at the start of that step
-                mtu[k - 1] = d.ten_length[self._tendon_ids]
+        physics = self._physics
+        self.write_controls(physics.ctrl, action[None, :])
+        physics.step()
+        d = self.data
+        q, v = float(d.qpos[self._qadr]), float(d.qvel[self._vadr])
+        if not (math.isfinite(q) and math.isfinite(v)):
+            raise RuntimeError(f"physics diverged: elbow angle {q!r} rad, velocity {v!r} rad/s")
         lengths = None
-        if exact:
-            mujoco.mj_fwdPosition(m, d)
-            mtu[n - 1] = d.ten_length[self._tendon_ids]
-            lengths = self._fibre_lengths(mtu)
-        if not (np.isfinite(d.qpos[self._qadr]) and np.isfinite(d.qvel[self._vadr])):
-            raise RuntimeError(f"physics diverged: elbow angle {d.qpos[self._qadr]!r} rad, "
-                               f"velocity {d.qvel[self._vadr]!r} rad/s")
-        self._sample, pushed = self.afferents.push(t_buf, np.degrees(a_buf), lengths)
+        if self.afferent_source == "exact":
+            lengths = self._fibre_lengths(physics.tendon_lengths_m(d)[0])
+        self._sample, pushed = self.afferents.push(
+            physics.time_s()[0], np.degrees(physics.angle_rad()[0]), lengths)
         obs = self._observation()
-        error_rad = abs(math.radians(self.angle_deg - self._target_deg))
-        reward_distance = -self.distance_reward_weight * error_rad
-        reward_control = -self._control_cost(action)
+        angle_deg = math.degrees(q)
+        # the same arithmetic as rewards() for the vector env
+        reward_distance = -self.distance_reward_weight * abs(
+            math.radians(angle_deg - self._target_deg))
+        reward_control = -self.control_cost_weight * float(action @ action)
         reward = reward_distance + reward_control
-        return obs, reward, False, False, self._info(pushed, reward_distance, reward_control)
+        info = step_info(self._sample, float(d.time), angle_deg, math.degrees(v),
+                         self._target_deg, pushed, reward_distance, reward_control)
+        return obs, reward, False, False, self._add_info(info)
 
     def render(self):
         if self.render_mode != "rgb_array":
@@ -331,8 +404,38 @@ class ElbowProprioEnv(gym.Env):
         return self._target_deg
 
     # -- helpers ------------------------------------------------------------------------------
-    def _reset_controls(self, angle_deg: float) -> None:
-        self.data.ctrl[:] = 0.0
+    def reset_physics(self, data: mujoco.MjData, angle_deg: float) -> np.ndarray:
+        """Put ``data`` at rest at ``angle_deg`` with this env's reset controls; return the
+        fibre lengths there (2,) (L0)."""
+        m = self.model
+        mujoco.mj_resetData(m, data)
+        data.qpos[self._qadr] = math.radians(angle_deg)
+        self._reset_controls(data, angle_deg)
+        mujoco.mj_forward(m, data)
+        return self._fibre_lengths(data.ten_length[self._tendon_ids][None, :])[0]
+
+    def _reset_controls(self, data: mujoco.MjData, angle_deg: float) -> None:
+        data.ctrl[:] = 0.0
+
+    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
+        """Write the (checked) ``actions`` (n, action dim) into the controls ``ctrl``
+        (n, nu)."""
+        raise NotImplementedError
+
+    def draw_start(self, rng: np.random.Generator, options: dict[str, Any]
+                   ) -> tuple[float, float]:
+        """(target, initial angle) in deg: fixed by ``options`` or drawn from ``rng`` (the
+        target first)."""
+        unknown = set(options) - {"target_deg", "angle_deg"}
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; "
+                             "known: 'target_deg', 'angle_deg'")
+        target = (self._fixed_angle("target_deg", options["target_deg"])
+                  if "target_deg" in options else draw_from_ranges(rng, self.target_ranges_deg))
+        angle = (self._fixed_angle("angle_deg", options["angle_deg"])
+                 if "angle_deg" in options
+                 else draw_from_ranges(rng, self.initial_angle_ranges_deg))
+        return target, angle
 
     def _camera(self) -> mujoco.MjvCamera:
         cam = mujoco.MjvCamera()
@@ -352,8 +455,7 @@ class ElbowProprioEnv(gym.Env):
         return x
 
     def _fibre_lengths(self, mtu_m: np.ndarray) -> np.ndarray:
-        return np.stack([fibre_length_L0(mtu_m[:, j], g)
-                         for j, g in enumerate(self._geometries)], axis=-1)
+        return self._fibre_lengths_of(mtu_m)
 
     def _length_fits(self, model_file: Path, config: ChainConfig) -> LengthFits:
         """The fits of this env's model: ``config.fits_path`` checked against the model's
@@ -363,51 +465,23 @@ class ElbowProprioEnv(gym.Env):
         return fits_for_model(model_file, self.model)
 
     def _check_action(self, action: Any) -> np.ndarray:
-        space = self.action_space
-        a = check_real_array("action", action)
-        if a.shape != space.shape:
-            raise ValueError(f"action has shape {a.shape}, expected {space.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"action {a.tolist()} holds NaN or inf")
-        low, high = space.low.astype(np.float64), space.high.astype(np.float64)
-        if np.any(a < low) or np.any(a > high):
-            if not self.clip_actions:
-                raise ValueError(
-                    f"action {a.tolist()} is outside the action box [{low.tolist()}, "
-                    f"{high.tolist()}] (pass clip_actions=True to clip instead)")
-            a = np.clip(a, low, high)
-        return a
+        return check_actions(action, self.action_space, self.action_space.shape,
+                             self.clip_actions, self._action_bounds)
 
     def _observation(self) -> np.ndarray:
         s = self._sample
-        parts = [s.ia_pps / RATE_SCALE_PPS, s.ii_pps / RATE_SCALE_PPS,
-                 [math.radians(self._target_deg)]]
-        if self.include_fusimotor:
-            parts += [s.gamma_static_pps / RATE_SCALE_PPS, s.gamma_dynamic_pps / RATE_SCALE_PPS]
-        obs = np.concatenate(parts).astype(np.float32)
-        if not np.all(np.isfinite(obs)):
-            raise RuntimeError(f"non-finite observation {obs.tolist()} (chain output "
-                               f"t={s.t_s!r})")
+        obs = observations(s.ia_pps, s.ii_pps, s.gamma_static_pps, s.gamma_dynamic_pps,
+                           self._target_rad, self.include_fusimotor)
+        check_observations(obs, s.t_s)
         return obs
 
     def _info(self, pushed: int, reward_distance: float, reward_control: float
               ) -> dict[str, Any]:
-        s = self._sample
-        angle = self.angle_deg
-        return {
-            "time_s": float(self.data.time),
-            "angle_deg": angle,
-            "angular_velocity_deg_s": math.degrees(float(self.data.qvel[self._vadr])),
-            "target_deg": self._target_deg,
-            "angle_error_deg": angle - self._target_deg,
-            "length_L0": s.length_L0.copy(),
-            "velocity_L0_s": s.velocity_L0_s.copy(),
-            "gamma_static_pps": s.gamma_static_pps.copy(),
-            "gamma_dynamic_pps": s.gamma_dynamic_pps.copy(),
-            "ia_pps": s.ia_pps.copy(),
-            "ii_pps": s.ii_pps.copy(),
-            "sensor_time_s": float(s.t_s),
-            "sensor_samples": int(pushed),
-            "reward_distance": reward_distance,
-            "reward_control": reward_control,
-        }
+        return self._add_info(step_info(
+            self._sample, float(self.data.time), self.angle_deg,
+            math.degrees(float(self.data.qvel[self._vadr])), self._target_deg, int(pushed),
+            reward_distance, reward_control))
+
+    def _add_info(self, info: dict[str, Any]) -> dict[str, Any]:
+        """Subclass hook: this env's own entries added to ``info``."""
+        return info

@@ -98,7 +98,7 @@ class ElbowReachEnv(ElbowProprioEnv):
     |----------------------------|-------------|-------------------|-------------|
     | `control_hz`               | float       | `50`              | env steps per second (0.1-500); 1/control_hz must be a multiple of the 2 ms physics step |
     | `afferent_source`          | str         | `"exact"`         | `"exact"` (MuJoCo fibre lengths), `"reduced"` (angle -> fitted lengths) or `"encoder"` (simulated AX-12 -> prosthesis chain) |
-    | `backend`                  | str         | `"numpy"`         | spindle chain backend (`spindle.chain.BACKENDS`) |
+    | `backend`                  | str         | `"auto"`          | spindle chain backend: `"auto"` (C where a compiler or a valid cached library exists, numpy otherwise; `env.unwrapped.backend` says which was picked), `"numpy"` or `"c"` |
     | `chain_config`             | ChainConfig | `None`            | chain settings (its `backend` is replaced by `backend`; its `fits_path`, if set, must be fits of `xml_file`) |
     | `encoder_params`           | EncoderParams | `AX12`          | the simulated encoder (source `"encoder"`) |
     | `include_fusimotor`        | bool        | `False`           | append gamma_s, gamma_d to the observation |
@@ -119,7 +119,13 @@ class ElbowReachEnv(ElbowProprioEnv):
 
     ## Version History
     * v0: initial release (Mileusnic 2006 spindles with human gains, seed-paper fusimotor
-      template, 50 Hz control, 500 Hz sensor).
+      template, 50 Hz control, 500 Hz sensor). Later in v0: ``backend`` defaults to
+      ``"auto"``; the physics steps through ``mujoco.rollout`` (the warm start zeroed at each
+      env step, tendon lengths from sensors) so that ``gymnasium.make_vec`` (a native
+      vector env) gives the same observations; the encoder draws its randomness in chunks of
+      64 readings from two streams spawned from the env's generator, which changes the
+      encoder's random numbers (and the target/angle draws after the first episode) for a
+      given seed.
     """
 
     disabled_groups: ClassVar[int] = SERVO_GROUP_BIT
@@ -132,5 +138,5 @@ class ElbowReachEnv(ElbowProprioEnv):
     def _make_action_space(self) -> spaces.Box:
         return spaces.Box(0.0, 1.0, (2,), dtype=np.float32)
 
-    def _apply_action(self, action: np.ndarray) -> None:
-        self.data.ctrl[self._muscle_ids] = action
+    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
+        ctrl[:, self._muscle_ids] = actions

@@ -89,12 +89,16 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
 
     | Parameter              | Type  | Default     | Description |
     |------------------------|-------|-------------|-------------|
+    | `backend`              | str   | `"auto"`    | spindle chain backend: `"auto"` (C where a compiler or a valid cached library exists, numpy otherwise; `env.unwrapped.backend` says which), `"numpy"` or `"c"` |
     | `afferent_source`      | str   | `"encoder"` | `"encoder"` (the prosthesis chain), `"reduced"` (clean angle -> fitted lengths) or `"exact"` (MuJoCo fibre lengths of the passive muscles) |
     | `control_cost_weight`  | float | `0`         | $w_{ctrl}$ |
 
     ## Version History
     * v0: initial release (AX-12 encoder chain of the seed paper, human spindle gains, 50 Hz
-      control).
+      control). Later in v0: ``backend`` defaults to ``"auto"``; physics through
+      ``mujoco.rollout`` (shared with the native vector env of ``gymnasium.make_vec``); the
+      encoder draws its jitter, noise and glitches in chunks of 64 readings from two streams
+      spawned from the env's generator: the random numbers for a given seed changed.
     """
 
     disabled_groups: ClassVar[int] = MUSCLE_GROUP_BIT
@@ -112,16 +116,19 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
 
     def command_deg(self, action: np.ndarray) -> float:
         """The servo command (deg) of a (valid) action."""
-        return self._command_mid_deg + self._command_half_deg * float(action[0])
+        return float(self.commands_deg(np.asarray(action, dtype=float)[None, :])[0])
 
-    def _apply_action(self, action: np.ndarray) -> None:
-        self.data.ctrl[self._servo_id] = math.radians(self.command_deg(action))
+    def commands_deg(self, actions: np.ndarray) -> np.ndarray:
+        """The servo commands (deg) of (valid) actions (n, 1)."""
+        return self._command_mid_deg + self._command_half_deg * actions[:, 0]
 
-    def _reset_controls(self, angle_deg: float) -> None:
-        super()._reset_controls(angle_deg)
-        self.data.ctrl[self.model.actuator(SERVO).id] = math.radians(angle_deg)
+    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
+        ctrl[:, self._servo_id] = np.radians(self.commands_deg(actions))
 
-    def _info(self, pushed, reward_distance, reward_control):
-        info = super()._info(pushed, reward_distance, reward_control)
+    def _reset_controls(self, data, angle_deg: float) -> None:
+        super()._reset_controls(data, angle_deg)
+        data.ctrl[self.model.actuator(SERVO).id] = math.radians(angle_deg)
+
+    def _add_info(self, info):
         info["command_deg"] = math.degrees(float(self.data.ctrl[self._servo_id]))
         return info

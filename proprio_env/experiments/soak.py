@@ -104,3 +104,59 @@ def soak(env_id: str, steps: int, seed: int = 0, report_every: int = 0,
     return {"steps": done, "episodes": episodes, "elapsed_s": elapsed,
             "steps_per_s": done / elapsed, "bad_actions_rejected": rejected,
             "extremes": extremes, "chain_counters_last_episode": counters}
+
+
+def soak_vector(env_id: str, env_steps: int, num_envs: int = 64, seed: int = 0,
+                report_every: int = 0, max_minutes: float = math.inf,
+                **env_kwargs: Any) -> dict[str, Any]:
+    """The soak of the native vector env (``gymnasium.make_vec``): ``env_steps`` env steps
+    (``num_envs`` per vector step) of random actions, a third of them at the box's corners,
+    with autoresets; every observation must be finite and inside the observation space, and
+    every sub-env's signals inside the bounds of :func:`check_step`. Returns as :func:`soak`
+    (``steps`` counts env steps)."""
+    import gymnasium as gym
+
+    import proprio_env  # noqa: F401  (registers the envs)
+
+    env = gym.make_vec(env_id, num_envs=num_envs, **env_kwargs)
+    base = env.unwrapped
+    space = env.single_action_space
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    joint_range = base.env.joint_range_deg
+    extremes = {"angle_deg": [math.inf, -math.inf], "ia_pps": [math.inf, -math.inf],
+                "ii_pps": [math.inf, -math.inf]}
+    episodes, done, vstep = num_envs, 0, 0
+    start = time.perf_counter()
+    while done < env_steps:
+        if vstep % 100 == 0 and time.perf_counter() - start > 60 * max_minutes:
+            break
+        vstep += 1
+        actions = rng.uniform(space.low, space.high, (num_envs, *space.shape))
+        if vstep % 3 == 0:
+            corners = rng.random(actions.shape) < 0.5
+            actions = np.where(corners, space.low, space.high)
+        obs, _, terminated, truncated, info = env.step(actions.astype(np.float32))
+        if not (np.all(np.isfinite(obs)) and env.observation_space.contains(obs)):
+            bad = int(np.argmin(np.isfinite(obs).all(axis=1)))
+            raise SoakError(f"vector step {vstep}: observation {obs[bad].tolist()} of env "
+                            f"{bad} is not finite or outside the observation space")
+        for key in extremes:
+            v = np.asarray(info[key])
+            extremes[key][0] = min(extremes[key][0], float(v.min()))
+            extremes[key][1] = max(extremes[key][1], float(v.max()))
+        if (vstep % 50 == 0 or done + num_envs >= env_steps):
+            for i in range(num_envs):
+                check_step(obs[i], {k: v[i] for k, v in info.items()}, joint_range, done + i)
+        episodes += int(np.sum(terminated | truncated))
+        done += num_envs
+        if report_every and done // report_every != (done - num_envs) // report_every:
+            rate = done / (time.perf_counter() - start)
+            print(f"{done:10d}/{env_steps} env steps | {rate:8.1f} env steps/s | ETA "
+                  f"{(env_steps - done) / rate / 60:7.1f} min | angle "
+                  f"{extremes['angle_deg'][0]:.1f}..{extremes['angle_deg'][1]:.1f} deg",
+                  flush=True)
+    elapsed = time.perf_counter() - start
+    env.close()
+    return {"steps": done, "episodes": episodes, "elapsed_s": elapsed,
+            "steps_per_s": done / elapsed, "bad_actions_rejected": 0, "extremes": extremes}

@@ -23,6 +23,14 @@ Handling rules (counted per spindle in :attr:`SpindleBank.counters`; never a NaN
 - ``restarts``: a spindle step that fails (no convergence, a non-finite value) restarts every
   spindle of the bank at equilibrium at the knot's lengths (never seen; the rule keeps a
   training run alive).
+
+Backends: ``"numpy"`` steps the bank's :class:`spindle.core.SpindleState` with
+:func:`spindle.core.advance` (one call per sub-step for every spindle of every row); ``"c"``
+keeps the spindles in one C array (:class:`spindle.native.spindle.SpindleBatch`, one
+``ps_spindle_batch_step`` call per sub-step); ``"auto"`` is C when the library builds or
+loads here (:func:`spindle.chain.resolve_backend`). Both take the same sub-step lengths
+and drives; their rates agree to ~1e-10 pps (the C step multiplies by reciprocals where
+numpy divides). Only the trapezoidal family (theta > 0) runs in C.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from spindle import core
+from spindle.chain import resolve_backend
 from spindle.chain.fusimotor import SEED_PAPER, Fusimotor, FusimotorParams
 from spindle.methods import get_method
 from spindle.params import HUMAN, SpindleParams
@@ -94,13 +103,14 @@ class SpindleBank:
         method: the spindle integrator (default trapezoidal).
         step_s: largest spindle sub-step (s); ``None``: the method's default (1 ms).
         max_speed_L0_s: the knots' slew limit (L0/s).
+        backend: ``"numpy"``, ``"c"`` or ``"auto"`` (see the module docstring).
     """
 
     def __init__(self, n_rows: int, length_min_L0: np.ndarray, length_max_L0: np.ndarray,
                  params: SpindleParams = HUMAN,
                  fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
                  method: str = "trapezoidal", step_s: float | None = None,
-                 max_speed_L0_s: float = 8.0) -> None:
+                 max_speed_L0_s: float = 8.0, backend: str = "numpy") -> None:
         self.n_rows = int(n_rows)
         self.n_muscles = int(np.size(length_min_L0))
         if self.n_rows < 1 or self.n_muscles < 1:
@@ -137,15 +147,26 @@ class SpindleBank:
             raise ValueError(f"fusimotor={self.fusimotor!r} must be a ConstantFusimotor or a "
                              "TemplateFusimotor")
         n = self.n_rows * self.n_muscles
-        self.state = core.equilibrium_state(np.ones(n), self._gd.ravel(), self._gs.ravel(),
-                                            params)
+        self.backend = resolve_backend(backend)
+        self._state = core.equilibrium_state(np.ones(n), self._gd.ravel(), self._gs.ravel(),
+                                             params)
+        self._batch = None
+        if self.backend == "c":
+            from spindle.native.spindle import SpindleBatch
+
+            self._batch = SpindleBatch(self._state, params, self.step_s, self._method.theta)
         self.length_L0 = np.ones(shape)      # the last knot as fed (clamped, slew-limited)
         self.velocity_L0_s = np.zeros(shape)
         self.t_s = np.zeros(self.n_rows)
-        self.ia_pps, self.ii_pps = (a.reshape(shape) for a in core.afferents(self.state, params))
+        self.ia_pps, self.ii_pps = (a.reshape(shape) for a in core.afferents(self._state, params))
         self.counters = {name: np.zeros(shape, dtype=np.int64) for name in COUNTERS}
         self.restarts = 0
         self.substeps_limited = 0
+
+    @property
+    def state(self) -> core.SpindleState:
+        """The spindles' state (rows x muscles, row-major): numpy, the bank's own; C, a copy."""
+        return self._state if self._batch is None else self._batch.state()
 
     @property
     def gamma_static_pps(self) -> np.ndarray:
@@ -180,8 +201,7 @@ class SpindleBank:
         idx = (rows[:, None] * self.n_muscles + np.arange(self.n_muscles)).ravel()
         rest = core.equilibrium_state(L.ravel(), self._gd[rows].ravel(), self._gs[rows].ravel(),
                                       self.params)
-        for name in _STATE_ARRAYS:
-            getattr(self.state, name)[idx] = getattr(rest, name)
+        self._load(rest, idx)
         self.length_L0[rows], self.velocity_L0_s[rows], self.t_s[rows] = L, V, t
         ia, ii = core.afferents(rest, self.params)
         self.ia_pps[rows], self.ii_pps[rows] = (a.reshape(L.shape) for a in (ia, ii))
@@ -245,31 +265,70 @@ class SpindleBank:
 
     def _integrate(self, sub: np.ndarray, gs: np.ndarray, gd: np.ndarray, k: int, h: float,
                    record: bool = False):
-        c, theta, state = self._columns, self._method.theta, self.state
         K = gs.shape[0]
         if record:
             self._recorded = (np.empty((K, sub.shape[1])), np.empty((K, sub.shape[1])))
-        new = None
+        q = 0
         try:
-            for j in range(sub.shape[0]):
-                Ls, q = sub[j], j // k
-                new = core.advance(state, Ls, gd[q], gs[q], h, theta, c)
-                core.commit(state, new, Ls, gd[q], gs[q])
-                if record and j % k == k - 1:
-                    self._recorded[0][q], self._recorded[1][q] = \
-                        core.afferents_from_tension(new[0], Ls, c)
+            if self._batch is None:
+                ia, ii = self._integrate_numpy(sub, gs, gd, k, h, record)
+            else:
+                ia, ii = self._integrate_c(sub, gs, gd, k, h, record)
         except FloatingPointError:
             self.restarts += 1
             rest = core.equilibrium_state(sub[-1], gd[-1], gs[-1], self.params)
-            for name in _STATE_ARRAYS:
-                getattr(state, name)[...] = getattr(rest, name)
-            ia, ii = core.afferents(state, self.params)
+            self._load(rest, None)
+            ia, ii = core.afferents(rest, self.params)
             if record:
+                q = self._recorded_upto
                 self._recorded[0][q:], self._recorded[1][q:] = ia, ii
             return ia, ii
+        return ia, ii
+
+    def _integrate_numpy(self, sub, gs, gd, k, h, record):
+        c, theta, state = self._columns, self._method.theta, self._state
+        new = None
+        self._recorded_upto = 0
+        for j in range(sub.shape[0]):
+            Ls, q = sub[j], j // k
+            new = core.advance(state, Ls, gd[q], gs[q], h, theta, c)
+            core.commit(state, new, Ls, gd[q], gs[q])
+            if record and j % k == k - 1:
+                self._recorded[0][q], self._recorded[1][q] = \
+                    core.afferents_from_tension(new[0], Ls, c)
+                self._recorded_upto = q + 1
         if record:
             return self._recorded[0][-1].copy(), self._recorded[1][-1].copy()
+        # the rates only at the end: the observation needs no others
         return core.afferents_from_tension(new[0], sub[-1], c)
+
+    def _integrate_c(self, sub, gs, gd, k, h, record):
+        batch = self._batch
+        batch.set_step(h)
+        last = sub.shape[0] - 1
+        self._recorded_upto = 0
+        gs_rows = np.ascontiguousarray(gs)
+        gd_rows = np.ascontiguousarray(gd)
+        for j in range(sub.shape[0]):
+            q = j // k
+            rates = j == last or (record and j % k == k - 1)
+            ia, ii = batch.step(sub[j], gd_rows[q], gs_rows[q], rates)
+            if record and j % k == k - 1:
+                self._recorded[0][q], self._recorded[1][q] = ia, ii
+                self._recorded_upto = q + 1
+        return ia.copy(), ii.copy()
+
+    def _load(self, rest: core.SpindleState, idx: np.ndarray | None) -> None:
+        """Spindles ``idx`` (None: all) to the state ``rest``."""
+        if self._batch is not None:
+            self._batch.load(rest, idx)
+            return
+        for name in _STATE_ARRAYS:
+            target = getattr(self._state, name)
+            if idx is None:
+                target[...] = getattr(rest, name)
+            else:
+                target[idx] = getattr(rest, name)
 
     # -- rules ---------------------------------------------------------------------------
     @staticmethod

@@ -12,7 +12,12 @@ between, chosen per env (``substep_source``):
   the env's own data are bit-for-bit what they were). The state after the last step comes
   from :class:`~proprio_env.wrappers.muscles.ActuatorKinematics` on a scratch ``MjData``.
   Not with the RK4 integrator (its last stage leaves intermediate values in those fields).
-- ``"hermite"``: for any other env (ours, MyoSuite's ``sim.advance``): the cubic Hermite
+  MyoSuite 3 (``MyoGymnasiumEnv._step_physics``: ``mj_step(nstep=frame_skip)`` then
+  ``mj_forward``, not overridden by the task) is hooked the same way: its own
+  ``_step_physics`` replaced on the instance by the loop of single ``mj_step`` calls and the
+  same ``mj_forward``; since MyoSuite's data is then current, the state after the last step
+  is read from it (no scratch kinematics).
+- ``"hermite"``: for any other env (ours, older MyoSuite's ``sim.advance``): the cubic Hermite
   curve between the lengths and velocities at the ends of the env step, sampled at the
   physics step's times. On the elbow at 50 Hz it differs from the recorded lengths by up to
   the figure in ``docs/wrapper.md``.
@@ -32,47 +37,98 @@ from spindle.substeps import hermite_curve
 SUBSTEP_SOURCES = ("auto", "frames", "hermite")
 
 
-def frames_hook_reason(env: Any) -> str | None:
-    """``None`` if the physics steps of ``env`` (an ``unwrapped`` env) can be recorded, else
-    why not."""
+MYOSUITE_BASE = ("myosuite.envs.gymnasium_env", "MyoGymnasiumEnv")
+"""Module and name of MyoSuite 3's env base class, whose ``_step_physics`` can be hooked
+(matched by name: this package never imports MyoSuite)."""
+
+
+def _myosuite_base(env: Any) -> type | None:
+    for cls in type(env).__mro__:
+        if (cls.__module__, cls.__name__) == MYOSUITE_BASE:
+            return cls
+    return None
+
+
+def hook_kind(env: Any) -> tuple[str | None, str | None]:
+    """(``"gymnasium"`` or ``"myosuite"``, None) if the physics steps of ``env`` (an
+    ``unwrapped`` env) can be recorded, else (None, why not)."""
+    model = getattr(env, "model", None)
+    if isinstance(model, mujoco.MjModel) and \
+            model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4:
+        return None, "the RK4 integrator leaves intermediate values in actuator_length"
+    base = _myosuite_base(env)
+    if base is not None:
+        if type(env)._step_physics is not base._step_physics:
+            return None, f"{type(env).__name__} overrides MyoSuite's _step_physics"
+        if not isinstance(getattr(env, "frame_skip", None), int):
+            return None, f"{type(env).__name__} has no integer frame_skip"
+        return "myosuite", None
     try:
         from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
     except ImportError as exc:  # gymnasium[mujoco] needs imageio
-        return f"gymnasium.envs.mujoco is not importable ({exc})"
+        return None, f"gymnasium.envs.mujoco is not importable ({exc})"
     if not isinstance(env, MujocoEnv):
-        return f"{type(env).__name__} is not a gymnasium.envs.mujoco.MujocoEnv"
+        return None, (f"{type(env).__name__} is not a gymnasium.envs.mujoco.MujocoEnv nor a "
+                      "MyoSuite 3 MyoGymnasiumEnv")
     if type(env)._step_mujoco_simulation is not MujocoEnv._step_mujoco_simulation:
-        return f"{type(env).__name__} overrides _step_mujoco_simulation"
-    if env.model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4:
-        return "the RK4 integrator leaves intermediate values in actuator_length"
-    return None
+        return None, f"{type(env).__name__} overrides _step_mujoco_simulation"
+    return "gymnasium", None
+
+
+def frames_hook_reason(env: Any) -> str | None:
+    """``None`` if the physics steps of ``env`` (an ``unwrapped`` env) can be recorded, else
+    why not."""
+    return hook_kind(env)[1]
 
 
 class FrameRecorder:
     """Records (time, actuator length, velocity) at the start of every physics step of a
-    Gymnasium ``MujocoEnv`` (see the module docstring); :meth:`remove` restores the env."""
+    Gymnasium ``MujocoEnv`` or a MyoSuite 3 env (see the module docstring); :meth:`remove`
+    restores the env."""
 
-    def __init__(self, env: Any, ids: np.ndarray) -> None:
-        reason = frames_hook_reason(env)
+    def __init__(self, env: Any, ids: np.ndarray, model: Any = None, data: Any = None) -> None:
+        self.kind, reason = hook_kind(env)
         if reason is not None:
             raise ValueError(f"substep_source='frames' is not possible here: {reason}")
         self.env = env
+        self.model = env.model if model is None else model
+        self.data = env.data if data is None else data
         self.ids = np.asarray(ids, dtype=int)
         self.times: list[float] = []
         self.lengths: list[np.ndarray] = []
         self.velocities: list[np.ndarray] = []
-        env._step_mujoco_simulation = self._step
+        self.end_time = float("nan")  # MyoSuite: data.time after its last mj_forward
+        if self.kind == "gymnasium":
+            env._step_mujoco_simulation = self._step
+        else:
+            env._step_physics = self._step_physics
 
-    def _step(self, ctrl, n_frames) -> None:
-        model, data, ids = self.env.model, self.env.data, self.ids
-        data.ctrl[:] = ctrl
+    def _record_steps(self, n_frames: int) -> None:
+        model, data, ids = self.model, self.data, self.ids
         for _ in range(n_frames):
             t = data.time
             mujoco.mj_step(model, data)
             self.times.append(t)
             self.lengths.append(data.actuator_length[ids])
             self.velocities.append(data.actuator_velocity[ids])
-        mujoco.mj_rnePostConstraint(model, data)
+
+    def _step(self, ctrl, n_frames) -> None:
+        self.data.ctrl[:] = ctrl
+        self._record_steps(n_frames)
+        mujoco.mj_rnePostConstraint(self.model, self.data)
+
+    def _step_physics(self, nstep: int | None = None) -> None:
+        self._record_steps(self.env.frame_skip if nstep is None else nstep)
+        mujoco.mj_forward(self.model, self.data)
+        self.end_time = float(self.data.time)
+
+    def current(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(length m, velocity m/s) of the env's current state if its data holds them
+        (MyoSuite, right after its physics steps), else None."""
+        if self.end_time == self.data.time:
+            return (self.data.actuator_length[self.ids].copy(),
+                    self.data.actuator_velocity[self.ids].copy())
+        return None
 
     def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The records since the last call: times (F,), lengths (F, M) m, velocities (F, M)
@@ -83,7 +139,8 @@ class FrameRecorder:
         return out
 
     def remove(self) -> None:
-        self.env.__dict__.pop("_step_mujoco_simulation", None)
+        self.env.__dict__.pop("_step_mujoco_simulation" if self.kind == "gymnasium"
+                              else "_step_physics", None)
 
 
 def hermite_knots(t0: np.ndarray, L0: np.ndarray, V0: np.ndarray, t1: np.ndarray,
@@ -129,14 +186,15 @@ class EnvTap:
         reason = frames_hook_reason(self.base)
         if substep_source == "frames" and reason is not None:
             raise ValueError(f"substep_source='frames' is not possible here: {reason}")
-        self.recorder = (FrameRecorder(self.base, muscles.ids)
+        self.recorder = (FrameRecorder(self.base, muscles.ids, self.model, self.data)
                          if substep_source != "hermite" and reason is None else None)
         self.substep_source = "frames" if self.recorder is not None else "hermite"
         self.why_hermite = reason if self.recorder is None else None
 
     def now(self) -> tuple[float, np.ndarray, np.ndarray]:
         """(time s, normalised lengths L0, velocities L0/s) of the env's current state."""
-        length, velocity = self.kinematics.of_data(self.data)
+        current = None if self.recorder is None else self.recorder.current()
+        length, velocity = self.kinematics.of_data(self.data) if current is None else current
         return (float(self.data.time), self.muscles.length_L0(length),
                 self.muscles.velocity_L0_s(velocity))
 

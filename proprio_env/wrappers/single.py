@@ -121,8 +121,12 @@ class SpindleAfferents(gym.Wrapper):
         method, step_s: the spindle integrator and its largest sub-step (default
             trapezoidal, 1 ms).
         max_speed_L0_s: the lengths' slew limit (L0/s).
+        backend: the spindle core, ``"numpy"`` (default), ``"c"`` (the C port's batch step,
+            built on first use; needs a C compiler or a cached build) or ``"auto"`` (C when
+            it builds or loads here, else numpy). Both give the same rates to ~1e-10 pps;
+            C costs a fraction of numpy (``scripts/bench_wrapper.py``).
 
-    Version history: v0 (first release).
+    Version history: v0 (first release); v0.1: ``backend``.
     """
 
     def __init__(self, env: gym.Env, muscles: Sequence[str] | None = None,
@@ -130,7 +134,8 @@ class SpindleAfferents(gym.Wrapper):
                  fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
                  observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
                  substep_source: str = "auto", method: str = "trapezoidal",
-                 step_s: float | None = None, max_speed_L0_s: float = 8.0) -> None:
+                 step_s: float | None = None, max_speed_L0_s: float = 8.0,
+                 backend: str = "numpy") -> None:
         super().__init__(env)
         model, _ = model_and_data(env)
         self.muscles: MuscleSet = find_muscles(model, muscles)
@@ -142,7 +147,7 @@ class SpindleAfferents(gym.Wrapper):
                                                  observation)
         self.tap = EnvTap(env, self.muscles, substep_source)
         self.bank = SpindleBank(1, self.muscles.range_low_L0, self.muscles.range_high_L0,
-                                params, fusimotor, method, step_s, max_speed_L0_s)
+                                params, fusimotor, method, step_s, max_speed_L0_s, backend)
         self._measured = np.ones((1, self.muscles.n))
         self._source = self.tap.substep_source
         self._started = False

@@ -62,6 +62,7 @@ def afferents_from_trajectory(
     method: str = "trapezoidal",
     step_s: float | None = None,
     max_speed_L0_s: float = 8.0,
+    backend: str = "numpy",
 ) -> TrajectoryAfferents:
     """Ia and II of every muscle of ``model`` along recorded joint motion.
 
@@ -78,7 +79,8 @@ def afferents_from_trajectory(
         qpos_t: (T, nq) joint positions.
         t_s: (T,) sample times, uniformly spaced.
         qvel_t: (T, nv) joint velocities, or None.
-        muscles, params, fusimotor, method, step_s, max_speed_L0_s: as the wrapper's.
+        muscles, params, fusimotor, method, step_s, max_speed_L0_s, backend: as the
+            wrapper's.
 
     Returns:
         :class:`TrajectoryAfferents`.
@@ -114,7 +116,7 @@ def afferents_from_trajectory(
     V = muscle_set.velocity_L0_s(velocity_m_s)
 
     bank = SpindleBank(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
-                       fusimotor, method, step_s, max_speed_L0_s)
+                       fusimotor, method, step_s, max_speed_L0_s, backend)
     bank.reset(None, t[:1], L[:1], V[:1])
     out = {key: np.empty_like(L) for key in ("ia_pps", "ii_pps", "length_L0", "velocity_L0_s",
                                               "gamma_static_pps", "gamma_dynamic_pps")}

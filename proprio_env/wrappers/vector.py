@@ -48,7 +48,8 @@ class SpindleAfferentsVector(VectorWrapper):
                  fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
                  observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
                  substep_source: str = "auto", method: str = "trapezoidal",
-                 step_s: float | None = None, max_speed_L0_s: float = 8.0) -> None:
+                 step_s: float | None = None, max_speed_L0_s: float = 8.0,
+                 backend: str = "numpy") -> None:
         super().__init__(env)
         subs = getattr(env, "envs", None)
         if subs is None:
@@ -73,7 +74,7 @@ class SpindleAfferentsVector(VectorWrapper):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.bank = SpindleBank(self.num_envs, self.muscles.range_low_L0,
                                 self.muscles.range_high_L0, params, fusimotor, method, step_s,
-                                max_speed_L0_s)
+                                max_speed_L0_s, backend)
         self.autoreset_mode = env.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         self._pending = np.zeros(self.num_envs, dtype=bool)
         self._measured = np.ones((self.num_envs, self.muscles.n))

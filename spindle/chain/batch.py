@@ -314,7 +314,7 @@ class BatchedArmChain:
 
     def _block(self, kind: str, t_s, signal, n_samples, sample_shape) -> BatchSample:
         n = self.n_arms
-        t = real_array(t_s)
+        t = np.array(real_array(t_s), dtype=float)  # a copy: the chain keeps its columns
         if t.ndim != 2 or t.shape[0] != n:
             raise ValueError(f"t_s has shape {t.shape}; expected ({n}, k) (n_arms, k)")
         k = t.shape[1]

@@ -5,6 +5,9 @@ The library is compiled on first use by :mod:`spindle.native.build` (a clear
 ``spindle.simulate(..., backend="c")``: the same validation and ValueErrors as the numpy path
 (:func:`spindle.simulate.prepare_inputs`), the same sub-step lengths
 (:func:`spindle.substeps.substep_lengths`), then one ``ps_spindle_run`` call per spindle.
+:class:`SpindleBatch` holds many independent spindles in one C array and advances them all by
+one ``ps_spindle_batch_step`` call per step (the C counterpart of ``spindle.core.advance`` on
+a :class:`~spindle.core.SpindleState`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from functools import cache
 
 import numpy as np
 
+from spindle.core import SpindleState, equilibrium_state
 from spindle.methods import Method
 from spindle.native import build
 from spindle.native.abi import Status, params_struct, plan_struct, real_type, status_name, structs
@@ -49,6 +53,14 @@ def library(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
     lib.ps_spindle_step_plan.argtypes = [P(PsSpindle), P(PsPlan), real, real, real, ptr_real,
                                          ptr_real]
     lib.ps_spindle_step_plan.restype = ctypes.c_int
+    # batches: arrays go as addresses (c_void_p), which costs a fraction of a microsecond per
+    # argument against several for POINTER conversions
+    vp = ctypes.c_void_p
+    lib.ps_spindle_batch_step.argtypes = [vp, ctypes.c_long, P(PsPlan), vp, vp, vp, vp, vp, vp,
+                                          P(ctypes.c_long)]
+    lib.ps_spindle_batch_step.restype = ctypes.c_int
+    lib.ps_spindle_batch_afferents.argtypes = [vp, ctypes.c_long, P(PsPlan), vp, vp]
+    lib.ps_spindle_batch_afferents.restype = ctypes.c_int
     return lib
 
 
@@ -174,3 +186,120 @@ def simulate(
             ii[i0:i1, col] = out_ii
     t = np.arange(shape[0]) * dt
     return SpindleResult(t, ia.reshape(shape), ii.reshape(shape), m.name, h, limited)
+
+
+STATE_FIELDS = (("tension_FU", 0, 3), ("polar_velocity_L0_s", 3, 6), ("velocity_root", 6, 9),
+                ("activation", 9, 12), ("length_L0", 12, 13), ("gamma_dyn_pps", 13, 14),
+                ("gamma_stat_pps", 14, 15))
+""":class:`~spindle.core.SpindleState` attribute -> its columns in a ``ps_spindle`` row
+(T[3], v[3], z[3], f[3], L, gd, gs)."""
+
+
+class SpindleBatch:
+    """``n`` independent C spindles in one contiguous ``ps_spindle`` array, all with the same
+    constants and step, advanced together by one ``ps_spindle_batch_step`` call per step
+    (each spindle's step is ``ps_spindle_step_plan``, the C port's planned step).
+
+    The state is read and written through :attr:`fields`, an (n, 15) numpy view of the C
+    array (columns: :data:`STATE_FIELDS`); :meth:`load` and :meth:`state` convert from and to
+    a :class:`spindle.core.SpindleState`.
+
+    Args:
+        state: the starting state (copied in), e.g. ``spindle.core.equilibrium_state(...)``.
+        params: spindle constants.
+        step_s: the step (s); :meth:`set_step` changes it.
+        theta: the theta-method (0.5: trapezoidal).
+        variant: ``"double"`` or ``"float"`` build.
+    """
+
+    def __init__(self, state: SpindleState, params: SpindleParams = CAT, step_s: float = 1e-3,
+                 theta: float = 0.5, variant: str = "double") -> None:
+        self.lib = library(variant)
+        self.variant = variant
+        self.dtype = _np_real(variant)
+        self.n = int(state.n)
+        self.theta = float(theta)
+        self._params = params_struct(params, variant)
+        self._plan = plan_struct(variant)()
+        self.step_s = float("nan")
+        self.set_step(step_s)
+        _, PsSpindle = structs(variant)
+        self._spindles = (PsSpindle * max(self.n, 1))()
+        self._backup = (PsSpindle * max(self.n, 1))()
+        self._address = ctypes.addressof(self._spindles)
+        self._backup_address = ctypes.addressof(self._backup)
+        self.fields = np.frombuffer(self._spindles, dtype=self.dtype).reshape(-1, 15)[:self.n]
+        self.ia_pps = np.zeros(self.n, dtype=self.dtype)
+        self.ii_pps = np.zeros(self.n, dtype=self.dtype)
+        self._failed = ctypes.c_long()
+        self.load(state)
+
+    def set_step(self, step_s: float) -> None:
+        """Use steps of ``step_s`` seconds from now on (the plan is rebuilt if it changed)."""
+        if step_s == self.step_s:
+            return
+        code = self.lib.ps_plan_init(ctypes.byref(self._plan), ctypes.byref(self._params),
+                                     step_s, self.theta)
+        if code != Status.PS_OK:
+            raise ValueError(f"ps_plan_init refused step {step_s!r} s, theta {self.theta!r}: "
+                             f"{status_name(code)}")
+        self.step_s = float(step_s)
+
+    def load(self, state: SpindleState, index: np.ndarray | None = None) -> None:
+        """Write ``state`` into the spindles ``index`` (None: all; ``state.n`` must match)."""
+        rows = self.fields if index is None else None
+        for name, a, b in STATE_FIELDS:
+            value = getattr(state, name)
+            value = value if value.ndim == 2 else value[:, None]
+            if rows is not None:
+                rows[:, a:b] = value
+            else:
+                self.fields[np.asarray(index), a:b] = value
+
+    def state(self) -> SpindleState:
+        """A copy of the spindles' state as a :class:`spindle.core.SpindleState`."""
+        out = equilibrium_state(np.ones(self.n))
+        for name, a, b in STATE_FIELDS:
+            column = self.fields[:, a:b].astype(float)
+            getattr(out, name)[...] = column if b - a == 3 else column[:, 0]
+        return out
+
+    def step(self, length_L0: np.ndarray, gamma_dyn_pps: np.ndarray,
+             gamma_stat_pps: np.ndarray, rates: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """One step of every spindle to the lengths and drives (n,) at its end.
+
+        Returns (Ia, II) in pps, (n,) arrays owned by the batch (valid until the next call;
+        not updated when ``rates`` is False). Atomic: on a failure every spindle is left as
+        it was; FloatingPointError for a step that did not converge or went non-finite,
+        ValueError for an input the C step refuses (out of range, too fast), each naming the
+        spindle and the status.
+        """
+        arrays = [np.ascontiguousarray(x, dtype=self.dtype)
+                  for x in (length_L0, gamma_dyn_pps, gamma_stat_pps)]
+        for x in arrays:
+            if x.shape != (self.n,):
+                raise ValueError(f"inputs of shape {x.shape} for {self.n} spindles; each must "
+                                 f"be ({self.n},)")
+        ia, ii = ((self.ia_pps.ctypes.data, self.ii_pps.ctypes.data) if rates
+                  else (None, None))
+        code = self.lib.ps_spindle_batch_step(
+            self._address, self.n, ctypes.byref(self._plan), arrays[0].ctypes.data,
+            arrays[1].ctypes.data, arrays[2].ctypes.data, self._backup_address, ia, ii,
+            ctypes.byref(self._failed))
+        if code != Status.PS_OK:
+            message = (f"C spindle {self._failed.value} of {self.n} failed with "
+                       f"{status_name(code)} (step {self.step_s!r} s); no spindle was advanced")
+            # PS_ERR_NONFINITE is also a non-finite input: that one is the caller's error
+            bad_input = not all(np.isfinite(x[self._failed.value]) for x in arrays)
+            if code == Status.PS_ERR_NO_CONVERGENCE or (code == Status.PS_ERR_NONFINITE
+                                                        and not bad_input):
+                raise FloatingPointError(message)
+            raise ValueError(message)
+        return self.ia_pps, self.ii_pps
+
+    def afferents(self) -> tuple[np.ndarray, np.ndarray]:
+        """(Ia, II) in pps of the current state, fresh (n,) arrays."""
+        ia, ii = np.empty(self.n, self.dtype), np.empty(self.n, self.dtype)
+        self.lib.ps_spindle_batch_afferents(self._address, self.n, ctypes.byref(self._plan),
+                                            ia.ctypes.data, ii.ctypes.data)
+        return ia, ii

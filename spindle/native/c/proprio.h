@@ -150,6 +150,28 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta);
 int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd1,
                          ps_real gs1, ps_real *ia, ps_real *ii);
 
+/* ---- batches of independent spindles ------------------------------------------------
+ * n spindles in one caller-owned array, all with the constants and step of plan q.
+ * Compiled unless PS_NO_BATCH is defined (a one-muscle device build does not need them).
+ *
+ * ps_spindle_batch_step: spindle j takes ps_spindle_step_plan(&s[j], q, L1[j], gd1[j],
+ * gs1[j], ia + j, ii + j) (ia, ii may be NULL: no rates). Atomic: if spindle j fails, every
+ * spindle is left exactly as it was before the call, the status of j's step is returned,
+ * *failed (if not NULL) receives j (-1 on success) and the contents of ia, ii are
+ * unspecified. No heap: `backup` is n states of working memory (ignored on entry,
+ * meaningless after). PS_ERR_ARGUMENT for n < 0, PS_ERR_NULL for a NULL s, q, L1, gd1, gs1
+ * or backup when n > 0.
+ *
+ * ps_spindle_batch_afferents: Ia and II (pps) of each state into ia[j], ii[j] (the rates
+ * ps_spindle_step_plan reports). PS_ERR_ARGUMENT for n < 0, PS_ERR_NULL as above. */
+#ifndef PS_NO_BATCH
+int ps_spindle_batch_step(ps_spindle *s, long n, const ps_plan *q, const ps_real *L1,
+                          const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
+                          ps_real *ia, ps_real *ii, long *failed);
+int ps_spindle_batch_afferents(const ps_spindle *s, long n, const ps_plan *q, ps_real *ia,
+                               ps_real *ii);
+#endif /* PS_NO_BATCH */
+
 /* ---- fixed-point step (Cortex-M0+ and other cores without an FPU) ---------------------
  * The trapezoidal-family step of ps_spindle_step_plan (theta in (0, 1], a = 0.3, p = 2) in
  * int32 arithmetic: products round(a * b / 2^24) from 16-bit halves (the M0+ multiplies

@@ -787,6 +787,54 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
     return finish_step(s, T1, v1, z1, f1, L1, gd1, gs1, r_ia, r_ii, ia, ii);
 }
 
+/* ---- batches of independent spindles ---------------------------------------------------
+ * Many spindles with one plan, one call per step: what a host running the spindles of many
+ * muscles (and many simulated bodies) needs, without a foreign call per spindle. Each
+ * spindle's step is ps_spindle_step_plan itself. Not needed on a one-muscle device
+ * (PS_NO_BATCH). */
+#ifndef PS_NO_BATCH
+
+int ps_spindle_batch_step(ps_spindle *s, long n, const ps_plan *q, const ps_real *L1,
+                          const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
+                          ps_real *ia, ps_real *ii, long *failed)
+{
+    long j, k;
+    int status;
+
+    if (failed != NULL) *failed = -1;
+    if (n < 0) return PS_ERR_ARGUMENT;
+    if (n == 0) return PS_OK;
+    if (s == NULL || q == NULL || L1 == NULL || gd1 == NULL || gs1 == NULL || backup == NULL) {
+        return PS_ERR_NULL;
+    }
+    for (j = 0; j < n; ++j) {
+        backup[j] = s[j];
+        status = ps_spindle_step_plan(&s[j], q, L1[j], gd1[j], gs1[j],
+                                      ia != NULL ? &ia[j] : NULL, ii != NULL ? &ii[j] : NULL);
+        if (status != PS_OK) {
+            /* spindle j is untouched by its failed step; put the ones before it back */
+            for (k = 0; k < j; ++k) s[k] = backup[k];
+            if (failed != NULL) *failed = j;
+            return status;
+        }
+    }
+    return PS_OK;
+}
+
+int ps_spindle_batch_afferents(const ps_spindle *s, long n, const ps_plan *q, ps_real *ia,
+                               ps_real *ii)
+{
+    long j;
+
+    if (n < 0) return PS_ERR_ARGUMENT;
+    if (n == 0) return PS_OK;
+    if (s == NULL || q == NULL || ia == NULL || ii == NULL) return PS_ERR_NULL;
+    for (j = 0; j < n; ++j) plan_afferents(q, s[j].T, s[j].L, &ia[j], &ii[j]);
+    return PS_OK;
+}
+
+#endif /* PS_NO_BATCH */
+
 /* ---- fixed-point step ------------------------------------------------------------------
  * Q formats and ranges: see proprio.h. The bound analysis of ps_plan_fx_init guarantees that
  * every product and sum below stays within +-2^30 (Q24: +-64) for states and inputs in range;

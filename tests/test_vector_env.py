@@ -1,0 +1,247 @@
+"""The native vector envs: Gymnasium conventions, and sub-env i equal to a single env reset
+with seed s + i and fed the same actions (the single env and its own chain are the reference)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode, VectorEnv
+
+import proprio_env  # noqa: F401  (registers the envs)
+import spindle.chain
+from proprio_env.encoder import CHUNK, Encoder, EncoderBank
+from spindle.chain.sensor import AX12
+
+IDS = ("proprio_env/ElbowReach-v0", "proprio_env/ProsthesisElbow-v0")
+SOURCES = ("exact", "reduced", "encoder")
+
+
+def random_actions(space, n, steps, seed=0, boundary=True):
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(space.low, space.high, (steps, n, *space.shape))
+    if boundary:  # every third step at the box's corners
+        a[::3] = np.where(rng.random(a[::3].shape) < 0.5, space.low, space.high)
+    return a.astype(np.float32)
+
+
+def compare_with_singles(env_id, n, steps, max_steps, seed=11, **kwargs):
+    """Largest |obs| difference between the vector env's sub-envs and single envs."""
+    venv = gym.make_vec(env_id, num_envs=n, max_episode_steps=max_steps, **kwargs)
+    singles = [gym.make(env_id, max_episode_steps=max_steps, **kwargs) for _ in range(n)]
+    obs, info = venv.reset(seed=seed)
+    ref = np.array([e.reset(seed=seed + i)[0] for i, e in enumerate(singles)])
+    err = np.abs(obs - ref).max()
+    done = np.zeros(n, dtype=bool)
+    resets = 0
+    for a in random_actions(venv.single_action_space, n, steps):
+        obs, reward, term, trunc, info = venv.step(a)
+        for i, e in enumerate(singles):
+            if done[i]:
+                o, i_info = e.reset()
+                done[i] = False
+                resets += 1
+                assert reward[i] == 0.0 and not trunc[i]
+            else:
+                o, r, te, tr, i_info = e.step(a[i])
+                done[i] = te or tr
+                assert (te, tr) == (term[i], trunc[i])
+                assert reward[i] == pytest.approx(r, abs=1e-9)
+            err = max(err, np.abs(obs[i] - o).max())
+            assert info["angle_deg"][i] == pytest.approx(i_info["angle_deg"], abs=1e-9)
+            assert info["sensor_samples"][i] == i_info["sensor_samples"]
+        assert obs.dtype == np.float32 and venv.observation_space.contains(obs)
+    venv.close()
+    return err, resets
+
+
+@pytest.mark.parametrize("backend", ["numpy", "c"])
+@pytest.mark.parametrize("source", SOURCES)
+@pytest.mark.parametrize("env_id", IDS)
+def test_sub_env_equals_single_env_through_autoresets(env_id, source, backend):
+    err, resets = compare_with_singles(env_id, 2, 11, 4, afferent_source=source,
+                                       backend=backend)
+    assert resets == 2 * 2  # each sub-env reset twice after truncation at step 4
+    assert err <= 1e-6
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("source", SOURCES)
+@pytest.mark.parametrize("env_id", IDS)
+def test_sub_env_equals_single_env_over_full_episodes(env_id, source):
+    err, resets = compare_with_singles(env_id, 3, 420, 200, afferent_source=source,
+                                       backend="c")
+    assert resets == 3 * 2 and err <= 1e-6
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_make_vec_builds_the_native_vector_env(env_id):
+    for mode in (None, "vector_entry_point"):
+        env = gym.make_vec(env_id, num_envs=3, vectorization_mode=mode)
+        assert isinstance(env, VectorEnv) and type(env).__module__ == "proprio_env.envs.vector"
+        assert env.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
+        assert env.max_episode_steps == 200  # the registered truncation, passed by make_vec
+        single = gym.make(env_id)
+        assert env.single_observation_space == single.observation_space
+        assert env.single_action_space == single.action_space
+        assert env.observation_space.shape == (3, *single.observation_space.shape)
+        obs, info = env.reset(seed=0)
+        assert obs.dtype == np.float32 and obs.shape == (3, 5)
+        obs, reward, term, trunc, info = env.step(env.action_space.sample())
+        assert reward.shape == term.shape == trunc.shape == (3,)
+        for key, value in single.reset(seed=0)[1].items():
+            assert np.shape(info[key]) == (3, *np.shape(value)), key
+        env.close()
+        assert env.closed
+
+
+def test_truncates_at_max_episode_steps_then_autoresets():
+    env = gym.make_vec(IDS[0], num_envs=2, max_episode_steps=3, afferent_source="reduced")
+    env.reset(seed=1)
+    a = np.full((2, 2), 0.5, dtype=np.float32)
+    truncs = [env.step(a)[3].copy() for _ in range(5)]
+    assert [t.tolist() for t in truncs] == [[False, False], [False, False], [True, True],
+                                            [False, False], [False, False]]
+    _obs, _, _, _, info = env.step(a)
+    assert np.all(info["time_s"] == pytest.approx(0.04))  # two steps after the autoreset
+    env.close()
+
+
+def test_two_threads_give_the_same_observations():
+    out = []
+    for threads in (1, 2):
+        env = gym.make_vec(IDS[1], num_envs=5, num_threads=threads, max_episode_steps=4)
+        obs = [env.reset(seed=3)[0]]
+        for a in random_actions(env.single_action_space, 5, 7):
+            obs.append(env.step(a)[0])
+        env.close()
+        out.append(np.array(obs))
+    np.testing.assert_array_equal(out[0], out[1])
+
+
+def test_reset_mask_and_seed_list():
+    env = gym.make_vec(IDS[1], num_envs=3, afferent_source="reduced")
+    obs0, _ = env.reset(seed=[5, 6, 7])
+    obs1, _ = env.reset(seed=5)
+    np.testing.assert_array_equal(obs0, obs1)
+    env.step(np.zeros((3, 1), dtype=np.float32))
+    mask = np.array([False, True, False])
+    obs2, info = env.reset(seed=[None, 6, None], options={"reset_mask": mask})
+    np.testing.assert_array_equal(obs2[1], obs1[1])
+    assert info["time_s"].tolist() == pytest.approx([0.02, 0.0, 0.02])
+    _obs3, info = env.reset(options={"target_deg": 40.0, "angle_deg": np.array([20, 30, 50])})
+    assert info["target_deg"].tolist() == [40.0] * 3
+    assert info["angle_deg"] == pytest.approx([20, 30, 50])
+    with pytest.raises(ValueError, match="reset_mask"):
+        env.reset(options={"reset_mask": np.zeros(3, dtype=bool)})
+    with pytest.raises(ValueError, match="num_envs=3"):
+        env.reset(seed=[1, 2])
+
+
+def test_bad_actions_raise_and_leave_the_state():
+    env = gym.make_vec(IDS[0], num_envs=2, afferent_source="reduced")
+    env.reset(seed=0)
+    before = env.unwrapped.physics.state.copy()
+    for bad in (np.full((2, 2), np.nan), np.full((2, 2), 1.5), np.zeros((2, 3)),
+                np.zeros((2, 2), dtype=complex)):
+        with pytest.raises(ValueError, match="action"):
+            env.step(bad)
+    np.testing.assert_array_equal(env.unwrapped.physics.state, before)
+    clipped = gym.make_vec(IDS[0], num_envs=2, clip_actions=True)
+    clipped.reset(seed=0)
+    assert np.all(np.isfinite(clipped.step(np.full((2, 2), 7.0))[0]))
+    with pytest.raises(ValueError, match="num_envs"):
+        gym.make_vec(IDS[0], num_envs=0)
+    with pytest.raises(ValueError, match="num_threads"):
+        gym.make_vec(IDS[0], num_envs=2, num_threads=0)
+
+
+def test_backend_auto_is_resolved_and_reported():
+    env = gym.make(IDS[0])
+    assert env.unwrapped.backend == spindle.chain.resolve_backend("auto")
+    assert env.unwrapped.backend in ("numpy", "c")
+    venv = gym.make_vec(IDS[0], num_envs=2)
+    assert venv.unwrapped.backend == env.unwrapped.backend
+
+
+def test_encoder_chunks_give_the_same_readings_one_by_one_in_blocks_and_in_a_bank():
+    """Readings drawn one at a time, in blocks, and by an EncoderBank (over more than one
+    chunk, interleaved with sample times) are the same numbers for the same seed."""
+    angle = np.linspace(10.0, 120.0, 3 * CHUNK + 5)
+    one = Encoder(rng=np.random.default_rng(4))
+    times1 = [0.0]
+    for _ in range(angle.size):
+        times1.append(one.next_sample_time_s(times1[-1]))
+    counts1 = [one.read(a) for a in angle]
+    blk = Encoder(rng=np.random.default_rng(4))
+    counts2 = np.concatenate([blk.read_block(angle[:7]), blk.read_block(angle[7:150]),
+                              blk.read_block(angle[150:])])
+    np.testing.assert_array_equal(counts1, counts2)
+    # the bank: the same intervals; a flat angle so that interpolation plays no part
+    bank = EncoderBank(2, AX12, window=40)
+    for i in range(2):
+        bank.reset(i, 0.0, 65.0, np.random.default_rng(4))
+    t_bank = []
+    for k in range(1, 19):
+        t = np.tile(np.linspace(0.02 * (k - 1) + 0.002, 0.02 * k, 10), (2, 1))
+        read_t, _counts, n = bank.step(t, np.full((2, 10), 65.0))
+        assert n[0] == n[1] and np.array_equal(read_t[0], read_t[1], equal_nan=True)
+        t_bank += read_t[0, :n[0]].tolist()
+    np.testing.assert_array_equal(t_bank, times1[1:len(t_bank) + 1])
+    assert len(t_bank) > CHUNK
+
+
+def test_encoder_noise_and_glitch_rates():
+    """The chunked draws keep the encoder's statistics: noise std, glitch rate, jitter."""
+    p = AX12
+    enc = Encoder(p, rng=1)
+    n = 20000
+    x = enc.read_block(np.full(n, 65.0))
+    valid = (x >= 0) & (x <= p.max_count) & (x == np.rint(x))
+    glitch_rate = 1 - valid.mean()
+    assert glitch_rate <= 3 * p.invalid_rate + 3e-3
+    t = [0.0]
+    for _ in range(5000):
+        t.append(enc.next_sample_time_s(t[-1]))
+    d = np.diff(t)
+    assert d.mean() == pytest.approx(p.period_s, rel=0.02)
+    assert d.std() == pytest.approx(min(p.jitter_s, 0.4 * p.period_s), rel=0.1)
+    assert np.all(d >= 0.6 * p.period_s - 1e-15)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "c"])
+def test_batched_chain_does_not_keep_the_callers_block_buffers(backend):
+    """The vector env reuses its physics buffers every step: a batched chain fed blocks from
+    one buffer that is overwritten between pushes must equal single chains fed copies."""
+    config = spindle.chain.ChainConfig(backend=backend)
+    batch = spindle.chain.make_batched_chain(2, config)
+    singles = [spindle.chain.make_chain(config) for _ in range(2)]
+    angle0 = np.array([40.0, 90.0])
+    batch.reset(angle0)
+    for i, c in enumerate(singles):
+        c.reset(float(angle0[i]))
+    t_buf, a_buf = np.empty((2, 10)), np.empty((2, 10))
+    for k in range(6):
+        t_buf[:] = 0.02 * k + 0.002 * np.arange(1, 11)
+        a_buf[:] = angle0[:, None] + 20.0 * np.sin(8.0 * t_buf)
+        out = batch.push_angle_block(t_buf, a_buf)
+        for i, c in enumerate(singles):
+            ref = c.push_angle_block(t_buf[i].copy(), a_buf[i].copy())
+            np.testing.assert_allclose(out.ia_pps[i], ref.ia_pps, rtol=0, atol=1e-9)
+            assert out.t_s[i] == ref.t_s
+
+
+def test_fibre_lengths_of_both_muscles_equal_the_one_muscle_function():
+    from proprio_env.muscle_length import FibreLengths, fibre_length_L0
+
+    geometries = gym.make(IDS[0]).unwrapped._geometries
+    both = FibreLengths(geometries)
+    slack = np.array([g.tendon_slack_length_m for g in geometries])
+    mtu = slack + np.random.default_rng(0).uniform(0.01, 0.2, (3, 10, 2))
+    ref = np.stack([fibre_length_L0(mtu[..., j], g) for j, g in enumerate(geometries)], -1)
+    np.testing.assert_array_equal(both(mtu), ref)
+    for bad, match in ((np.nan, "finite"), (np.inf, "finite"), (0.05, "slack")):
+        mtu_bad = mtu.copy()
+        mtu_bad[1, 4, 1] = bad
+        with pytest.raises(ValueError, match=f"{geometries[1].name}.*{match}"):
+            both(mtu_bad)
