@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--engine", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
-    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
+    parser.add_argument("--backend", choices=("c", "numpy", "auto"), default="c",
                         help="spindle chain backend (c: compiled on first use; needs a C "
                              "compiler)")
     parser.add_argument("--afferent-source", default=None,
