@@ -1,15 +1,20 @@
 """Train a PPO controller that feels the elbow only through its spindles; compare it with a
 zero and a random policy on held-out targets.
 
-    python scripts/train.py --timesteps 250000 --max-minutes 80 --out out/train_full \
+    python scripts/train.py --timesteps 250000 --out out/train \
         --curve docs/img/train_curve.png          # the documented full run (docs/envs.md)
     python scripts/train.py --timesteps 256 --smoke --out /tmp/smoke   # seconds
+    python scripts/train.py --engine rllib --smoke --out /tmp/smoke_rllib   # about a minute
+    python scripts/train.py --engine rllib --num-env-runners 2 --checkpoint-dir ckpt \
+        --out out/train_rllib                     # docs/training.md
 
-Prints progress lines (steps, steps/s, ETA, training |error|) and at the end one line per
-policy ``<policy> mean_abs_err_deg=<float>``; writes ``eval.json``, ``curve.csv`` and the
-policy (``policy.zip``) into ``--out`` and the learning curve PNG to ``--curve``. Needs the
-``train`` extra. The protocol (held-out target bands, scoring) is
-:mod:`proprio_env.experiments.training`.
+Engines: ``sb3`` (stable-baselines3 in one process on the vector env; extra ``train``) and
+``rllib`` (Ray RLlib, env runners each stepping a vector env, local Ray or ``--address``;
+extra ``distributed``). Prints progress lines (steps, steps/s, ETA, training |error|) and at
+the end one line per policy ``<policy> mean_abs_err_deg=<float>``; writes ``eval.json``,
+``curve.csv`` and the policy (``policy.zip`` for sb3, the RLModule directory ``policy/`` for
+rllib) into ``--out`` and the learning curve PNG to ``--curve``. The protocol (held-out
+target bands, scoring) is :mod:`proprio_env.experiments.training`.
 """
 
 from __future__ import annotations
@@ -18,13 +23,17 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from proprio_env.experiments.training import POLICY_NAMES, TrainConfig, run
+from proprio_env.experiments.training import POLICY_NAMES, TrainConfig, sb3_ppo_kwargs
+from proprio_env.experiments.training import run as run_sb3
+from proprio_env.experiments.training_rllib import RLlibOptions
+from proprio_env.experiments.training_rllib import run as run_rllib
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--engine", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
-    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
+    parser.add_argument("--backend", choices=("c", "numpy", "auto"), default="c",
                         help="spindle chain backend (c: compiled on first use; needs a C "
                              "compiler)")
     parser.add_argument("--afferent-source", default=None,
@@ -41,13 +50,53 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="learning-curve PNG (default: <out>/curve.png)")
     parser.add_argument("--smoke", action="store_true",
                         help="tiny rollouts and evaluations (tests)")
+    sb3 = parser.add_argument_group("sb3 engine")
+    sb3.add_argument("--num-envs", type=int, default=None,
+                     help="envs in the vector env (default 8; divides the 2048-step rollout)")
+    rllib = parser.add_argument_group("rllib engine")
+    rllib.add_argument("--address", default=None,
+                       help="a running Ray cluster (e.g. auto, host:6379); default: start a "
+                            "local Ray instance with --num-cpus CPUs")
+    rllib.add_argument("--num-cpus", type=int, default=2, help="CPUs of the local Ray instance")
+    rllib.add_argument("--num-env-runners", type=int, default=1)
+    rllib.add_argument("--num-envs-per-runner", type=int, default=None,
+                       help="envs in each runner's vector env (default 8)")
+    rllib.add_argument("--checkpoint-dir", type=Path, default=None)
+    rllib.add_argument("--checkpoint-every", type=int, default=10,
+                       help="iterations (2048 env steps each) between checkpoints")
+    rllib.add_argument("--resume", action="store_true",
+                       help="restore --checkpoint-dir and train on to --timesteps")
     args = parser.parse_args(argv)
     if args.timesteps < 1 or args.max_minutes <= 0 or args.eval_episodes < 1:
         parser.error("--timesteps, --max-minutes and --eval-episodes must be positive")
-    config = TrainConfig(args.env, args.backend, args.afferent_source, args.timesteps,
-                         args.max_minutes, args.seed, args.eval_episodes, args.curve_episodes,
-                         args.eval_every)
-    results = run(args.out, quick=args.smoke, config=config, curve=args.curve)
+    if args.engine == "sb3":
+        given = [name for name, value in (("--address", args.address),
+                                          ("--num-envs-per-runner", args.num_envs_per_runner),
+                                          ("--checkpoint-dir", args.checkpoint_dir))
+                 if value is not None] + (["--resume"] if args.resume else [])
+        if given:
+            parser.error(f"{', '.join(given)} belong to --engine rllib")
+        num_envs = 8 if args.num_envs is None else args.num_envs
+    else:
+        if args.num_envs is not None:
+            parser.error("--num-envs belongs to --engine sb3 (rllib: --num-envs-per-runner)")
+        num_envs = 8 if args.num_envs_per_runner is None else args.num_envs_per_runner
+    try:  # argument checks up front; errors while training keep their traceback
+        config = TrainConfig(args.env, args.backend, args.afferent_source, args.timesteps,
+                             args.max_minutes, args.seed, args.eval_episodes,
+                             args.curve_episodes, args.eval_every, num_envs)
+        if args.engine == "sb3":
+            sb3_ppo_kwargs(num_envs, args.smoke)
+        else:
+            options = RLlibOptions(args.address, args.num_cpus, args.num_env_runners,
+                                   args.checkpoint_dir, args.checkpoint_every, args.resume)
+    except ValueError as exc:
+        parser.error(str(exc))
+    if args.engine == "sb3":
+        results = run_sb3(args.out, quick=args.smoke, config=config, curve=args.curve)
+    else:
+        results = run_rllib(args.out, quick=args.smoke, config=config, options=options,
+                            curve=args.curve)
     steps, train_s = results["train"]["timesteps"], results["train"]["wall_s"]
     print(f"trained {steps} steps in {train_s / 60:.1f} min ({steps / train_s:.0f} steps/s)")
     for name in POLICY_NAMES:

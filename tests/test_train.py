@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -21,6 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "train.py"
 
 from proprio_env.experiments import training as train  # noqa: E402
+from proprio_env.experiments import training_rllib as trl  # noqa: E402
 
 
 def test_held_out_bands_are_never_trained_on():
@@ -58,3 +60,79 @@ def test_smoke_run_trains_evaluates_and_plots(tmp_path):
     assert [int(r["timesteps"]) for r in rows] == [128, 256]  # one row per 128-step rollout
     assert all(float(r["elapsed_s"]) > 0 and np.isfinite(float(r["train_abs_err_deg"]))
                for r in rows)
+
+
+def test_options_refuse_bad_values():
+    with pytest.raises(ValueError, match="num_envs=0"):
+        train.TrainConfig(num_envs=0)
+    with pytest.raises(ValueError, match="num_envs=True"):
+        train.TrainConfig(num_envs=True)
+    with pytest.raises(ValueError, match="num_env_runners=-1"):
+        trl.RLlibOptions(num_env_runners=-1)
+    with pytest.raises(ValueError, match="num_cpus=0"):
+        trl.RLlibOptions(num_cpus=0)
+    with pytest.raises(ValueError, match="checkpoint_dir"):
+        trl.RLlibOptions(resume=True)
+
+
+def test_env_id_imports_the_package_that_registers_it():
+    assert trl.rllib_env_id("proprio_env/ElbowReach-v0") == "proprio_env:proprio_env/ElbowReach-v0"
+    # a fresh interpreter that never imported proprio_env builds the env from the prefixed id
+    code = ("import gymnasium as gym; env = gym.make('proprio_env:proprio_env/ElbowReach-v0'); "
+            "print(env.reset(seed=0)[0].shape)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "(5,)"
+
+
+def test_runner_seeds_are_disjoint():
+    seeds = {trl.runner_seed(7, k, 8) + i for k in range(1, 5) for i in range(8)}
+    assert seeds == set(range(7 + 8, 7 + 5 * 8))
+
+
+def test_module_policy_maps_normalised_actions_onto_the_box():
+    torch = pytest.importorskip("torch")
+
+    class Dist:
+        def __init__(self, mean):
+            self.mean = mean
+
+        @classmethod
+        def from_logits(cls, logits):
+            return cls(logits[:, :2])
+
+        def to_deterministic(self):
+            return self
+
+        def sample(self):
+            return self.mean
+
+    class Module:
+        def get_inference_action_dist_cls(self):
+            return Dist
+
+        def forward_inference(self, batch):
+            obs = batch["obs"]
+            return {"action_dist_inputs": torch.cat([obs[:, :2], obs[:, :2]], dim=1)}
+
+    space = gym.spaces.Box(0.0, 1.0, (2,), dtype=np.float32)
+    policy = trl.module_policy(Module(), space)
+    # [-1, 1] -> [0, 1]; beyond the range clipped
+    np.testing.assert_allclose(policy(np.array([-1.0, 0.0, 9.0], np.float32), None), [0.0, 0.5])
+    np.testing.assert_allclose(policy(np.array([1.0, 3.0, 9.0], np.float32), None), [1.0, 1.0])
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--num-envs", "3"], "num_envs=3 must divide the rollout of 2048"),
+    (["--address", "auto"], "--address belong to --engine rllib"),
+    (["--engine", "rllib", "--num-envs", "4"], "--num-envs belongs to --engine sb3"),
+    (["--engine", "rllib", "--resume"], "resume=True needs a checkpoint_dir"),
+])
+def test_bad_arguments_are_refused_before_anything_starts(args, message, tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    run = subprocess.run([sys.executable, str(SCRIPT), *args, "--out", str(tmp_path)],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert run.returncode == 2
+    assert message in run.stderr
+    assert not (tmp_path / "eval.json").exists()

@@ -6,9 +6,14 @@ evaluation episodes use targets spread evenly over those bands only, from seeded
 angles. The score of an episode is its mean |elbow angle - target| over the last second
 (hold phase, 50 steps at 50 Hz); the reported figure is the mean over episodes.
 
-Needs the ``train`` extra (stable-baselines3, a CPU torch, matplotlib, tqdm). Runs on one
-core (torch threads = 1, one env in-process). :func:`run` prints progress lines (steps,
-steps/s, ETA, training |error|); the command line is ``python scripts/train.py``.
+Two engines train on the same protocol and write the same files (``eval.json``,
+``curve.csv``, the curve PNG, the policy): stable-baselines3 here (:func:`run`; the ``train``
+extra: stable-baselines3, a CPU torch, matplotlib, tqdm), one process, torch on one thread,
+stepping the native vector env (``gym.make_vec``) through :class:`proprio_env.sb3_vec.SB3VectorEnv`;
+and Ray RLlib (:mod:`proprio_env.experiments.training_rllib`, the ``distributed`` extra).
+Both collect :data:`ROLLOUT_STEPS` env steps per PPO update whatever the number of envs.
+Progress lines (steps, steps/s, ETA, training |error|) are printed; the command line is
+``python scripts/train.py``.
 """
 
 from __future__ import annotations
@@ -29,6 +34,11 @@ HELD_OUT_BANDS = ((35.0, 40.0), (60.0, 65.0), (85.0, 90.0))
 TARGET_SPAN_DEG = (15.0, 115.0)
 HOLD_STEPS = 50
 """The last 50 steps (1 s at 50 Hz) of an episode score it."""
+ROLLOUT_STEPS = 2048
+"""Env steps per PPO update (over all envs: SB3's ``n_steps * num_envs``, RLlib's train batch)."""
+SMOKE_ROLLOUT_STEPS = 128
+"""The same for ``quick`` (smoke) runs."""
+CURVE_COLUMNS = ("timesteps", "elapsed_s", "train_abs_err_deg", "held_out_abs_err_deg")
 
 
 def training_ranges(span: tuple[float, float] = TARGET_SPAN_DEG,
@@ -69,6 +79,21 @@ def make_env(env_id: str, env_kwargs: dict[str, Any], ranges=None, seed: int | N
     return env
 
 
+def make_vector_env(env_id: str, env_kwargs: dict[str, Any], num_envs: int, ranges=None,
+                    vectorization_mode: str | None = None):
+    """``gym.make_vec(env_id, num_envs)``: the env's own vector env when it declares one
+    (``vector_entry_point``), else Gymnasium's ``SyncVectorEnv``; or ``vectorization_mode``."""
+    import gymnasium as gym
+
+    import proprio_env  # noqa: F401  (registers the envs)
+
+    kwargs = dict(env_kwargs)
+    if ranges is not None:
+        kwargs["target_ranges_deg"] = ranges
+    return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode=vectorization_mode,
+                        **kwargs)
+
+
 def evaluate(policy, env_id: str, env_kwargs: dict[str, Any], n_episodes: int, seed: int
              ) -> dict[str, float]:
     """Mean (and spread) over held-out episodes of the hold-phase mean |error| (deg).
@@ -92,6 +117,12 @@ def evaluate(policy, env_id: str, env_kwargs: dict[str, Any], n_episodes: int, s
             "episodes": n_episodes}
 
 
+CURVE_SEED = 10_000
+"""Seed of the learning curve's held-out episodes."""
+EVAL_SEED = 20_000
+"""Seed of the final held-out evaluation."""
+
+
 def zero_policy(obs, env):
     low, high = env.action_space.low, env.action_space.high
     return np.clip(np.zeros(env.action_space.shape, dtype=np.float32), low, high)
@@ -99,6 +130,16 @@ def zero_policy(obs, env):
 
 def random_policy(obs, env):
     return env.action_space.sample()
+
+
+def progress_line(steps: int, total: int, elapsed_s: float, train_err: float,
+                  held: float) -> str:
+    """One progress line (both engines print the same)."""
+    rate = steps / max(elapsed_s, 1e-9)
+    eta = max(total - steps, 0) / max(rate, 1e-9)
+    return (f"steps {steps:7d}/{total} | {rate:6.1f} steps/s | elapsed {elapsed_s / 60:5.1f} min"
+            f" | ETA {eta / 60:5.1f} min | train |err| {train_err:6.2f} deg"
+            + (f" | held-out |err| {held:6.2f} deg" if not math.isnan(held) else ""))
 
 
 def build_callback(config: TrainConfig, env_kwargs: dict[str, Any], curve_rows: list,
@@ -122,27 +163,21 @@ def build_callback(config: TrainConfig, env_kwargs: dict[str, Any], curve_rows: 
         def _on_rollout_end(self) -> None:
             steps = self.num_timesteps
             elapsed = time.perf_counter() - start
-            rate = steps / max(elapsed, 1e-9)
             train_err = float(np.mean(self._errors)) if self._errors else math.nan
             self._errors = []
             held = math.nan
             if steps >= self._next_eval:
                 held = evaluate(lambda o, e: self.model.predict(o, deterministic=True)[0],
                                 config.env_id, env_kwargs, config.curve_episodes,
-                                seed=10_000)["mean_abs_err_deg"]
+                                seed=CURVE_SEED)["mean_abs_err_deg"]
                 self._next_eval = steps + config.eval_every
             curve_rows.append((steps, elapsed, train_err, held))
-            eta = (config.timesteps - steps) / max(rate, 1e-9)
-            print(f"steps {steps:7d}/{config.timesteps} | {rate:6.1f} steps/s | "
-                  f"elapsed {elapsed / 60:5.1f} min | ETA {eta / 60:5.1f} min | "
-                  f"train |err| {train_err:6.2f} deg"
-                  + (f" | held-out |err| {held:6.2f} deg" if not math.isnan(held) else ""),
-                  flush=True)
+            print(progress_line(steps, config.timesteps, elapsed, train_err, held), flush=True)
 
     return Progress()
 
 
-def plot_curve(rows, results, path: Path) -> None:
+def plot_curve(rows, results, path: Path, engine: str = "sb3") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,7 +196,9 @@ def plot_curve(rows, results, path: Path) -> None:
     ax.set_xlabel("environment steps")
     ax.set_ylabel("|elbow angle - target| (deg)")
     ax.set_yscale("log")
-    ax.set_title("PPO on ElbowReach-v0: proprioception only (Ia, II + target)", fontsize=9)
+    env_name = results["train"]["env"].split("/")[-1]
+    ax.set_title(f"PPO ({engine}) on {env_name}: proprioception only (Ia, II + target)",
+                 fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -184,11 +221,17 @@ class TrainConfig:
     eval_episodes: int = 30
     curve_episodes: int = 6
     eval_every: int = 20_000
+    num_envs: int = 8
+    """Envs stepped together in one process (SB3: the vector env; RLlib: per env runner)."""
 
     def __post_init__(self) -> None:
         if self.timesteps < 1 or not self.max_minutes > 0 or self.eval_episodes < 1:
             raise ValueError(f"timesteps={self.timesteps!r}, max_minutes={self.max_minutes!r} "
                              f"and eval_episodes={self.eval_episodes!r} must be positive")
+        if isinstance(self.num_envs, bool) or not isinstance(self.num_envs, int) or not (
+                1 <= self.num_envs <= SMOKE_ROLLOUT_STEPS):
+            raise ValueError(f"num_envs={self.num_envs!r} must be an int in "
+                             f"1..{SMOKE_ROLLOUT_STEPS}")
 
     def env_kwargs(self) -> dict[str, Any]:
         kwargs: dict[str, Any] = {"backend": self.backend}
@@ -200,57 +243,95 @@ class TrainConfig:
 POLICY_NAMES = ("ppo", "zero", "random")
 
 
+def sb3_ppo_kwargs(num_envs: int, quick: bool = False) -> dict[str, Any]:
+    """SB3 PPO's settings: ``n_steps`` per env so that a rollout holds :data:`ROLLOUT_STEPS`
+    (``quick``: :data:`SMOKE_ROLLOUT_STEPS`) env steps whatever ``num_envs`` is."""
+    rollout = SMOKE_ROLLOUT_STEPS if quick else ROLLOUT_STEPS
+    if rollout % num_envs:
+        raise ValueError(f"num_envs={num_envs} must divide the rollout of {rollout} env steps "
+                         "(a power of two up to 128 does)")
+    kwargs: dict[str, Any] = dict(n_steps=rollout // num_envs, batch_size=64, gamma=0.98,
+                                  policy_kwargs=dict(log_std_init=-0.5))
+    if quick:
+        kwargs.update(batch_size=32, n_epochs=2)
+    return kwargs
+
+
+def quick_config(config: TrainConfig) -> TrainConfig:
+    """The smoke run's evaluation sizes."""
+    return dataclasses.replace(config, eval_episodes=3, curve_episodes=3)
+
+
+def evaluate_policies(ppo_policy, config: TrainConfig) -> dict[str, Any]:
+    """The trained ``ppo_policy(obs, env) -> action`` and the zero and random policies on the
+    held-out targets (:func:`evaluate`, seed :data:`EVAL_SEED`)."""
+    policies = {"ppo": ppo_policy, "zero": zero_policy, "random": random_policy}
+    return {name: evaluate(policy, config.env_id, config.env_kwargs(), config.eval_episodes,
+                           seed=EVAL_SEED)
+            for name, policy in policies.items()}
+
+
+def train_record(config: TrainConfig, engine: str, timesteps: int, wall_s: float,
+                 **extra: Any) -> dict[str, Any]:
+    """``eval.json``'s ``"train"`` entry."""
+    return {"engine": engine, "timesteps": int(timesteps), "wall_s": wall_s,
+            "held_out_bands_deg": HELD_OUT_BANDS, "env": config.env_id,
+            "afferent_source": config.afferent_source, "backend": config.backend,
+            "seed": config.seed, "num_envs": config.num_envs, **extra}
+
+
+def write_results(out_dir: Path, results: dict[str, Any], rows: list, curve_path: Path,
+                  engine: str) -> None:
+    """``eval.json``, ``curve.csv`` into ``out_dir`` and the learning curve to ``curve_path``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "eval.json").write_text(json.dumps(results, indent=2))
+    with (out_dir / "curve.csv").open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(CURVE_COLUMNS)
+        writer.writerows(rows)
+    if rows:
+        plot_curve(rows, results, curve_path, engine)
+
+
 def run(out_dir: Path, quick: bool = False, config: TrainConfig | None = None,
         curve: Path | None = None) -> dict[str, Any]:
-    """Train PPO, evaluate it and the zero and random policies on the held-out targets; write
+    """Train PPO with stable-baselines3 on ``config.num_envs`` envs of the vector env,
+    evaluate it and the zero and random policies on the held-out targets; write
     ``policy.zip``, ``eval.json``, ``curve.csv`` into ``out_dir`` and the learning curve to
     ``curve`` (default ``out_dir/curve.png``). ``quick``: tiny rollouts and evaluations (the
     test suite's smoke run). Returns what ``eval.json`` holds."""
     import torch
     from stable_baselines3 import PPO
-    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from proprio_env.sb3_vec import SB3VectorEnv
 
     config = TrainConfig() if config is None else config
     if quick:
-        config = dataclasses.replace(config, eval_episodes=3, curve_episodes=3)
+        config = quick_config(config)
+    ppo_kwargs = sb3_ppo_kwargs(config.num_envs, quick)
     out_dir = Path(out_dir)
     torch.set_num_threads(1)
     env_kwargs = config.env_kwargs()
     out_dir.mkdir(parents=True, exist_ok=True)
     curve_path = curve if curve is not None else out_dir / "curve.png"
-    env = Monitor(make_env(config.env_id, env_kwargs, training_ranges(), seed=config.seed))
-    ppo_kwargs: dict[str, Any] = dict(n_steps=2048, batch_size=64, gamma=0.98,
-                                      policy_kwargs=dict(log_std_init=-0.5))
-    if quick:
-        ppo_kwargs.update(n_steps=128, batch_size=32, n_epochs=2)
+    venv = make_vector_env(config.env_id, env_kwargs, config.num_envs, training_ranges())
+    env = VecMonitor(SB3VectorEnv(venv))
     model = PPO("MlpPolicy", env, seed=config.seed, verbose=0, device="cpu", **ppo_kwargs)
     rows: list[tuple[int, float, float, float]] = []
     start = time.perf_counter()
-    print(f"training PPO on {config.env_id} for up to {config.timesteps} steps or "
+    print(f"training PPO (stable-baselines3, {config.num_envs} envs x {ppo_kwargs['n_steps']} "
+          f"steps per rollout) on {config.env_id} for up to {config.timesteps} steps or "
           f"{config.max_minutes:g} min (held-out bands {HELD_OUT_BANDS} deg)", flush=True)
     model.learn(config.timesteps, callback=build_callback(config, env_kwargs, rows, start))
     train_s = time.perf_counter() - start
     model.save(out_dir / "policy.zip")
     env.close()
 
-    policies = {
-        "ppo": lambda o, e: model.predict(o, deterministic=True)[0],
-        "zero": zero_policy,
-        "random": random_policy,
-    }
-    results: dict[str, Any] = {
-        name: evaluate(policy, config.env_id, env_kwargs, config.eval_episodes, seed=20_000)
-        for name, policy in policies.items()
-    }
-    results["train"] = {"timesteps": int(model.num_timesteps), "wall_s": train_s,
-                        "held_out_bands_deg": HELD_OUT_BANDS, "env": config.env_id,
-                        "afferent_source": config.afferent_source, "backend": config.backend,
-                        "seed": config.seed}
-    (out_dir / "eval.json").write_text(json.dumps(results, indent=2))
-    with (out_dir / "curve.csv").open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(["timesteps", "elapsed_s", "train_abs_err_deg", "held_out_abs_err_deg"])
-        writer.writerows(rows)
-    if rows:
-        plot_curve(rows, results, curve_path)
+    results: dict[str, Any] = evaluate_policies(
+        lambda o, e: model.predict(o, deterministic=True)[0], config)
+    results["train"] = train_record(config, "sb3", model.num_timesteps, train_s,
+                                    n_steps=ppo_kwargs["n_steps"],
+                                    vector_env=type(venv.unwrapped).__name__)
+    write_results(out_dir, results, rows, curve_path, "sb3")
     return results
