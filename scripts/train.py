@@ -3,7 +3,7 @@ zero and a random policy on held-out targets.
 
     python scripts/train.py --timesteps 250000 --out out/train \
         --curve docs/img/train_curve.png          # the documented full run (docs/envs.md)
-    python scripts/train.py --timesteps 256 --smoke --out /tmp/smoke   # seconds
+    python scripts/train.py --smoke --out /tmp/smoke   # seconds (256 env steps)
     python scripts/train.py --engine rllib --smoke --out /tmp/smoke_rllib   # about a minute
     python scripts/train.py --engine rllib --num-env-runners 2 --checkpoint-dir ckpt \
         --out out/train_rllib                     # docs/training.md
@@ -28,6 +28,10 @@ from proprio_env.experiments.training import run as run_sb3
 from proprio_env.experiments.training_rllib import RLlibOptions
 from proprio_env.experiments.training_rllib import run as run_rllib
 
+FULL_TIMESTEPS = 250_000
+"""Env steps of the documented full run."""
+SMOKE_TIMESTEPS = 256
+"""Env steps of ``--smoke`` without ``--timesteps``: two smoke rollouts, seconds to a minute."""
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -38,7 +42,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                              "compiler)")
     parser.add_argument("--afferent-source", default=None,
                         help="exact | reduced | encoder (default: the env's)")
-    parser.add_argument("--timesteps", type=int, default=250_000)
+    parser.add_argument("--timesteps", type=int, default=None,
+                        help=f"env steps to train (default {FULL_TIMESTEPS}; with --smoke "
+                             f"{SMOKE_TIMESTEPS})")
     parser.add_argument("--max-minutes", type=float, default=80.0,
                         help="stop training after this wall time (min)")
     parser.add_argument("--seed", type=int, default=0)
@@ -67,6 +73,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     rllib.add_argument("--resume", action="store_true",
                        help="restore --checkpoint-dir and train on to --timesteps")
     args = parser.parse_args(argv)
+    if args.timesteps is None:
+        args.timesteps = SMOKE_TIMESTEPS if args.smoke else FULL_TIMESTEPS
     if args.timesteps < 1 or args.max_minutes <= 0 or args.eval_episodes < 1:
         parser.error("--timesteps, --max-minutes and --eval-episodes must be positive")
     if args.engine == "sb3":

@@ -38,9 +38,9 @@ def test_held_out_bands_are_never_trained_on():
 
 def test_smoke_run_trains_evaluates_and_plots(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    run = subprocess.run([sys.executable, str(SCRIPT), "--timesteps", "256", "--smoke",
-                          "--out", str(tmp_path)], capture_output=True, text=True, env=env,
-                         timeout=600)
+    # --smoke alone is the short run (256 env steps), as CI calls it
+    run = subprocess.run([sys.executable, str(SCRIPT), "--smoke", "--out", str(tmp_path)],
+                         capture_output=True, text=True, env=env, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
     result = json.loads((tmp_path / "eval.json").read_text())
     assert result["train"]["timesteps"] == 256
