@@ -73,6 +73,27 @@ def test_rllib_smoke_run_trains_evaluates_and_saves_the_policy(tmp_path):
                                                       abs=1e-6)
 
 
+@pytest.mark.slow
+def test_a_run_stopped_and_resumed_from_its_checkpoint(tmp_path):
+    ckpt = tmp_path / "ckpt"
+    first = run_script("--smoke", "--timesteps", "256", "--checkpoint-dir", str(ckpt),
+                       "--out", str(tmp_path / "a"))
+    assert first.returncode == 0, first.stderr[-3000:]
+    resumed = run_script("--smoke", "--timesteps", "512", "--checkpoint-dir", str(ckpt),
+                         "--resume", "--out", str(tmp_path / "b"))
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "resumed at 256 steps" in resumed.stdout
+    result = json.loads((tmp_path / "b" / "eval.json").read_text())
+    assert result["train"]["timesteps"] == 512 and result["train"]["resumed"]
+    with (tmp_path / "b" / "curve.csv").open(newline="") as fh:
+        rows = [int(r["timesteps"]) for r in csv.DictReader(fh)]
+    # the curve goes on from the checkpoint: the first run's rows, then the resumed ones
+    assert rows == [128, 256, 384, 512]
+
+
+# The tests below share one local Ray instance in this process; the script runs above start
+# their own in subprocesses, so they come first (a script run starting its local instance
+# while this process held another failed once here: "Failed to register worker to Raylet").
 @pytest.fixture(scope="module")
 def local_ray():
     trl.start_ray(trl.RLlibOptions())
@@ -142,21 +163,3 @@ def test_a_killed_env_runner_is_restarted_and_training_goes_on(local_ray):
         assert min(by_runner.values()) > 0 and min(by_runner2.values()) > 0
     finally:
         algo.stop()
-
-
-@pytest.mark.slow
-def test_a_run_stopped_and_resumed_from_its_checkpoint(tmp_path):
-    ckpt = tmp_path / "ckpt"
-    first = run_script("--smoke", "--timesteps", "256", "--checkpoint-dir", str(ckpt),
-                       "--out", str(tmp_path / "a"))
-    assert first.returncode == 0, first.stderr[-3000:]
-    resumed = run_script("--smoke", "--timesteps", "512", "--checkpoint-dir", str(ckpt),
-                         "--resume", "--out", str(tmp_path / "b"))
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert "resumed at 256 steps" in resumed.stdout
-    result = json.loads((tmp_path / "b" / "eval.json").read_text())
-    assert result["train"]["timesteps"] == 512 and result["train"]["resumed"]
-    with (tmp_path / "b" / "curve.csv").open(newline="") as fh:
-        rows = [int(r["timesteps"]) for r in csv.DictReader(fh)]
-    # the curve goes on from the checkpoint: the first run's rows, then the resumed ones
-    assert rows == [128, 256, 384, 512]
