@@ -177,6 +177,72 @@ def vector_env(env_id: str, n_envs: int, steps: int, backend: str, threads: int)
     return rate
 
 
+@dataclass
+class Breakdown:
+    """Where one vector step's wall time goes (seconds per vector step)."""
+
+    total: float
+    physics: float
+    chain: float
+    spindle: float
+    spindle_calls: float  # core.advance calls per vector step (sub-steps of all arms at once)
+
+    @property
+    def rest(self) -> float:
+        return self.total - self.physics - self.chain
+
+
+def breakdown(env_id: str, n_envs: int, steps: int, backend: str) -> Breakdown:
+    """The vector env's step split into physics (``PhysicsBatch.step``: the rollout call),
+    the chain (``BatchAfferentReadout.push``: sensors, glue, spindles) and, inside it, the
+    numpy spindle step (``spindle.core.advance``), by wrapping those three with timers (a
+    separate run: the wrappers cost ~1 us per call)."""
+    import gymnasium as gym
+
+    import spindle.core
+    from proprio_env.envs.afferents import BatchAfferentReadout
+    from proprio_env.envs.physics import PhysicsBatch
+
+    spent = {"physics": 0.0, "chain": 0.0, "spindle": 0.0, "calls": 0}
+
+    def timer(owner, name: str, key: str):
+        original = getattr(owner, name)
+
+        def timed_call(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                spent[key] += time.perf_counter() - t0
+                if key == "spindle":
+                    spent["calls"] += 1
+        setattr(owner, name, timed_call)
+        return original
+
+    originals = [(PhysicsBatch, "step", timer(PhysicsBatch, "step", "physics")),
+                 (BatchAfferentReadout, "push", timer(BatchAfferentReadout, "push", "chain")),
+                 (spindle.core, "advance", timer(spindle.core, "advance", "spindle"))]
+    try:
+        vec = gym.make_vec(env_id, num_envs=n_envs, vectorization_mode="vector_entry_point",
+                           backend=backend)
+        vec.action_space.seed(0)
+        n_calls = max(2, steps // n_envs)
+        actions = [vec.action_space.sample() for _ in range(n_calls)]
+        vec.reset(seed=0)
+        vec.step(actions[0])
+        spent.update(physics=0.0, chain=0.0, spindle=0.0, calls=0)
+        t0 = time.perf_counter()
+        for a in actions:
+            vec.step(a)
+        total = time.perf_counter() - t0
+        vec.close()
+    finally:
+        for owner, name, original in originals:
+            setattr(owner, name, original)
+    return Breakdown(total / n_calls, spent["physics"] / n_calls, spent["chain"] / n_calls,
+                     spent["spindle"] / n_calls, spent["calls"] / n_calls)
+
+
 MYOSUITE_SNIPPET = r"""
 import json, sys, time
 import myosuite  # noqa: F401  (registers its envs)
@@ -222,6 +288,7 @@ class Results:
     rates: dict[str, list[Rate]] = field(default_factory=dict)
     memory: dict[str, list[float]] = field(default_factory=dict)
     notes: dict[str, str] = field(default_factory=dict)
+    breakdowns: dict[str, list[Breakdown]] = field(default_factory=dict)
 
     def add(self, label: str, rate: Rate) -> None:
         self.rates.setdefault(label, []).append(rate)
@@ -255,6 +322,9 @@ def measure(args: argparse.Namespace) -> Results:
             for threads in args.threads:
                 results.add(f"{env_id} vector c n={TARGET_SIZE} threads={threads}",
                             vector_env(env_id, TARGET_SIZE, args.steps, "c", threads))
+            for backend in ("numpy", "c"):
+                results.breakdowns.setdefault(f"{env_id} {backend}", []).append(
+                    breakdown(env_id, TARGET_SIZE, args.steps, backend))
         myo = myosuite_env(args.steps, args.myosuite_python)
         if myo is not None:
             results.add("myosuite", myo[0])
@@ -296,11 +366,41 @@ def report(results: Results, args: argparse.Namespace) -> None:
                 if label in results.rates:
                     print(f"{label} / single-thread physics limit: "
                           f"{results.wall(label) / limit:.3f}")
+    report_breakdowns(results)
     target = f"{REACH} vector numpy n={TARGET_SIZE} threads=1"
     rate = results.wall(target) if target in results.rates else math.nan
     print(f"vector_env_steps_per_s={rate:.1f} "
           f"vs_physics_limit={rate / results.wall(f'{REACH} physics'):.3f} "
           f"single_env_vs_myosuite={vs_myo:.3f}")
+
+
+TARGET_RATIO = {REACH: 0.6, PROSTHESIS: 0.4}
+"""The issue's one-thread targets at TARGET_SIZE envs, numpy backend (x physics limit)."""
+
+
+def report_breakdowns(results: Results) -> None:
+    """Where a vector step's time goes at TARGET_SIZE envs, and the chain's budget: the time
+    a vector step may take at the target ratio, minus what the physics and the rest took."""
+    print(f"where a vector step's time goes, {TARGET_SIZE} envs, 1 thread (ms per vector "
+          "step, medians; a separate run with timers)")
+    print(f"{'':40s} {'total':>7s} {'physics':>8s} {'chain':>7s} {'spindle':>8s} "
+          f"{'calls':>6s} {'us/call':>8s} {'rest':>6s} {'chain budget':>13s}")
+    for key, runs in results.breakdowns.items():
+        env_id = key.split()[0]
+        med = {name: float(np.median([getattr(b, name) for b in runs]))
+               for name in ("total", "physics", "chain", "spindle", "spindle_calls", "rest")}
+        limit = results.wall(f"{env_id} physics")
+        allowed = TARGET_SIZE / (TARGET_RATIO[env_id] * limit)
+        budget = allowed - med["physics"] - med["rest"]
+        per_call = (1e6 * med["spindle"] / med["spindle_calls"]
+                    if med["spindle_calls"] else math.nan)
+        print(f"{key:40s} {1e3 * med['total']:7.2f} {1e3 * med['physics']:8.2f} "
+              f"{1e3 * med['chain']:7.2f} {1e3 * med['spindle']:8.2f} "
+              f"{med['spindle_calls']:6.1f} {per_call:8.1f} {1e3 * med['rest']:6.2f} "
+              f"{1e3 * budget:13.2f}")
+    print(f"(spindle: the numpy core.advance calls inside the chain; the C chain steps its "
+          f"spindles inside its own push. chain budget: what the chain may take for "
+          f"{TARGET_RATIO[REACH]}x / {TARGET_RATIO[PROSTHESIS]}x the physics limit)")
 
 
 def main(argv: list[str] | None = None) -> None:
