@@ -312,6 +312,68 @@ class BatchedMotionPredictor:
         self._integral[rows] = integral
         return p + u * (t_s - t_k)[:, None]
 
+    def update_block(self, t_s: np.ndarray, length_L0: np.ndarray, given: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`update` of every arm with its inputs ``length_L0[i, j]`` (n, k, m) at times
+        ``t_s[i, j]`` (n, k) for the columns j where ``given[i, j]`` (each arm's given
+        columns first, times increasing), then :meth:`template_at` ``t_s - delay_s`` after
+        each: returns (templates, delayed templates), each (n, k, m), the same numbers as
+        those calls column by column (meaningless where not given).
+
+        The PI updates run in rounds (one per update of the arm with most; a block of one
+        env step holds one or two), the templates of all columns then in a few gathers."""
+        n, k = t_s.shape
+        keep = self._t.shape[1]
+        dt = self.params.predictor_period_s
+        kp, ki = self.params.predictor_kp_1_s, self.params.predictor_ki_1_s2
+        times = np.where(given, t_s, -math.inf)
+        t_k = self._t[:, -1].copy()
+        p = self._p[:, -1].copy()
+        u = self._u[:, -1].copy()
+        integral = self._integral.copy()
+        made = np.zeros(n, dtype=np.int64)
+        rounds = []
+        while True:
+            due = times >= (t_k + dt * (1.0 - 1e-9))[:, None]
+            i = np.flatnonzero(due.any(axis=1))
+            if i.size == 0:
+                break
+            j = due[i].argmax(axis=1)  # the first column due: its input drives the update
+            # (the next representable time at a clock beyond 2^48 s: see update)
+            t_new = np.maximum(t_k[i] + dt, np.nextafter(t_k[i], math.inf))
+            p_new = p[i] + dt * u[i]
+            error = length_L0[i, j] - p_new
+            w = integral[i] + (ki * dt) * error
+            u_new = kp * error + w
+            integral[i], t_k[i], p[i], u[i] = w, t_new, p_new, u_new
+            rounds.append((i, j, made[i], t_new, p_new, u_new))
+            made[i] += 1
+        extra = int(made.max()) if rounds else 0
+        # each arm's kept updates then its new ones: (n, keep + extra), oldest first
+        T = np.empty((n, keep + extra))
+        P = np.empty((n, keep + extra) + self._p.shape[2:])
+        U = np.empty_like(P)
+        T[:, :keep], P[:, :keep], U[:, :keep] = self._t, self._p, self._u
+        created = np.full((n, max(extra, 1)), k)  # the column each new update came at
+        for i, j, slot, t_new, p_new, u_new in rounds:
+            T[i, keep + slot], P[i, keep + slot], U[i, keep + slot] = t_new, p_new, u_new
+            created[i, slot] = j
+        r = np.arange(n)[:, None]
+        # the newest update as of each column, and the `keep` kept then
+        newest = keep - 1 + (created[:, None, :] <= np.arange(k)[None, :, None]).sum(axis=2)
+        template = P[r, newest] + U[r, newest] * (t_s - T[r, newest])[..., None]
+        back = t_s - self.params.delay_s
+        window = newest[..., None] - (keep - 1) + np.arange(keep)
+        later = (T[r[..., None], window] > back[..., None]).sum(axis=2)
+        at = newest - (keep - 1) + np.maximum(keep - 1 - later, 0)
+        since = np.maximum(back - T[r, at], 0.0)
+        delayed = P[r, at] + U[r, at] * since[..., None]
+        if rounds:
+            last = made[:, None] + np.arange(keep)
+            self._t, self._p, self._u = T[r, last], P[r, last], U[r, last]
+            self._integral = integral
+        return template, delayed
+
     def template_at(self, t_s: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """The templates of arms ``rows`` at earlier times ``t_s`` (r,), each clamped to the
         arm's oldest kept update."""
@@ -367,6 +429,18 @@ class BatchedFusimotor:
         gamma_d), each (r, m)."""
         template = self.predictor.update(t_s, length_L0, rows)
         return self._rates(t_s, template, rows)
+
+    def update_block(self, t_s: np.ndarray, length_L0: np.ndarray, given: np.ndarray
+                     ) -> tuple[np.ndarray, ...]:
+        """:meth:`update` over a block of columns (see
+        :meth:`BatchedMotionPredictor.update_block`): (template_L0, gamma_s, gamma_d), each
+        (n, k, m)."""
+        template, delayed = self.predictor.update_block(t_s, length_L0, given)
+        return (
+            template,
+            gamma_static_pps(template, self.length_min_L0, self.length_max_L0, self.params),
+            gamma_dynamic_pps(template, delayed, self.params),
+        )
 
     def _rates(self, t_s: np.ndarray, template: np.ndarray,
                rows: np.ndarray | None) -> tuple[np.ndarray, ...]:
