@@ -354,8 +354,8 @@ class BatchedArmChain:
     def _fast_block(self, kind: str, t: np.ndarray, x: np.ndarray, count: np.ndarray) -> bool:
         """A whole block in one pass, if it holds only the common case: every arm's given
         times increasing from its last accepted one by at most ``max_bridge_s`` (no restart,
-        no resync), no slew limit reached; rejected samples (bad readings, angles or
-        lengths) are allowed. Then returns True, every arm's state and outputs as after
+        no resync); rejected samples (bad readings, angles or lengths) and the slew limits
+        are handled. Then returns True, every arm's state and outputs as after
         :meth:`_column` over the block's columns; else False with nothing changed (the
         caller steps the columns).
 
@@ -398,6 +398,7 @@ class BatchedArmChain:
         okm = ok[..., None]
         lo, hi = self.angle_range_deg
         clamped_n = None
+        slew_n = np.zeros(n, dtype=np.int64)
         if kind == "length_L0":
             L = np.where(okm, x, self._u[:, None])
             angle = np.broadcast_to(self._angle[:, None], (n, k))
@@ -410,16 +411,23 @@ class BatchedArmChain:
             angle = np.where(ok, angle, self._angle[:, None])
             bounded = np.minimum(np.maximum(angle, lo), hi)
             before = np.concatenate((self._angle[:, None], bounded[:, :-1]), axis=1)
-            if bool((ok & (np.abs(angle - before) > cfg.max_speed_deg_s * dt)).any()):
-                return False
+            limit = cfg.max_speed_deg_s * dt
+            if bool((ok & (np.abs(angle - before) > limit)).any()):
+                # the slew limit reached: each column's limit depends on the last
+                angle, slewed = _slew_angles(angle, limit, ok, self._angle, lo, hi)
+                slew_n += slewed.sum(axis=1)
+                bounded = np.minimum(np.maximum(angle, lo), hi)
             outside = (angle < lo) | (angle > hi)  # (padding: the last angle, inside)
             if bool(outside.any()):
                 clamped_n = outside.sum(axis=1)
             angle = bounded
             L = self.fits.length_L0(np.radians(angle))
         u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
-        if bool((okm & (np.abs(L - u0) > cfg.max_speed_L0_s * dt[..., None])).any()):
-            return False
+        limit = cfg.max_speed_L0_s * dt[..., None]
+        if bool((okm & (np.abs(L - u0) > limit)).any()):
+            L, slewed = _slew_lengths(L, limit, ok, self._u)
+            slew_n += slewed.sum(axis=1)
+            u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
         # -- the block is the common case: from here on the state changes --------------------
         x1, v1, a1 = np.empty_like(L), np.empty_like(L), np.empty_like(L)
         xs, vs = self._x, self._v
@@ -456,6 +464,7 @@ class BatchedArmChain:
             counters[:, _COUNTER[bad]] += rejected.sum(axis=1)
         if clamped_n is not None:
             counters[:, _COUNTER["angle_clamped"]] += clamped_n
+        counters[:, _COUNTER["slew_limited"]] += slew_n
         self._counters = counters
         self._behind = self._no_behind if has.all() else np.where(has, 0, self._behind)
         r, last = np.arange(n), np.maximum(n_ok - 1, 0)
@@ -916,6 +925,36 @@ def _lengths_valid(L: np.ndarray) -> np.ndarray:
     lo, hi = core.LENGTH_RANGE_L0
     # NaN and infinities fail one of the comparisons
     return ((L >= lo) & (L <= hi)).all(axis=-1)
+
+
+def _slew_angles(angle, limit, ok, last, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`BatchedArmChain._limit_angle`'s slew limit column by column over (n, k)
+    angles (each column's last angle the previous one's, clamped to lo..hi); returns the
+    limited angles (before the clamp) and where the limit acted (on ``ok``)."""
+    out = angle.copy()
+    slewed = np.zeros(angle.shape, dtype=bool)
+    for j in range(angle.shape[1]):
+        change = angle[:, j] - last
+        slew = ok[:, j] & (np.abs(change) > limit[:, j])
+        out[:, j] = np.where(slew, last + np.copysign(limit[:, j], change), angle[:, j])
+        slewed[:, j] = slew
+        last = np.minimum(np.maximum(out[:, j], lo), hi)
+    return out, slewed
+
+
+def _slew_lengths(L, limit, ok, last) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`BatchedArmChain._step`'s slew limit of the lengths column by column over
+    (n, k, 2) lengths from ``last`` (n, 2); returns them limited and where the limit acted
+    (on ``ok``, per arm)."""
+    out = L.copy()
+    slewed = np.zeros(L.shape[:2], dtype=bool)
+    for j in range(L.shape[1]):
+        change = L[:, j] - last
+        slew = ok[:, j] & (np.abs(change) > limit[:, j]).any(axis=1)
+        limited = L[:, j] - change + np.clip(change, -limit[:, j], limit[:, j])
+        out[:, j] = last = np.where(slew[:, None], limited, L[:, j])
+        slewed[:, j] = slew
+    return out, slewed
 
 
 def _rows(S, i: np.ndarray) -> np.ndarray:
