@@ -349,28 +349,37 @@ class BatchedMotionPredictor:
             rounds.append((i, j, made[i], t_new, p_new, u_new))
             made[i] += 1
         extra = int(made.max()) if rounds else 0
-        # each arm's kept updates then its new ones: (n, keep + extra), oldest first
-        T = np.empty((n, keep + extra))
-        P = np.empty((n, keep + extra) + self._p.shape[2:])
-        U = np.empty_like(P)
-        T[:, :keep], P[:, :keep], U[:, :keep] = self._t, self._p, self._u
-        created = np.full((n, max(extra, 1)), k)  # the column each new update came at
+        width = keep + extra
+        # each arm's kept updates then its new ones, oldest first: times (n, width) (+inf
+        # past an arm's last), p and u (n, width, 2, m)
+        T = np.full((n, width), math.inf)
+        PU = np.empty((n, width, 2) + self._p.shape[2:])
+        T[:, :keep], PU[:, :keep, 0], PU[:, :keep, 1] = self._t, self._p, self._u
+        newest = np.full((n, k), keep - 1)  # the newest update as of each column
         for i, j, slot, t_new, p_new, u_new in rounds:
-            T[i, keep + slot], P[i, keep + slot], U[i, keep + slot] = t_new, p_new, u_new
-            created[i, slot] = j
-        r = np.arange(n)[:, None]
-        # the newest update as of each column, and the `keep` kept then
-        newest = keep - 1 + (created[:, None, :] <= np.arange(k)[None, :, None]).sum(axis=2)
-        template = P[r, newest] + U[r, newest] * (t_s - T[r, newest])[..., None]
+            T[i, keep + slot], PU[i, keep + slot, 0], PU[i, keep + slot, 1] = (t_new, p_new,
+                                                                                u_new)
+            newest[i] += np.arange(k) >= j[:, None]
+        # template_at: the newest of the `keep` updates kept at that column with a time at
+        # or before t - delay (else the oldest kept); the updates made at later columns lie
+        # after t (they were not due at t), so the search may run over the whole row
         back = t_s - self.params.delay_s
-        window = newest[..., None] - (keep - 1) + np.arange(keep)
-        later = (T[r[..., None], window] > back[..., None]).sum(axis=2)
-        at = newest - (keep - 1) + np.maximum(keep - 1 - later, 0)
-        since = np.maximum(back - T[r, at], 0.0)
-        delayed = P[r, at] + U[r, at] * since[..., None]
+        at = np.maximum((T[:, None, :] <= back[..., None]).sum(axis=2) - 1,
+                        newest - (keep - 1))
+        base = (np.arange(n) * width)[:, None]
+        which = np.stack((newest, at)) + base  # (2, n, k) flat indices
+        t_at = T.reshape(-1).take(which)
+        p_at, u_at = np.moveaxis(PU.reshape((n * width,) + PU.shape[2:]).take(which, axis=0),
+                                 3, 0)
+        template = p_at[0] + u_at[0] * (t_s - t_at[0])[..., None]
+        since = np.maximum(back - t_at[1], 0.0)
+        delayed = p_at[1] + u_at[1] * since[..., None]
         if rounds:
-            last = made[:, None] + np.arange(keep)
-            self._t, self._p, self._u = T[r, last], P[r, last], U[r, last]
+            last = (base + made[:, None] + np.arange(keep)).reshape(-1)
+            self._t = T.reshape(-1).take(last).reshape(n, keep)
+            kept = PU.reshape((n * width,) + PU.shape[2:]).take(last, axis=0)
+            kept = kept.reshape((n, keep) + PU.shape[2:])
+            self._p, self._u = kept[:, :, 0].copy(), kept[:, :, 1].copy()
             self._integral = integral
         return template, delayed
 
