@@ -32,7 +32,7 @@ import numpy as np
 
 from spindle import core
 from spindle.chain.arm import fits_and_ranges
-from spindle.chain.conditioning import natural_rad_s, tracking_step
+from spindle.chain.conditioning import natural_rad_s, tracking_step, tracking_steps
 from spindle.chain.config import COUNTERS, ArmSample, ChainConfig, real_array
 from spindle.chain.fusimotor import BatchedFusimotor
 from spindle.chain.length_model import LengthFits
@@ -429,19 +429,15 @@ class BatchedArmChain:
             slew_n += slewed.sum(axis=1)
             u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
         # -- the block is the common case: from here on the state changes --------------------
-        x1, v1, a1 = np.empty_like(L), np.empty_like(L), np.empty_like(L)
-        xs, vs = self._x, self._v
         with np.errstate(all="ignore"):
-            for j in range(k):
-                dt_j = dt[:, j, None]
-                if self._omega is None:
-                    xj = L[:, j]
-                    vj = (xj - xs) / dt_j
-                    aj = (vj - vs) / dt_j
-                else:
-                    xj, vj, aj = tracking_step(xs, vs, u0[:, j], L[:, j], dt_j, self._omega)
-                x1[:, j], v1[:, j], a1[:, j] = xj, vj, aj
-                xs, vs = xj, vj
+            if self._omega is None:
+                x1 = L
+                v1 = (x1 - np.concatenate((self._x[:, None], x1[:, :-1]), axis=1)) / dt[..., None]
+                a1 = (v1 - np.concatenate((self._v[:, None], v1[:, :-1]), axis=1)) / dt[..., None]
+            else:
+                x1, v1, a1 = tracking_steps(self._x, self._v,
+                                            np.concatenate((self._u[:, None], L), axis=1),
+                                            dt[..., None], self._omega)
         x0 = np.concatenate((self._x[:, None], x1[:, :-1]), axis=1)
         v0 = np.concatenate((self._v[:, None], v1[:, :-1]), axis=1)
         if self._following:

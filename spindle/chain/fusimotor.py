@@ -353,7 +353,7 @@ class BatchedMotionPredictor:
         # each arm's kept updates then its new ones, oldest first: times (n, width) (+inf
         # past an arm's last), p and u (n, width, 2, m)
         T = np.full((n, width), math.inf)
-        PU = np.empty((n, width, 2) + self._p.shape[2:])
+        PU = np.empty((n, width, 2, *self._p.shape[2:]))
         T[:, :keep], PU[:, :keep, 0], PU[:, :keep, 1] = self._t, self._p, self._u
         newest = np.full((n, k), keep - 1)  # the newest update as of each column
         for i, j, slot, t_new, p_new, u_new in rounds:
@@ -369,7 +369,7 @@ class BatchedMotionPredictor:
         base = (np.arange(n) * width)[:, None]
         which = np.stack((newest, at)) + base  # (2, n, k) flat indices
         t_at = T.reshape(-1).take(which)
-        p_at, u_at = np.moveaxis(PU.reshape((n * width,) + PU.shape[2:]).take(which, axis=0),
+        p_at, u_at = np.moveaxis(PU.reshape((n * width, *PU.shape[2:])).take(which, axis=0),
                                  3, 0)
         template = p_at[0] + u_at[0] * (t_s - t_at[0])[..., None]
         since = np.maximum(back - t_at[1], 0.0)
@@ -377,8 +377,8 @@ class BatchedMotionPredictor:
         if rounds:
             last = (base + made[:, None] + np.arange(keep)).reshape(-1)
             self._t = T.reshape(-1).take(last).reshape(n, keep)
-            kept = PU.reshape((n * width,) + PU.shape[2:]).take(last, axis=0)
-            kept = kept.reshape((n, keep) + PU.shape[2:])
+            kept = PU.reshape((n * width, *PU.shape[2:])).take(last, axis=0)
+            kept = kept.reshape((n, keep, *PU.shape[2:]))
             self._p, self._u = kept[:, :, 0].copy(), kept[:, :, 1].copy()
             self._integral = integral
         return template, delayed
