@@ -460,3 +460,62 @@ def test_length_fits_evaluate_every_muscle_in_one_pass_with_each_fits_bits(shape
     want = np.stack([fit.length_L0(angle) for fit in FITS.fits], axis=-1)
     assert got.shape == (*shape, 2)
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+@pytest.mark.parametrize("lowpass_hz", [20.0, None])
+def test_block_pass_equals_single_chains(kind, lowpass_hz, monkeypatch):
+    """Blocks the one-pass path takes (increasing times, bridged gaps; bad values, slew
+    jumps, clamped angles, ragged counts, arms without samples, the switch): no column is
+    stepped alone, and every arm equals its single chain."""
+    config = ChainConfig(lowpass_hz=lowpass_hz)
+    columns = []
+    column = BatchedArmChain._column
+    monkeypatch.setattr(BatchedArmChain, "_column",
+                        lambda self, *a: columns.append(1) or column(self, *a))
+    n, k, blocks = 6, 11, 12
+    batch, singles = make_pair(n, config)
+    rng = np.random.default_rng(31)
+    true_t = np.cumsum(0.002 + np.clip(rng.normal(0, 2e-4, (n, k * blocks)), -8e-4, 8e-4),
+                       axis=1)
+    true_t[:, k * 5:] += 0.015  # a bridged gap
+    x = np.stack([signal_of(kind, motion_deg(true_t[a], a)) for a in range(n)])
+    for a in range(n):
+        for i in rng.choice(k * blocks, 8, replace=False):
+            if kind == "counts":
+                x[a, i] = rng.choice([-1.0, 5000.0, 3.5, math.nan, x[a, i] + 40])
+            elif kind == "angle":
+                x[a, i] = rng.choice([math.nan, math.inf, x[a, i] + 70.0, 175.0, -30.0])
+            else:
+                x[a, i] = [rng.choice([0.3, 1.7, math.nan]), x[a, i, 1] + 0.05][rng.integers(2)]
+    position = np.zeros(n, dtype=int)
+    for block in range(blocks):
+        if block == 4:
+            intended = np.array([math.nan, 30.0, math.nan, 100.0, math.nan, 60.0])
+            batch.set_intended_angle(intended)
+            for a, single in enumerate(singles):
+                single.set_intended_angle(None if np.isnan(intended[a]) else intended[a])
+        count = rng.integers(k - 2, k + 1, n)
+        count[block % n] = 0
+        t = np.full((n, k), math.nan)
+        xs = np.full((n, k, 2) if kind == "lengths" else (n, k), math.nan)
+        for a in range(n):
+            p = position[a]
+            t[a, :count[a]] = true_t[a, p:p + count[a]]
+            xs[a, :count[a]] = x[a, p:p + count[a]]
+        position += count
+        before = [single.last for single in singles]
+        out = getattr(batch, KINDS[kind] + "_block")(t, xs, n_samples=count)
+        for a, single in enumerate(singles):
+            if count[a]:
+                want = getattr(single, KINDS[kind] + "_block")(t[a, :count[a]],
+                                                               xs[a, :count[a]])
+            else:
+                want = ArmSample(**{**before[a].__dict__, "accepted": False})
+            assert_arm_equal(out.arm(a), want, f"block {block} arm {a}")
+        assert_counters_equal(batch, singles, f"block {block}")
+    assert not columns, "a block fell back to stepping its columns"
+    counters = batch.counters
+    assert counters["slew_limited"].sum() > 0
+    assert counters["invalid_" + {"counts": "reading", "angle": "angle",
+                                  "lengths": "length"}[kind]].sum() > 0

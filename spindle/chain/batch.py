@@ -32,7 +32,7 @@ import numpy as np
 
 from spindle import core
 from spindle.chain.arm import fits_and_ranges
-from spindle.chain.conditioning import natural_rad_s, tracking_step
+from spindle.chain.conditioning import natural_rad_s, tracking_step, tracking_steps
 from spindle.chain.config import COUNTERS, ArmSample, ChainConfig, real_array
 from spindle.chain.fusimotor import BatchedFusimotor
 from spindle.chain.length_model import LengthFits
@@ -341,6 +341,8 @@ class BatchedArmChain:
         self._check_ready(None if count.min() > 0 else count > 0)
         saved = self._snapshot()
         try:
+            if self._fast_block(kind, t, x, count):
+                return self._sample(count > 0)
             for j in range(int(count.max()) if n else 0):
                 active = count > j
                 self._column(kind, t[:, j], x[:, j], None if active.all() else active)
@@ -348,6 +350,190 @@ class BatchedArmChain:
             self._restore(saved)
             raise
         return self._sample(count > 0)
+
+    def _fast_block(self, kind: str, t: np.ndarray, x: np.ndarray, count: np.ndarray) -> bool:
+        """A whole block in one pass, if it holds only the common case: every arm's given
+        times increasing from its last accepted one by at most ``max_bridge_s`` (no restart,
+        no resync); rejected samples (bad readings, angles or lengths) and the slew limits
+        are handled. Then returns True, every arm's state and outputs as after
+        :meth:`_column` over the block's columns; else False with nothing changed (the
+        caller steps the columns).
+
+        Everything that does not depend on the spindles (sensor stage, length fits, slew and
+        range checks, the tracking filter's recursion, the PI predictor, the gamma drive and
+        the sub-step lengths) is computed for all columns at once; the loop over columns
+        then only steps and commits the spindles (arms without a sample in a column are
+        stepped and not committed, like a waiting arm)."""
+        cfg = self.config
+        n, k = t.shape
+        if k == 0:
+            return True
+        cols = np.arange(k)
+        given = cols < count[:, None]
+        with np.errstate(invalid="ignore"):
+            rise = np.diff(t, axis=1, prepend=self._t[:, None])
+            if not bool(np.where(given, rise, 1.0).min() > 0.0):  # (NaN fails)
+                return False
+            if kind == "counts":
+                valid = valid_readings(x, cfg.encoder.max_count)
+            elif kind == "angle_deg":
+                valid = np.isfinite(x)
+            else:
+                valid = _lengths_valid(x)
+        ok = given & valid
+        rejected = given & ~valid
+        any_rejected = bool(rejected.any())
+        n_ok = ok.sum(axis=1) if any_rejected else count
+        if any_rejected:  # each arm's accepted samples first, in order
+            order = np.argsort(~ok, axis=1, kind="stable")
+            t = np.take_along_axis(t, order, axis=1)
+            x = np.take_along_axis(x, order if x.ndim == 2 else order[..., None], axis=1)
+            ok = cols < n_ok[:, None]
+        has = n_ok > 0
+        with np.errstate(invalid="ignore"):
+            dt = np.diff(t, axis=1, prepend=self._t[:, None])
+        if not bool(np.where(ok, dt, 0.0).max() <= cfg.max_bridge_s):
+            return False
+        dt = np.where(ok, dt, cfg.spindle_step_s)  # (padding: any valid interval)
+        okm = ok[..., None]
+        lo, hi = self.angle_range_deg
+        clamped_n = None
+        slew_n = np.zeros(n, dtype=np.int64)
+        if kind == "length_L0":
+            L = np.where(okm, x, self._u[:, None])
+            angle = np.broadcast_to(self._angle[:, None], (n, k))
+        else:
+            if kind == "counts":
+                filtered, windows = self._median.push_block(x, n_ok)
+                angle = cfg.calibration.angle_deg(filtered)
+            else:
+                angle = x
+            angle = np.where(ok, angle, self._angle[:, None])
+            bounded = np.minimum(np.maximum(angle, lo), hi)
+            before = np.concatenate((self._angle[:, None], bounded[:, :-1]), axis=1)
+            limit = cfg.max_speed_deg_s * dt
+            if bool((ok & (np.abs(angle - before) > limit)).any()):
+                # the slew limit reached: each column's limit depends on the last
+                angle, slewed = _slew_angles(angle, limit, ok, self._angle, lo, hi)
+                slew_n += slewed.sum(axis=1)
+                bounded = np.minimum(np.maximum(angle, lo), hi)
+            outside = (angle < lo) | (angle > hi)  # (padding: the last angle, inside)
+            if bool(outside.any()):
+                clamped_n = outside.sum(axis=1)
+            angle = bounded
+            L = self.fits.length_L0(np.radians(angle))
+        u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
+        limit = cfg.max_speed_L0_s * dt[..., None]
+        if bool((okm & (np.abs(L - u0) > limit)).any()):
+            L, slewed = _slew_lengths(L, limit, ok, self._u)
+            slew_n += slewed.sum(axis=1)
+            u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
+        # -- the block is the common case: from here on the state changes --------------------
+        with np.errstate(all="ignore"):
+            if self._omega is None:
+                x1 = L
+                v1 = (x1 - np.concatenate((self._x[:, None], x1[:, :-1]), axis=1)) / dt[..., None]
+                a1 = (v1 - np.concatenate((self._v[:, None], v1[:, :-1]), axis=1)) / dt[..., None]
+            else:
+                x1, v1, a1 = tracking_steps(self._x, self._v,
+                                            np.concatenate((self._u[:, None], L), axis=1),
+                                            dt[..., None], self._omega)
+        x0 = np.concatenate((self._x[:, None], x1[:, :-1]), axis=1)
+        v0 = np.concatenate((self._v[:, None], v1[:, :-1]), axis=1)
+        if self._following:
+            template_in = x1
+        else:
+            template_in = np.where(np.isnan(self._intended[:, None]), x1,
+                                   self._intended[:, None])
+        t = np.where(ok, t, self._t[:, None])  # (padding: finite templates)
+        template, gs, gd = self._fusimotor.update_block(t, template_in, ok)
+        if kind == "counts":
+            self._median.restore(windows)
+        self._advance_block(ok, dt, x0, v0, x1, v1, gd, gs)
+        # -- each arm's last accepted sample: its state and outputs ----------------------------
+        counters = self._counters.copy()
+        counters[:, _COUNTER["accepted"]] += n_ok
+        counters[:, _COUNTER["gaps"]] += (ok & (dt > cfg.gap_s)).sum(axis=1)
+        if any_rejected:
+            bad = {"counts": "invalid_reading", "angle_deg": "invalid_angle"}.get(
+                kind, "invalid_length")
+            counters[:, _COUNTER[bad]] += rejected.sum(axis=1)
+        if clamped_n is not None:
+            counters[:, _COUNTER["angle_clamped"]] += clamped_n
+        counters[:, _COUNTER["slew_limited"]] += slew_n
+        self._counters = counters
+        self._behind = self._no_behind if has.all() else np.where(has, 0, self._behind)
+        r, last = np.arange(n), np.maximum(n_ok - 1, 0)
+        c = self._columns
+        T = self._state.tension_FU.T
+        ia, ii = core.afferents_from_tension(T, self._state.length_L0, c)
+        ia, ii = ia.reshape(-1, 2), ii.reshape(-1, 2)
+        if kind == "counts":
+            counts, filtered = x[r, last], filtered[r, last]
+        else:
+            counts = filtered = self._no_reading(n)
+        values = dict(t=t[r, last], angle=angle[r, last], u=L[r, last], x=x1[r, last],
+                      v=v1[r, last], a=a1[r, last])
+        out = (values["t"], counts, filtered, values["angle"], values["x"], values["v"],
+               values["a"], template[r, last], gs[r, last], gd[r, last], ia, ii)
+        if has.all():
+            self._set(_ALL, **values)
+            self._set_out(_ALL, *out)
+        else:
+            S = np.flatnonzero(has)
+            self._set(S, **{name: value[S] for name, value in values.items()})
+            self._set_out(S, *(value[S] for value in out))
+        return True
+
+    def _advance_block(self, ok, dt, x0, v0, x1, v1, gd, gs) -> None:
+        """The spindles of every arm through a block's accepted columns ``ok`` (n, k): the
+        sub-step lengths of all columns at once (:meth:`_advance_group`'s curve and limits),
+        then one :func:`core.advance` per sub-step for all arms."""
+        n, k = ok.shape
+        step_s = self.config.spindle_step_s
+        counts = np.maximum(np.ceil(dt / step_s * (1 - 1e-12)), 1.0)
+        h = dt / counts
+        steps = int(_MAX(counts, axis=None))
+        reach = (self.config.max_speed_L0_s * h)[..., None]
+        lo, hi = core.LENGTH_RANGE_L0
+        counts_m, dt_m = counts[..., None], dt[..., None]
+        first = steps - counts_m  # each arm's sub-steps start this late (it waits before)
+        # sub-step lengths (steps, n, k, 2); arms that wait keep x0 (not committed)
+        lengths = np.empty((steps, n, k, 2))
+        lengths[-1] = x1
+        previous = x0
+        with np.errstate(all="ignore"):
+            for q in range(1, steps):
+                own = np.maximum(q - first, 0.0)
+                Ls = hermite_curve(own / counts_m, x0, x1, [(v0, v1)], dt_m.copy())
+                Ls = np.minimum(np.maximum(Ls, previous - reach), previous + reach)
+                left = reach * (counts_m - own)
+                Ls = np.minimum(np.maximum(Ls, x1 - left), x1 + left)
+                Ls = np.minimum(np.maximum(Ls, lo), hi)
+                previous = lengths[q - 1] = np.where(own > 0.0, Ls, x0)
+        # column-major for the loop: (k, steps, 2n) lengths, (k, 2n) drive and moving masks
+        lengths = np.ascontiguousarray(lengths.transpose(2, 0, 1, 3)).reshape(k, steps, 2 * n)
+        gd_cols = np.ascontiguousarray(gd.transpose(1, 0, 2)).reshape(k, 2 * n)
+        gs_cols = np.ascontiguousarray(gs.transpose(1, 0, 2)).reshape(k, 2 * n)
+        start = np.repeat((steps - counts).T.astype(np.int64), 2, axis=1)  # (k, 2n)
+        live = np.repeat(ok.T, 2, axis=1)
+        h_ok = np.where(ok, h, math.nan)
+        h_lo, h_hi = np.fmin.reduce(h_ok, axis=0), np.fmax.reduce(h_ok, axis=0)
+        h_spindles = np.repeat(np.where(ok, h, h_hi).T, 2, axis=1)
+        state, theta, c = self._state, self._theta, self._columns
+        for j in range(k):
+            if not live[j].any():
+                break
+            h_j = float(h_lo[j]) if h_lo[j] == h_hi[j] else h_spindles[j]
+            all_live = bool(live[j].all())
+            gd_j, gs_j = gd_cols[j], gs_cols[j]
+            for q in range(int(start[j].min()), steps):
+                L_q = lengths[j, q]
+                new = core.advance(state, L_q, gd_j, gs_j, h_j, theta, c)
+                if all_live and q >= start[j].max():
+                    core.commit(state, new, L_q, gd_j, gs_j)
+                else:
+                    core.commit(state, new, L_q, gd_j, gs_j, where=live[j] & (start[j] <= q))
 
     def _column(self, kind: str, t: np.ndarray, x: np.ndarray,
                 active: np.ndarray | None) -> np.ndarray:
@@ -735,6 +921,36 @@ def _lengths_valid(L: np.ndarray) -> np.ndarray:
     lo, hi = core.LENGTH_RANGE_L0
     # NaN and infinities fail one of the comparisons
     return ((L >= lo) & (L <= hi)).all(axis=-1)
+
+
+def _slew_angles(angle, limit, ok, last, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`BatchedArmChain._limit_angle`'s slew limit column by column over (n, k)
+    angles (each column's last angle the previous one's, clamped to lo..hi); returns the
+    limited angles (before the clamp) and where the limit acted (on ``ok``)."""
+    out = angle.copy()
+    slewed = np.zeros(angle.shape, dtype=bool)
+    for j in range(angle.shape[1]):
+        change = angle[:, j] - last
+        slew = ok[:, j] & (np.abs(change) > limit[:, j])
+        out[:, j] = np.where(slew, last + np.copysign(limit[:, j], change), angle[:, j])
+        slewed[:, j] = slew
+        last = np.minimum(np.maximum(out[:, j], lo), hi)
+    return out, slewed
+
+
+def _slew_lengths(L, limit, ok, last) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`BatchedArmChain._step`'s slew limit of the lengths column by column over
+    (n, k, 2) lengths from ``last`` (n, 2); returns them limited and where the limit acted
+    (on ``ok``, per arm)."""
+    out = L.copy()
+    slewed = np.zeros(L.shape[:2], dtype=bool)
+    for j in range(L.shape[1]):
+        change = L[:, j] - last
+        slew = ok[:, j] & (np.abs(change) > limit[:, j]).any(axis=1)
+        limited = L[:, j] - change + np.clip(change, -limit[:, j], limit[:, j])
+        out[:, j] = last = np.where(slew[:, None], limited, L[:, j])
+        slewed[:, j] = slew
+    return out, slewed
 
 
 def _rows(S, i: np.ndarray) -> np.ndarray:

@@ -312,6 +312,77 @@ class BatchedMotionPredictor:
         self._integral[rows] = integral
         return p + u * (t_s - t_k)[:, None]
 
+    def update_block(self, t_s: np.ndarray, length_L0: np.ndarray, given: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`update` of every arm with its inputs ``length_L0[i, j]`` (n, k, m) at times
+        ``t_s[i, j]`` (n, k) for the columns j where ``given[i, j]`` (each arm's given
+        columns first, times increasing), then :meth:`template_at` ``t_s - delay_s`` after
+        each: returns (templates, delayed templates), each (n, k, m), the same numbers as
+        those calls column by column (meaningless where not given).
+
+        The PI updates run in rounds (one per update of the arm with most; a block of one
+        env step holds one or two), the templates of all columns then in a few gathers."""
+        n, k = t_s.shape
+        keep = self._t.shape[1]
+        dt = self.params.predictor_period_s
+        kp, ki = self.params.predictor_kp_1_s, self.params.predictor_ki_1_s2
+        times = np.where(given, t_s, -math.inf)
+        t_k = self._t[:, -1].copy()
+        p = self._p[:, -1].copy()
+        u = self._u[:, -1].copy()
+        integral = self._integral.copy()
+        made = np.zeros(n, dtype=np.int64)
+        rounds = []
+        while True:
+            due = times >= (t_k + dt * (1.0 - 1e-9))[:, None]
+            i = np.flatnonzero(due.any(axis=1))
+            if i.size == 0:
+                break
+            j = due[i].argmax(axis=1)  # the first column due: its input drives the update
+            # (the next representable time at a clock beyond 2^48 s: see update)
+            t_new = np.maximum(t_k[i] + dt, np.nextafter(t_k[i], math.inf))
+            p_new = p[i] + dt * u[i]
+            error = length_L0[i, j] - p_new
+            w = integral[i] + (ki * dt) * error
+            u_new = kp * error + w
+            integral[i], t_k[i], p[i], u[i] = w, t_new, p_new, u_new
+            rounds.append((i, j, made[i], t_new, p_new, u_new))
+            made[i] += 1
+        extra = int(made.max()) if rounds else 0
+        width = keep + extra
+        # each arm's kept updates then its new ones, oldest first: times (n, width) (+inf
+        # past an arm's last), p and u (n, width, 2, m)
+        T = np.full((n, width), math.inf)
+        PU = np.empty((n, width, 2, *self._p.shape[2:]))
+        T[:, :keep], PU[:, :keep, 0], PU[:, :keep, 1] = self._t, self._p, self._u
+        newest = np.full((n, k), keep - 1)  # the newest update as of each column
+        for i, j, slot, t_new, p_new, u_new in rounds:
+            T[i, keep + slot], PU[i, keep + slot, 0], PU[i, keep + slot, 1] = (t_new, p_new,
+                                                                                u_new)
+            newest[i] += np.arange(k) >= j[:, None]
+        # template_at: the newest of the `keep` updates kept at that column with a time at
+        # or before t - delay (else the oldest kept); the updates made at later columns lie
+        # after t (they were not due at t), so the search may run over the whole row
+        back = t_s - self.params.delay_s
+        at = np.maximum((T[:, None, :] <= back[..., None]).sum(axis=2) - 1,
+                        newest - (keep - 1))
+        base = (np.arange(n) * width)[:, None]
+        which = np.stack((newest, at)) + base  # (2, n, k) flat indices
+        t_at = T.reshape(-1).take(which)
+        p_at, u_at = np.moveaxis(PU.reshape((n * width, *PU.shape[2:])).take(which, axis=0),
+                                 3, 0)
+        template = p_at[0] + u_at[0] * (t_s - t_at[0])[..., None]
+        since = np.maximum(back - t_at[1], 0.0)
+        delayed = p_at[1] + u_at[1] * since[..., None]
+        if rounds:
+            last = (base + made[:, None] + np.arange(keep)).reshape(-1)
+            self._t = T.reshape(-1).take(last).reshape(n, keep)
+            kept = PU.reshape((n * width, *PU.shape[2:])).take(last, axis=0)
+            kept = kept.reshape((n, keep, *PU.shape[2:]))
+            self._p, self._u = kept[:, :, 0].copy(), kept[:, :, 1].copy()
+            self._integral = integral
+        return template, delayed
+
     def template_at(self, t_s: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """The templates of arms ``rows`` at earlier times ``t_s`` (r,), each clamped to the
         arm's oldest kept update."""
@@ -367,6 +438,18 @@ class BatchedFusimotor:
         gamma_d), each (r, m)."""
         template = self.predictor.update(t_s, length_L0, rows)
         return self._rates(t_s, template, rows)
+
+    def update_block(self, t_s: np.ndarray, length_L0: np.ndarray, given: np.ndarray
+                     ) -> tuple[np.ndarray, ...]:
+        """:meth:`update` over a block of columns (see
+        :meth:`BatchedMotionPredictor.update_block`): (template_L0, gamma_s, gamma_d), each
+        (n, k, m)."""
+        template, delayed = self.predictor.update_block(t_s, length_L0, given)
+        return (
+            template,
+            gamma_static_pps(template, self.length_min_L0, self.length_max_L0, self.params),
+            gamma_dynamic_pps(template, delayed, self.params),
+        )
 
     def _rates(self, t_s: np.ndarray, template: np.ndarray,
                rows: np.ndarray | None) -> tuple[np.ndarray, ...]:

@@ -219,6 +219,19 @@ class BatchedMedianFilter:
         middle = self.window // 2
         return np.partition(window, middle, axis=1)[:, middle]
 
+    def push_block(self, values: np.ndarray, n_values: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`push` column by column of ``values[i, :n_values[i]]`` (n, k) for every
+        signal, without changing the windows: returns the medians after each (n, k)
+        (entries past ``n_values[i]`` are padding and their medians meaningless) and the
+        windows after the last, which :meth:`restore` makes the filter's."""
+        n, w = self._buffer.shape
+        extended = np.concatenate((self._buffer, values), axis=1)
+        windows = np.lib.stride_tricks.sliding_window_view(extended, w, axis=1)[:, 1:]
+        middle = self.window // 2
+        medians = np.partition(windows, middle, axis=2)[:, :, middle]
+        return medians, extended[np.arange(n)[:, None], n_values[:, None] + np.arange(w)]
+
     def snapshot(self) -> np.ndarray:
         """The windows, for :meth:`restore` (a caller undoing a failed update)."""
         return self._buffer.copy()
