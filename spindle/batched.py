@@ -316,10 +316,9 @@ class Workspace:
         v1 = self.v1[:, cols]
         np.multiply(r["v_slope"], r["newton_step"], out=r["tmp"])
         np.subtract(r["v"], r["tmp"], out=v1)
-        for i in range(3):
-            T1 = self.T1[i, cols]
-            np.multiply(v1[i], k.fibre[i].th_h_KSR, out=T1)
-            np.subtract(r["A"][i], T1, out=T1)
+        T1 = self.T1[:, cols]
+        np.multiply(v1, b.th_h_KSR.reshape(3, -1), out=T1)
+        np.subtract(r["A"], T1, out=T1)
         self.z1[:, cols] = r["z"]
 
     def _finish_tail(self, tail, restart):

@@ -617,3 +617,26 @@ def test_a_step_that_changes_from_call_to_call_matches_the_reference(n):
                     L1, gd1, plain.gamma_stat_pps)
     np.testing.assert_allclose(np.concatenate(spindle.afferents(state)),
                                np.concatenate(spindle.afferents(plain)), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("theta", [0.5, 1.0])
+@pytest.mark.parametrize("params", [spindle.CAT, spindle.HUMAN], ids=["cat", "human"])
+def test_step_constants_per_spindle_equal_the_float_constants_of_each_step(theta, params):
+    """Every constant of a step with a size per spindle (built with array operations) equals,
+    spindle by spindle, the constant the float path builds for that step size alone."""
+    from dataclasses import fields
+
+    from spindle.fibre_constants import SpindleStepConstants, StepConstants
+
+    c = core.columns(params)
+    h = np.random.default_rng(3).uniform(1e-5, 2e-3, 7)
+    each = SpindleStepConstants(c, h, theta)
+    for j, hj in enumerate(h):
+        one = StepConstants(c, float(hj), theta)
+        for i in range(3):
+            for f in fields(type(one.fibre[i])):
+                want = getattr(one.fibre[i], f.name)
+                got = np.broadcast_to(getattr(each.fibre_columns, f.name), (3, h.size))[i, j]
+                assert got == pytest.approx(want, rel=1e-14, abs=1e-300), (f.name, i, hj)
+                row = np.broadcast_to(getattr(each.fibre[i], f.name), h.shape)
+                assert row[j] == got, (f.name, i, hj)
