@@ -653,22 +653,31 @@ typedef struct plan_eq {
     ps_real z;        /* Newton's start */
 } plan_eq;
 
+/* One fibre's equation in solve_03: its coefficients (set once), Newton's iterate y. */
+typedef struct solve_03_work {
+    ps_real a2, ten_a2, r, p0, s_th_h, c, ten_c_th_h, three_c, y;
+    int active;
+} solve_03_work;
+
 static void solve_03(const ps_plan *q, const plan_eq e[PS_NFIBRES], ps_real z[PS_NFIBRES],
                      ps_real v[PS_NFIBRES], int status[PS_NFIBRES])
 {
-    ps_real r[PS_NFIBRES], s_th_h[PS_NFIBRES], ten_c_th_h[PS_NFIBRES], c[PS_NFIBRES];
-    ps_real three_c[PS_NFIBRES], y[PS_NFIBRES];
-    int left = PS_NFIBRES, active[PS_NFIBRES], i, it;
+    solve_03_work work[PS_NFIBRES];
+    int left = PS_NFIBRES, i, it;
     for (i = 0; i < PS_NFIBRES; ++i) {
+        solve_03_work *w = &work[i];
         ps_real bound = tenth_root_estimate(ps_fabs(e[i].rhs) * q->inv_a2[i]);
-        r[i] = ps_fabs(e[i].rhs);
-        s_th_h[i] = e[i].rhs < R_(0) ? -q->th_h : q->th_h;
-        c[i] = e[i].rhs > R_(0) ? e[i].cS + e[i].dC : e[i].cS;
-        ten_c_th_h[i] = R_(10) * c[i] * s_th_h[i];
-        three_c[i] = R_(3) * c[i];
-        y[i] = ps_fabs(e[i].z);
-        if (!(y[i] <= bound)) y[i] = bound; /* also replaces a NaN guess */
-        active[i] = 1;
+        w->a2 = q->a2[i];
+        w->ten_a2 = R_(10) * w->a2;
+        w->r = ps_fabs(e[i].rhs);
+        w->p0 = e[i].p0;
+        w->s_th_h = e[i].rhs < R_(0) ? -q->th_h : q->th_h;
+        w->c = e[i].rhs > R_(0) ? e[i].cS + e[i].dC : e[i].cS;
+        w->ten_c_th_h = R_(10) * w->c * w->s_th_h;
+        w->three_c = R_(3) * w->c;
+        w->y = ps_fabs(e[i].z);
+        if (!(w->y <= bound)) w->y = bound; /* also replaces a NaN guess */
+        w->active = 1;
         status[i] = PS_ERR_NO_CONVERGENCE;
     }
 #if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
@@ -677,31 +686,31 @@ static void solve_03(const ps_plan *q, const plan_eq e[PS_NFIBRES], ps_real z[PS
     for (it = 0; it < PS_NEWTON_MAX_ITER && left > 0; ++it) {
 #endif
         for (i = 0; i < PS_NFIBRES; ++i) {
-            const ps_real a2 = q->a2[i], ten_a2 = R_(10) * a2;
-            ps_real yi = y[i], y2, y3, y4, y9, y10, qy, g, dg, dy;
-            if (!active[i]) continue;
-            y2 = yi * yi;
-            y3 = y2 * yi;
+            solve_03_work *w = &work[i];
+            ps_real y = w->y, y2, y3, y4, y9, y10, qy, g, dg, dy;
+            if (!w->active) continue;
+            y2 = y * y;
+            y3 = y2 * y;
             y4 = y2 * y2;
-            y9 = y4 * y4 * yi;
-            y10 = y9 * yi;
-            qy = e[i].p0 + s_th_h[i] * y10;
+            y9 = y4 * y4 * y;
+            y10 = y9 * y;
+            qy = w->p0 + w->s_th_h * y10;
             if (qy > R_(0)) {
-                g = a2 * y10 + c[i] * y3 * qy - r[i];
-                dg = y9 * (ten_a2 + ten_c_th_h[i] * y3) + three_c[i] * y2 * qy;
+                g = w->a2 * y10 + w->c * y3 * qy - w->r;
+                dg = y9 * (w->ten_a2 + w->ten_c_th_h * y3) + w->three_c * y2 * qy;
             } else { /* the damping's polar-length factor clipped at 0 */
-                g = a2 * y10 - r[i];
-                dg = y9 * ten_a2;
+                g = w->a2 * y10 - w->r;
+                dg = y9 * w->ten_a2;
             }
             dy = newton_step(g, dg);
-            yi -= dy;
-            y[i] = yi < R_(0) ? R_(0) : yi;
+            y -= dy;
+            w->y = y < R_(0) ? R_(0) : y;
 #if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
             status[i] = PS_OK;
 #else
             if (ps_fabs(dy) <= R_(PS_NEWTON_TOL_Z)) {
                 status[i] = PS_OK;
-                active[i] = 0;
+                w->active = 0;
                 --left;
             }
 #endif
@@ -709,8 +718,8 @@ static void solve_03(const ps_plan *q, const plan_eq e[PS_NFIBRES], ps_real z[PS
     }
     (void)left;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        ps_real y2 = y[i] * y[i], y4 = y2 * y2, y10 = y4 * y4 * y2;
-        z[i] = e[i].rhs < R_(0) ? -y[i] : y[i];
+        const ps_real y = work[i].y, y2 = y * y, y4 = y2 * y2, y10 = y4 * y4 * y2;
+        z[i] = e[i].rhs < R_(0) ? -y : y;
         v[i] = e[i].rhs < R_(0) ? -y10 : y10;
     }
 }
