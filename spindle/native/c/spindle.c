@@ -643,8 +643,10 @@ static ps_real tenth_root_estimate(ps_real x)
  * gcc -O2, ps_spindle_batch_step on the 864 spindles of the legs under random controls, 1 ms,
  * 4.4 iterations per solve): 440 -> 330 ns per spindle step (275 with the host build's cube
  * root). The fibres of 2, 4 or 8 spindles of a batch side by side: 266, 292, 298 ns, no gain,
- * so not done. On the Cortex-M0+ the float plan step takes the instructions in the table
- * of docs/wrapper.md (it gains nothing there: one instruction at a time).
+ * so not done. The Cortex-M0+ gains nothing (one instruction at a time) and pays for the
+ * work kept in memory: the float plan step (scripts/bench_embedded.py --only 2 9) 41,861 ->
+ * 42,594 instructions per step at 1 ms, 36,926 -> 37,473 at 5 ms (+1.5 %); the fixed-point
+ * step, the device's configuration (--quick), is not this code (1.7224 MIPS, unchanged).
  * Writes z[i], v[i] = sgn(z)|z|^10 and status[i] (PS_OK or PS_ERR_NO_CONVERGENCE). */
 typedef struct plan_eq {
     ps_real A;        /* tension before the velocity term */
