@@ -363,6 +363,33 @@ def test_batch_step_matches_the_numpy_core(theta):
     np.testing.assert_array_equal(state.length_L0, ref.length_L0)
 
 
+def test_batch_step_names_the_first_failing_spindle_anywhere():
+    """Whichever spindles fail (first, middle, last, two at once), the first one is named and
+    every spindle is left as it was; then each spindle's step is bit for bit its step in a
+    batch of one."""
+    n = 11
+    length, gd, gs = batch_inputs(n=n, duration_s=0.01)
+    state = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)
+    batch = native_spindle.SpindleBatch(state, spindle.HUMAN)
+    batch.step(length[1], gd[1], gs[1])
+    before = batch.fields.copy()
+    for bad in ([0], [3], [5], [6], [10], [7, 2], [9, 8]):
+        L = length[2].copy()
+        L[bad] = 1.6
+        with pytest.raises(ValueError, match=f"spindle {min(bad)} of {n} failed with "
+                                             "PS_ERR_LENGTH_RANGE"):
+            batch.step(L, gd[2], gs[2])
+        np.testing.assert_array_equal(batch.fields, before)
+    ia, ii = (x.copy() for x in batch.step(length[2], gd[2], gs[2]))
+    one = native_spindle.SpindleBatch(
+        core.equilibrium_state(length[0][:1], gd[0][:1], gs[0][:1], spindle.HUMAN),
+        spindle.HUMAN)
+    for j in range(n):  # each spindle alone: the same bits
+        one.fields[...] = before[j:j + 1]
+        got = one.step(length[2][j:j + 1], gd[2][j:j + 1], gs[2][j:j + 1])
+        assert (got[0][0], got[1][0]) == (ia[j], ii[j])
+
+
 def test_batch_step_is_atomic_and_names_the_failing_spindle():
     length, gd, gs = batch_inputs(n=6, duration_s=0.01)
     state = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)

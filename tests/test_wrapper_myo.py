@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 import pytest
 
@@ -21,9 +22,10 @@ MODELS = {"elbow": 6, "legs_osl": 54}
 
 
 def make(name: str, episode_steps: int = 100):
+    path = myo_sim_model_path(name)
+    model = mujoco.MjModel.from_xml_path(str(path))  # compiled once, copied by each env
     return lambda: gym.wrappers.TimeLimit(
-        MuscleModelEnv(myo_sim_model_path(name), frame_skip=10),
-        max_episode_steps=episode_steps)
+        MuscleModelEnv(path, frame_skip=10, model=model), max_episode_steps=episode_steps)
 
 
 def soak(name: str, steps: int, n_envs: int) -> dict[str, float]:

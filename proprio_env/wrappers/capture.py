@@ -94,23 +94,42 @@ class FrameRecorder:
         self.model = env.model if model is None else model
         self.data = env.data if data is None else data
         self.ids = np.asarray(ids, dtype=int)
-        self.times: list[float] = []
-        self.lengths: list[np.ndarray] = []
-        self.velocities: list[np.ndarray] = []
+        # the records go into preallocated buffers (grown when a step has more frames), the
+        # whole actuator vectors copied from views of the data's own arrays: a slice copy per
+        # physics step, the muscles picked once per env step in take()
+        self._length_view = self.data.actuator_length
+        self._velocity_view = self.data.actuator_velocity
+        self._count = 0
+        self._allocate(16)
         self.end_time = float("nan")  # MyoSuite: data.time after its last mj_forward
         if self.kind == "gymnasium":
             env._step_mujoco_simulation = self._step
         else:
             env._step_physics = self._step_physics
 
+    def _allocate(self, capacity: int) -> None:
+        nu = self._length_view.size
+        times, lengths, velocities = np.empty(capacity), np.empty((capacity, nu)), \
+            np.empty((capacity, nu))
+        if self._count:
+            times[:self._count] = self._times[:self._count]
+            lengths[:self._count] = self._lengths[:self._count]
+            velocities[:self._count] = self._velocities[:self._count]
+        self._times, self._lengths, self._velocities = times, lengths, velocities
+
     def _record_steps(self, n_frames: int) -> None:
-        model, data, ids = self.model, self.data, self.ids
-        for _ in range(n_frames):
-            t = data.time
+        model, data = self.model, self.data
+        start = self._count
+        if start + n_frames > self._times.size:
+            self._allocate(2 * (start + n_frames))
+        times, lengths, velocities = self._times, self._lengths, self._velocities
+        length_now, velocity_now = self._length_view, self._velocity_view
+        for k in range(start, start + n_frames):
+            times[k] = data.time
             mujoco.mj_step(model, data)
-            self.times.append(t)
-            self.lengths.append(data.actuator_length[ids])
-            self.velocities.append(data.actuator_velocity[ids])
+            lengths[k] = length_now
+            velocities[k] = velocity_now
+        self._count = start + n_frames
 
     def _step(self, ctrl, n_frames) -> None:
         self.data.ctrl[:] = ctrl
@@ -132,11 +151,10 @@ class FrameRecorder:
 
     def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The records since the last call: times (F,), lengths (F, M) m, velocities (F, M)
-        m/s, each at the start of a physics step."""
-        out = (np.array(self.times), np.array(self.lengths).reshape(-1, self.ids.size),
-               np.array(self.velocities).reshape(-1, self.ids.size))
-        self.times, self.lengths, self.velocities = [], [], []
-        return out
+        m/s, each at the start of a physics step (fresh arrays)."""
+        count, self._count = self._count, 0
+        return (self._times[:count].copy(), self._lengths[:count, self.ids],
+                self._velocities[:count, self.ids])
 
     def remove(self) -> None:
         self.env.__dict__.pop("_step_mujoco_simulation" if self.kind == "gymnasium"
@@ -229,15 +247,16 @@ def env_step_knots(t_prev: np.ndarray, L_prev: np.ndarray, V_prev: np.ndarray,
     if rows.size and all(f is not None and f[0].size >= 1 for f in usable):
         counts = {f[0].size for f in usable}
         starts = np.array([f[0][0] for f in usable])
-        if len(counts) == 1 and np.allclose(starts, t_prev[rows], rtol=0, atol=1e-9):
+        if len(counts) == 1 and np.abs(starts - t_prev[rows]).max() <= 1e-9:
             K = counts.pop()
             t = np.empty((K, n))
             L = np.empty((K, n, M))
             V = np.empty((K, n, M))
-            for i, f in zip(rows, usable, strict=True):
-                t[:, i] = np.append(f[0][1:], t_end[i])
-                L[:, i] = np.concatenate((f[1][1:], L_end[i][None]))
-                V[:, i] = np.concatenate((f[2][1:], V_end[i][None]))
+            # the records after the first, then the end of the step, for all rows at once
+            t[:-1, rows] = np.stack([f[0][1:] for f in usable], axis=1)
+            L[:-1, rows] = np.stack([f[1][1:] for f in usable], axis=1)
+            V[:-1, rows] = np.stack([f[2][1:] for f in usable], axis=1)
+            t[-1, rows], L[-1, rows], V[-1, rows] = t_end[rows], L_end[rows], V_end[rows]
             _fill_held(t, L, V, rows, moving)
             return t, L, V, "frames"
     span = t_end[rows] - t_prev[rows]

@@ -52,7 +52,12 @@ SOURCE_DIR = Path(__file__).resolve().parent / "c"
 HEADER = SOURCE_DIR / "proprio.h"
 VARIANTS = ("double", "float")
 WARNING_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic")
-OPTIMISE_FLAGS = ("-O2",)
+OPTIMISE_FLAGS = ("-O2", "-DPS_FAST_CBRT", "-DPS_CBRT_REFINE=1")
+"""The host build: the Newton start's cube root from the bits and one refinement instead of
+libm's cbrt (the start only needs to be near the root; Newton converges to the same
+tolerance). Measured: 320 -> 275 ns per spindle step of the batch (864 spindles of the legs,
+1 ms, x86-64 gcc -O2); -O3 and -march=native gave nothing beyond the noise, and a cached
+library built with -march=native would not load on an older CPU sharing the cache."""
 SANITIZE_FLAGS = ("-O1", "-g", "-fsanitize=address,undefined", "-fno-omit-frame-pointer",
                   "-fno-sanitize-recover=all")
 CACHE_FORMAT = 2
