@@ -97,6 +97,23 @@ class BatchSample:
             **{name: getattr(self, name)[k].copy() for name in _OUTPUTS[4:]})
 
 
+@dataclass
+class _Block:
+    """A block push's samples once checked (:meth:`BatchedArmChain._block_samples`): times,
+    values (each arm's accepted ones first), the accepted mask ``ok`` and intervals ``dt``
+    (n, k), accepted counts ``n_ok`` and rejected counts (None: none) per arm, and the
+    counts of slew-limited and clamped samples the length stage adds."""
+
+    t: np.ndarray
+    x: np.ndarray
+    ok: np.ndarray
+    dt: np.ndarray
+    n_ok: np.ndarray
+    rejected: np.ndarray | None
+    slewed: np.ndarray
+    clamped: np.ndarray | None = None
+
+
 class BatchedArmChain:
     """The streaming chain of ``n_arms`` independent arms (BRA and TRImed each), in numpy.
 
@@ -364,71 +381,14 @@ class BatchedArmChain:
         the sub-step lengths) is computed for all columns at once; the loop over columns
         then only steps and commits the spindles (arms without a sample in a column are
         stepped and not committed, like a waiting arm)."""
-        cfg = self.config
-        n, k = t.shape
-        if k == 0:
+        if t.shape[1] == 0:
             return True
-        cols = np.arange(k)
-        given = cols < count[:, None]
-        with np.errstate(invalid="ignore"):
-            rise = np.diff(t, axis=1, prepend=self._t[:, None])
-            if not bool(np.where(given, rise, 1.0).min() > 0.0):  # (NaN fails)
-                return False
-            if kind == "counts":
-                valid = valid_readings(x, cfg.encoder.max_count)
-            elif kind == "angle_deg":
-                valid = np.isfinite(x)
-            else:
-                valid = _lengths_valid(x)
-        ok = given & valid
-        rejected = given & ~valid
-        any_rejected = bool(rejected.any())
-        n_ok = ok.sum(axis=1) if any_rejected else count
-        if any_rejected:  # each arm's accepted samples first, in order
-            order = np.argsort(~ok, axis=1, kind="stable")
-            t = np.take_along_axis(t, order, axis=1)
-            x = np.take_along_axis(x, order if x.ndim == 2 else order[..., None], axis=1)
-            ok = cols < n_ok[:, None]
-        has = n_ok > 0
-        with np.errstate(invalid="ignore"):
-            dt = np.diff(t, axis=1, prepend=self._t[:, None])
-        if not bool(np.where(ok, dt, 0.0).max() <= cfg.max_bridge_s):
+        block = self._block_samples(kind, t, x, count)
+        if block is None:
             return False
-        dt = np.where(ok, dt, cfg.spindle_step_s)  # (padding: any valid interval)
-        okm = ok[..., None]
-        lo, hi = self.angle_range_deg
-        clamped_n = None
-        slew_n = np.zeros(n, dtype=np.int64)
-        if kind == "length_L0":
-            L = np.where(okm, x, self._u[:, None])
-            angle = np.broadcast_to(self._angle[:, None], (n, k))
-        else:
-            if kind == "counts":
-                filtered, windows = self._median.push_block(x, n_ok)
-                angle = cfg.calibration.angle_deg(filtered)
-            else:
-                angle = x
-            angle = np.where(ok, angle, self._angle[:, None])
-            bounded = np.minimum(np.maximum(angle, lo), hi)
-            before = np.concatenate((self._angle[:, None], bounded[:, :-1]), axis=1)
-            limit = cfg.max_speed_deg_s * dt
-            if bool((ok & (np.abs(angle - before) > limit)).any()):
-                # the slew limit reached: each column's limit depends on the last
-                angle, slewed = _slew_angles(angle, limit, ok, self._angle, lo, hi)
-                slew_n += slewed.sum(axis=1)
-                bounded = np.minimum(np.maximum(angle, lo), hi)
-            outside = (angle < lo) | (angle > hi)  # (padding: the last angle, inside)
-            if bool(outside.any()):
-                clamped_n = outside.sum(axis=1)
-            angle = bounded
-            L = self.fits.length_L0(np.radians(angle))
-        u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
-        limit = cfg.max_speed_L0_s * dt[..., None]
-        if bool((okm & (np.abs(L - u0) > limit)).any()):
-            L, slewed = _slew_lengths(L, limit, ok, self._u)
-            slew_n += slewed.sum(axis=1)
-            u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
+        angle, L, filtered, windows = self._block_lengths(kind, block)
         # -- the block is the common case: from here on the state changes --------------------
+        ok, dt = block.ok, block.dt
         with np.errstate(all="ignore"):
             if self._omega is None:
                 x1 = L
@@ -445,31 +405,21 @@ class BatchedArmChain:
         else:
             template_in = np.where(np.isnan(self._intended[:, None]), x1,
                                    self._intended[:, None])
-        t = np.where(ok, t, self._t[:, None])  # (padding: finite templates)
+        t = np.where(ok, block.t, self._t[:, None])  # (padding: finite templates)
         template, gs, gd = self._fusimotor.update_block(t, template_in, ok)
         if kind == "counts":
             self._median.restore(windows)
         self._advance_block(ok, dt, x0, v0, x1, v1, gd, gs)
+        self._count_block(kind, block)
         # -- each arm's last accepted sample: its state and outputs ----------------------------
-        counters = self._counters.copy()
-        counters[:, _COUNTER["accepted"]] += n_ok
-        counters[:, _COUNTER["gaps"]] += (ok & (dt > cfg.gap_s)).sum(axis=1)
-        if any_rejected:
-            bad = {"counts": "invalid_reading", "angle_deg": "invalid_angle"}.get(
-                kind, "invalid_length")
-            counters[:, _COUNTER[bad]] += rejected.sum(axis=1)
-        if clamped_n is not None:
-            counters[:, _COUNTER["angle_clamped"]] += clamped_n
-        counters[:, _COUNTER["slew_limited"]] += slew_n
-        self._counters = counters
+        n, has = t.shape[0], block.n_ok > 0
         self._behind = self._no_behind if has.all() else np.where(has, 0, self._behind)
-        r, last = np.arange(n), np.maximum(n_ok - 1, 0)
-        c = self._columns
-        T = self._state.tension_FU.T
-        ia, ii = core.afferents_from_tension(T, self._state.length_L0, c)
+        r, last = np.arange(n), np.maximum(block.n_ok - 1, 0)
+        ia, ii = core.afferents_from_tension(self._state.tension_FU.T, self._state.length_L0,
+                                             self._columns)
         ia, ii = ia.reshape(-1, 2), ii.reshape(-1, 2)
         if kind == "counts":
-            counts, filtered = x[r, last], filtered[r, last]
+            counts, filtered = block.x[r, last], filtered[r, last]
         else:
             counts = filtered = self._no_reading(n)
         values = dict(t=t[r, last], angle=angle[r, last], u=L[r, last], x=x1[r, last],
@@ -484,6 +434,98 @@ class BatchedArmChain:
             self._set(S, **{name: value[S] for name, value in values.items()})
             self._set_out(S, *(value[S] for value in out))
         return True
+
+    def _block_samples(self, kind: str, t: np.ndarray, x: np.ndarray,
+                       count: np.ndarray) -> _Block | None:
+        """The block's samples checked for the common case (None if it is not: a time not
+        after the arm's last accepted one, or an interval beyond ``max_bridge_s``), each
+        arm's accepted samples moved first, in order; nothing changed."""
+        cfg = self.config
+        k = t.shape[1]
+        cols = np.arange(k)
+        given = cols < count[:, None]
+        with np.errstate(invalid="ignore"):
+            rise = np.diff(t, axis=1, prepend=self._t[:, None])
+            if not bool(np.where(given, rise, 1.0).min() > 0.0):  # (NaN fails)
+                return None
+            if kind == "counts":
+                valid = valid_readings(x, cfg.encoder.max_count)
+            elif kind == "angle_deg":
+                valid = np.isfinite(x)
+            else:
+                valid = _lengths_valid(x)
+        ok = given & valid
+        rejected = given & ~valid
+        any_rejected = bool(rejected.any())
+        n_ok = ok.sum(axis=1) if any_rejected else count
+        if any_rejected:  # each arm's accepted samples first, in order
+            order = np.argsort(~ok, axis=1, kind="stable")
+            t = np.take_along_axis(t, order, axis=1)
+            x = np.take_along_axis(x, order if x.ndim == 2 else order[..., None], axis=1)
+            ok = cols < n_ok[:, None]
+        with np.errstate(invalid="ignore"):
+            dt = np.diff(t, axis=1, prepend=self._t[:, None])
+        if not bool(np.where(ok, dt, 0.0).max() <= cfg.max_bridge_s):
+            return None
+        dt = np.where(ok, dt, cfg.spindle_step_s)  # (padding: any valid interval)
+        return _Block(t=t, x=x, ok=ok, dt=dt, n_ok=n_ok,
+                      rejected=rejected.sum(axis=1) if any_rejected else None,
+                      slewed=np.zeros(t.shape[0], dtype=np.int64))
+
+    def _block_lengths(self, kind: str, block: _Block):
+        """(angle deg, lengths L0, filtered readings, median windows) of every column of a
+        checked block: the sensor stage, the angle's slew limit and range, the length fits and
+        the lengths' slew limit (their counts into ``block``); the median windows are only
+        computed (:meth:`_fast_block` stores them once the block is known to go through)."""
+        cfg = self.config
+        ok, dt, x = block.ok, block.dt, block.x
+        n, k = ok.shape
+        okm = ok[..., None]
+        lo, hi = self.angle_range_deg
+        filtered = windows = None
+        if kind == "length_L0":
+            L = np.where(okm, x, self._u[:, None])
+            angle = np.broadcast_to(self._angle[:, None], (n, k))
+        else:
+            if kind == "counts":
+                filtered, windows = self._median.push_block(x, block.n_ok)
+                angle = cfg.calibration.angle_deg(filtered)
+            else:
+                angle = x
+            angle = np.where(ok, angle, self._angle[:, None])
+            bounded = np.minimum(np.maximum(angle, lo), hi)
+            before = np.concatenate((self._angle[:, None], bounded[:, :-1]), axis=1)
+            limit = cfg.max_speed_deg_s * dt
+            if bool((ok & (np.abs(angle - before) > limit)).any()):
+                # the slew limit reached: each column's limit depends on the last
+                angle, slewed = _slew_angles(angle, limit, ok, self._angle, lo, hi)
+                block.slewed += slewed.sum(axis=1)
+                bounded = np.minimum(np.maximum(angle, lo), hi)
+            outside = (angle < lo) | (angle > hi)  # (padding: the last angle, inside)
+            if bool(outside.any()):
+                block.clamped = outside.sum(axis=1)
+            angle = bounded
+            L = self.fits.length_L0(np.radians(angle))
+        u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
+        limit = cfg.max_speed_L0_s * dt[..., None]
+        if bool((okm & (np.abs(L - u0) > limit)).any()):
+            L, slewed = _slew_lengths(L, limit, ok, self._u)
+            block.slewed += slewed.sum(axis=1)
+        return angle, L, filtered, windows
+
+    def _count_block(self, kind: str, block: _Block) -> None:
+        """The counters of a block that went through."""
+        counters = self._counters.copy()
+        counters[:, _COUNTER["accepted"]] += block.n_ok
+        counters[:, _COUNTER["gaps"]] += (block.ok & (block.dt > self.config.gap_s)).sum(axis=1)
+        if block.rejected is not None:
+            bad = {"counts": "invalid_reading", "angle_deg": "invalid_angle"}.get(
+                kind, "invalid_length")
+            counters[:, _COUNTER[bad]] += block.rejected
+        if block.clamped is not None:
+            counters[:, _COUNTER["angle_clamped"]] += block.clamped
+        counters[:, _COUNTER["slew_limited"]] += block.slewed
+        self._counters = counters
 
     def _advance_block(self, ok, dt, x0, v0, x1, v1, gd, gs) -> None:
         """The spindles of every arm through a block's accepted columns ``ok`` (n, k): the
