@@ -242,7 +242,7 @@ class Workspace:
             iterations += block_iterations
             if left is not None:
                 tail.append(self._handed_on(b, left, j0, start.z))
-            self._finish(b, cols, kb)
+            self._finish(b, cols)
         if tail:
             self._finish_tail(tail, restart=prior is not None)
         check_finite(self.T1, self.v1, k.h)
@@ -308,7 +308,7 @@ class Workspace:
                 frozen_guess(z0, r["abs_z"], r["z_squared"], r["rhs"], r["cM"], r["cD"],
                              r["p0"], fc.blend_exp, k.a_is_03, r, b.same_sign[i])
 
-    def _finish(self, b, cols, k):
+    def _finish(self, b, cols):
         """v1, T1 and z1 of a block from its last Newton iteration. That iteration moved z by
         dz (|dz| <= NEWTON_TOL_Z wherever the block converged; the tail rewrites the rest), so
         v(z) = v(z_prev) - v'(z_prev)*dz is exact to O(dz^2): below 1e-16 L0/s, v's rounding."""

@@ -54,6 +54,7 @@ class Columns:
         self.a_is_03 = bool(np.all(self.a == 0.3))
         self.step_constants: StepConstants | None = None
         self.spindle_step_constants: SpindleStepConstants | None = None
+        self.per_spindle_coefficients: _Coefficients | None = None
         self.fibre_params = params.fibres
         self.fibre_parameter_columns = _ParameterColumns(params)
         self.S = float(params.S)
@@ -153,8 +154,8 @@ def _if(condition, a, b):
 def _fibre_step_constants(f: FibreParams, h: float, theta: float,
                           convert=float) -> FibreStepConstants:
     """One fibre's constants for a float ``h``; or, with ``f`` holding (3, 1) columns of
-    the three fibres, ``h`` a (1, n) row of step sizes and ``convert`` None, every fibre's
-    for every spindle (the same operations, so the same bits, elementwise)."""
+    the three fibres and ``convert`` None, the three fibres' as arrays (for h = 1 it gives
+    :class:`_Coefficients` the constants that do not depend on h)."""
     lagged = f.tau_s > 0
     rate = h / _if(lagged, f.tau_s, 1.0)
     den = 1.0 + theta * rate
@@ -321,9 +322,9 @@ class _Coefficients:
 
 def _coefficients(c: Columns, theta: float) -> _Coefficients:
     """The :class:`_Coefficients` of ``c`` for ``theta`` (kept on ``c``)."""
-    hit = c.__dict__.get("_per_spindle_coefficients")
+    hit = c.per_spindle_coefficients
     if hit is None or hit.theta != theta:
-        hit = c.__dict__["_per_spindle_coefficients"] = _Coefficients(c, theta)
+        hit = c.per_spindle_coefficients = _Coefficients(c, theta)
     return hit
 
 

@@ -60,6 +60,25 @@ def substep_lengths(L: np.ndarray, derivatives: list[np.ndarray], k: int, dt: fl
     return out.reshape(-1, L.shape[1]), changed
 
 
+def bounded_hermite_length(s, start: np.ndarray, end: np.ndarray, v_start: np.ndarray,
+                           v_end: np.ndarray, dt, previous: np.ndarray, reach,
+                           left) -> np.ndarray:
+    """A chain's sub-step length: the cubic Hermite curve at fraction ``s`` of a sample
+    interval of ``dt`` (lengths and velocities at its ends), clipped in turn to within
+    ``reach`` of the previous sub-step's length ``previous``, to within ``left`` of ``end``
+    (what the remaining sub-steps can still cover: a bridge whose end velocities disagree
+    would otherwise overshoot both) and to the spindle's valid range. ``s``, ``dt``, ``reach``
+    and ``left`` are floats or arrays broadcasting against the lengths (``dt`` is not
+    modified). ``ArmChain`` and ``BatchedArmChain`` (sample by sample and a block at once)
+    step their spindles through these."""
+    curve = hermite_curve(s, start, end, [(v_start, v_end)],
+                          dt.copy() if isinstance(dt, np.ndarray) else dt)
+    curve = np.minimum(np.maximum(curve, previous - reach), previous + reach)
+    curve = np.minimum(np.maximum(curve, end - left), end + left)
+    lo, hi = core.LENGTH_RANGE_L0
+    return np.minimum(np.maximum(curve, lo), hi)
+
+
 def hermite_curve(s: float, start: np.ndarray, end: np.ndarray,
                   derivatives: list[tuple[np.ndarray, np.ndarray]], dt: float) -> np.ndarray:
     """The Hermite curve of an interval of ``dt`` at fraction ``s``: through the values

@@ -25,6 +25,13 @@ RATE_SCALE_PPS = 100.0
 DICT_KEYS = ("spindle_ia", "spindle_ii")
 
 
+def check_rate_scale(rate_scale_pps: float) -> float:
+    """``rate_scale_pps`` as a float; ``ValueError`` unless it is finite and > 0."""
+    if not (np.isfinite(rate_scale_pps) and rate_scale_pps > 0):
+        raise ValueError(f"rate_scale_pps={rate_scale_pps!r} must be finite and > 0")
+    return float(rate_scale_pps)
+
+
 def afferent_spaces(base: spaces.Space, n_muscles: int, mode: str) -> spaces.Space:
     """The observation space with the rates added: a Box concatenation (``"box"``, the env's
     space must be a 1-D Box) or a Dict (``"dict"``: the env's Dict with two more keys, or
@@ -139,9 +146,7 @@ class SpindleAfferents(gym.Wrapper):
         super().__init__(env)
         model, _ = model_and_data(env)
         self.muscles: MuscleSet = find_muscles(model, muscles)
-        if not (np.isfinite(rate_scale_pps) and rate_scale_pps > 0):
-            raise ValueError(f"rate_scale_pps={rate_scale_pps!r} must be finite and > 0")
-        self.rate_scale_pps = float(rate_scale_pps)
+        self.rate_scale_pps = check_rate_scale(rate_scale_pps)
         self.observation_mode = observation
         self.observation_space = afferent_spaces(env.observation_space, self.muscles.n,
                                                  observation)

@@ -18,6 +18,7 @@ from proprio_env.wrappers.single import (
     add_afferents,
     afferent_spaces,
     bank_info,
+    check_rate_scale,
 )
 from spindle.params import HUMAN, SpindleParams
 
@@ -57,8 +58,7 @@ class SpindleAfferentsVector(VectorWrapper):
                 f"{type(env).__name__} keeps no sub-envs in this process (env.envs): the "
                 "vector wrapper needs a SyncVectorEnv; with AsyncVectorEnv wrap each sub-env "
                 "with SpindleAfferents in its env function instead")
-        if not (np.isfinite(rate_scale_pps) and rate_scale_pps > 0):
-            raise ValueError(f"rate_scale_pps={rate_scale_pps!r} must be finite and > 0")
+        rate_scale_pps = check_rate_scale(rate_scale_pps)
         sets = [find_muscles(model_and_data(e)[0], muscles) for e in subs]
         if len({s.names for s in sets}) != 1:
             raise ValueError("the sub-envs' muscles differ: "
@@ -67,7 +67,7 @@ class SpindleAfferentsVector(VectorWrapper):
         self.taps = [EnvTap(e, s, substep_source) for e, s in zip(subs, sets, strict=True)]
         if len({t.timestep_s for t in self.taps}) != 1:
             raise ValueError("the sub-envs' physics timesteps differ")
-        self.rate_scale_pps = float(rate_scale_pps)
+        self.rate_scale_pps = rate_scale_pps
         self.observation_mode = observation
         self.single_observation_space = afferent_spaces(env.single_observation_space,
                                                         self.muscles.n, observation)

@@ -79,7 +79,7 @@ from spindle.chain.fusimotor import Fusimotor
 from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.chain.sensor import MedianFilter, is_valid_reading
 from spindle.methods import get_method
-from spindle.substeps import hermite_curve, substeps
+from spindle.substeps import bounded_hermite_length, substeps
 
 LENGTH_RANGE_POINTS = 1301
 """Points of the angle grid over the fitted range on which each muscle's length range (the
@@ -370,18 +370,11 @@ class ArmChain:
         c, theta = self._columns, self._method.theta
         k = substeps(dt, self.config.spindle_step_s)
         h = dt / k
-        lo, hi = core.LENGTH_RANGE_L0
         reach = self.config.max_speed_L0_s * h
         previous = x0
         for j in range(1, k):
-            Ls = hermite_curve(j / k, x0, x1, [(v0, v1)], dt)
-            # Within the spindle's range, a slew-limited step from the previous sub-step, and
-            # still able to reach x1 at that speed (a bridge whose end velocities disagree
-            # would otherwise overshoot both).
-            left = reach * (k - j)
-            Ls = np.minimum(np.maximum(Ls, previous - reach), previous + reach)
-            Ls = np.minimum(np.maximum(Ls, x1 - left), x1 + left)
-            Ls = np.minimum(np.maximum(Ls, lo), hi)
+            Ls = bounded_hermite_length(j / k, x0, x1, v0, v1, dt, previous, reach,
+                                        reach * (k - j))
             core.commit(self._state, core.advance(self._state, Ls, gd, gs, h, theta, c),
                         Ls, gd, gs)
             previous = Ls

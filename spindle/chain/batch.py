@@ -38,7 +38,7 @@ from spindle.chain.fusimotor import BatchedFusimotor
 from spindle.chain.length_model import LengthFits
 from spindle.chain.sensor import BatchedMedianFilter, valid_readings
 from spindle.methods import get_method
-from spindle.substeps import hermite_curve
+from spindle.substeps import bounded_hermite_length
 
 _COUNTER = {name: i for i, name in enumerate(COUNTERS)}
 _SPINDLE_ARRAYS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activation",
@@ -537,7 +537,6 @@ class BatchedArmChain:
         h = dt / counts
         steps = int(_MAX(counts, axis=None))
         reach = (self.config.max_speed_L0_s * h)[..., None]
-        lo, hi = core.LENGTH_RANGE_L0
         counts_m, dt_m = counts[..., None], dt[..., None]
         first = steps - counts_m  # each arm's sub-steps start this late (it waits before)
         # sub-step lengths (steps, n, k, 2); arms that wait keep x0 (not committed)
@@ -547,11 +546,8 @@ class BatchedArmChain:
         with np.errstate(all="ignore"):
             for q in range(1, steps):
                 own = np.maximum(q - first, 0.0)
-                Ls = hermite_curve(own / counts_m, x0, x1, [(v0, v1)], dt_m.copy())
-                Ls = np.minimum(np.maximum(Ls, previous - reach), previous + reach)
-                left = reach * (counts_m - own)
-                Ls = np.minimum(np.maximum(Ls, x1 - left), x1 + left)
-                Ls = np.minimum(np.maximum(Ls, lo), hi)
+                Ls = bounded_hermite_length(own / counts_m, x0, x1, v0, v1, dt_m, previous,
+                                            reach, reach * (counts_m - own))
                 previous = lengths[q - 1] = np.where(own > 0.0, Ls, x0)
         # column-major for the loop: (k, steps, 2n) lengths, (k, 2n) drive and moving masks
         lengths = np.ascontiguousarray(lengths.transpose(2, 0, 1, 3)).reshape(k, steps, 2 * n)
@@ -813,7 +809,6 @@ class BatchedArmChain:
         def advance(L):
             return core.advance(state, L, gd_flat, gs_flat, h_step, self._theta, c)
 
-        lo, hi = core.LENGTH_RANGE_L0
         previous = x0
         waiting = np.ndim(k) > 0
         if waiting:
@@ -826,12 +821,7 @@ class BatchedArmChain:
                 s, left = own / counts, reach * (counts - own)
             else:
                 s, left = j / k, reach * (k - j)
-            # hermite_curve scales its dt argument in place (an array): give it a copy
-            Ls = hermite_curve(s, x0, x1, [(v0, v1)],
-                               dt_col if isinstance(dt_col, float) else dt_col.copy())
-            Ls = np.minimum(np.maximum(Ls, previous - reach), previous + reach)
-            Ls = np.minimum(np.maximum(Ls, x1 - left), x1 + left)
-            Ls = np.minimum(np.maximum(Ls, lo), hi)
+            Ls = bounded_hermite_length(s, x0, x1, v0, v1, dt_col, previous, reach, left)
             flat = Ls.reshape(-1)
             if waiting:
                 moving = own > 0.0
