@@ -93,11 +93,7 @@ def soak(env_id: str, steps: int, seed: int = 0, report_every: int = 0,
             env.reset()
             episodes += 1
         if report_every and step % report_every == 0:
-            rate = step / (time.perf_counter() - start)
-            print(f"{step:9d}/{steps} steps | {rate:7.1f} steps/s | ETA "
-                  f"{(steps - step) / rate / 60:7.1f} min | angle "
-                  f"{extremes['angle_deg'][0]:.1f}..{extremes['angle_deg'][1]:.1f} deg",
-                  flush=True)
+            _progress(step, steps, start, extremes, "steps")
     elapsed = time.perf_counter() - start
     counters = dict(base.afferents.chain.counters)
     env.close()
@@ -151,12 +147,16 @@ def soak_vector(env_id: str, env_steps: int, num_envs: int = 64, seed: int = 0,
         episodes += int(np.sum(terminated | truncated))
         done += num_envs
         if report_every and done // report_every != (done - num_envs) // report_every:
-            rate = done / (time.perf_counter() - start)
-            print(f"{done:10d}/{env_steps} env steps | {rate:8.1f} env steps/s | ETA "
-                  f"{(env_steps - done) / rate / 60:7.1f} min | angle "
-                  f"{extremes['angle_deg'][0]:.1f}..{extremes['angle_deg'][1]:.1f} deg",
-                  flush=True)
+            _progress(done, env_steps, start, extremes, "env steps")
     elapsed = time.perf_counter() - start
     env.close()
     return {"steps": done, "episodes": episodes, "elapsed_s": elapsed,
             "steps_per_s": done / elapsed, "bad_actions_rejected": 0, "extremes": extremes}
+
+
+def _progress(done: int, total: int, start: float, extremes: dict, unit: str) -> None:
+    """One progress line: steps so far, rate, time left, the angle range seen."""
+    rate = done / (time.perf_counter() - start)
+    print(f"{done:10d}/{total} {unit} | {rate:8.1f} {unit}/s | ETA "
+          f"{(total - done) / rate / 60:7.1f} min | angle "
+          f"{extremes['angle_deg'][0]:.1f}..{extremes['angle_deg'][1]:.1f} deg", flush=True)
