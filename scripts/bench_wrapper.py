@@ -2,15 +2,17 @@
 
 For myo-sim's 6-muscle elbow and 54-muscle legs (``MuscleModelEnv``, 10 physics steps per
 env step), single env and ``SyncVectorEnv`` of 16 and 64 envs (``--envs``), numpy and C
-spindle backends side by side: the bare env and the wrapped envs step the same random
-actions, in turn in ``--repeats`` rounds (CPU time, median). The wrapper's cost is the
-difference; "x physics" divides it by the bare env's own step time measured in the same
-round (physics plus Gymnasium's own work: ``mj_step`` x 10 is ~95 % of it on the legs).
+spindle backends, each with the afferents of the env's state now and lagging one physics step
+(``lag_physics_step``, no end-of-step kinematics; ``--lag``), side by side: the bare env and
+the wrapped envs step the same random actions, in turn in ``--repeats`` rounds (CPU time).
+The wrapper's cost is the difference; "x" divides it by the bare env's own step time in the
+same round (physics plus Gymnasium's own work: ``mj_step`` x 10 is ~95 % of it on the legs)
+and takes the median over rounds.
 
 Also: the lengths of the Hermite fallback against the recorded physics steps on this
 project's elbow during a fast bang-bang movement.
 
-Last line: ``bench_wrapper legs_vector16_numpy_vs_physics=... legs_vector16_c_vs_physics=...``
+Last line: ``bench_wrapper legs_vector16_numpy_vs_physics=... legs_vector16_c_lag_vs_physics=...``
 and the same for the other rows. Targets (legs, >= 16 envs): numpy <= 0.3, C <= 0.1.
 
 ``--myosuite-python PATH``: also run MyoSuite envs (their own venv: MyoSuite pins gymnasium
@@ -67,9 +69,11 @@ def env_step_s(env, actions) -> float:
     return (time.process_time() - t) / len(actions)
 
 
-def compare(make_bare, makers: dict, actions, repeats: int) -> tuple[float, dict]:
-    """Median CPU seconds per step of the bare env and of each wrapped env, measured in turn
-    (the order rotates from round to round)."""
+def compare(make_bare, makers: dict, actions, repeats: int) -> tuple[float, dict, dict]:
+    """CPU seconds per step of the bare env and of each wrapped env, measured in turn (the
+    order rotates from round to round): the bare env's median, each wrapped env's median, and
+    the median over rounds of each wrapped env's added time over the bare env's in the same
+    round (robust to the load drifting between rounds on a shared machine)."""
     envs = {"bare": make_bare(), **{k: m() for k, m in makers.items()}}
     times: dict[str, list[float]] = {k: [] for k in envs}
     names = list(envs)
@@ -79,8 +83,9 @@ def compare(make_bare, makers: dict, actions, repeats: int) -> tuple[float, dict
             times[k].append(env_step_s(envs[k], actions))
     for env in envs.values():
         env.close()
-    med = {k: float(np.median(v)) for k, v in times.items()}
-    return med.pop("bare"), med
+    bare = np.array(times.pop("bare"))
+    ratios = {k: float(np.median((np.array(v) - bare) / bare)) for k, v in times.items()}
+    return float(np.median(bare)), {k: float(np.median(v)) for k, v in times.items()}, ratios
 
 
 def hermite_error_L0(steps: int = 150) -> float:
@@ -172,11 +177,13 @@ def bench_rows(name: str, args, backends: tuple[str, ...], ratios: dict) -> None
     physics = physics_step_s(path, args.repeats) * FRAME_SKIP
     low, high = probe.action_space.low, probe.action_space.high
     setups = [("single", 1)] + [(f"vector{n}", n) for n in args.envs]
+    variants = [(b, lag) for b in backends for lag in args.lag]
     for mode, n in setups:
         if n == 1:
             actions = [probe.action_space.sample() for _ in range(args.steps)]
             make_bare = bare
-            makers = {b: (lambda b=b: SpindleAfferents(bare(), backend=b)) for b in backends}
+            makers = {variant_name(b, lag): (lambda b=b, lag=lag: SpindleAfferents(
+                bare(), backend=b, lag_physics_step=lag)) for b, lag in variants}
         else:
             actions = [rng.uniform(low, high, (n, low.size)).astype(np.float32)
                        for _ in range(max(4, args.steps // 4))]
@@ -184,18 +191,22 @@ def bench_rows(name: str, args, backends: tuple[str, ...], ratios: dict) -> None
             def make_bare(n=n):
                 return gym.vector.SyncVectorEnv([bare] * n)
 
-            makers = {b: (lambda b=b, n=n: SpindleAfferentsVector(
-                gym.vector.SyncVectorEnv([bare] * n), backend=b)) for b in backends}
-        b, wrapped = compare(make_bare, makers, actions, args.repeats)
+            makers = {variant_name(b, lag): (lambda b=b, n=n, lag=lag: SpindleAfferentsVector(
+                gym.vector.SyncVectorEnv([bare] * n), backend=b, lag_physics_step=lag))
+                for b, lag in variants}
+        b, wrapped, round_ratios = compare(make_bare, makers, actions, args.repeats)
         cells = []
-        for backend in backends:
-            added = wrapped[backend] - b
-            ratio = added / b
-            ratios[f"{'legs' if name == 'legs_osl' else name}_{mode}_{backend}_vs_physics"] = \
-                ratio
+        for key in makers:
+            added = wrapped[key] - b
+            ratio = round_ratios[key]
+            ratios[f"{'legs' if name == 'legs_osl' else name}_{mode}_{key}_vs_physics"] = ratio
             cells.append(f"{added / (n_muscles * n) * 1e6:9.2f} {ratio:7.3f}")
         print(f"{name:9s} {mode:9s} {n_muscles * n:7d} {b * 1e3:9.3f} "
               f"{physics * n * 1e3:10.3f} " + " ".join(cells))
+
+
+def variant_name(backend: str, lag: bool) -> str:
+    return f"{backend}_lag" if lag else backend
 
 
 def myosuite_child(env_ids: list[str], steps: int, repeats: int) -> None:
@@ -215,9 +226,10 @@ def myosuite_child(env_ids: list[str], steps: int, repeats: int) -> None:
         probe.close()
         makers = {b: (lambda b=b, e=env_id: SpindleAfferents(gym.make(e), backend=b))
                   for b in backends}
-        b, wrapped = compare(lambda e=env_id: gym.make(e), makers, actions, repeats)
+        b, wrapped, round_ratios = compare(lambda e=env_id: gym.make(e), makers, actions,
+                                           repeats)
         cells = " ".join(f"{b_}: +{(w - b) * 1e3:.3f} ms = {(w - b) / (n * 1e-6):.2f} us/muscle "
-                         f"= {(w - b) / b:.3f}x" for b_, w in wrapped.items())
+                         f"= {round_ratios[b_]:.3f}x" for b_, w in wrapped.items())
         print(f"MYOSUITE {env_id} muscles={n} substep_source={source} bare={b * 1e3:.3f} ms "
               f"{cells}", flush=True)
 
@@ -248,6 +260,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--backends", nargs="+", default=None,
                         help="default: numpy and c (c if it builds here)")
+    parser.add_argument("--lag", nargs="+", type=lambda x: {"0": False, "1": True}[x],
+                        default=[False, True], metavar="{0,1}",
+                        help="lag_physics_step settings to run (default: 0 1)")
     parser.add_argument("--figure", metavar="PNG",
                         help="only draw the docs figure (needs matplotlib) to this path")
     parser.add_argument("--myosuite-python", metavar="PATH",
@@ -268,7 +283,8 @@ def main() -> None:
     backends = tuple(args.backends or (("numpy", "c") if resolve_backend("auto") == "c"
                                        else ("numpy",)))
     ratios: dict[str, float] = {}
-    head = " ".join(f"{'us/mus ' + b:>9s} {'x phys':>7s}" for b in backends)
+    head = " ".join(f"{'us/mus':>9s} {variant_name(b, lag) + ' x':>7s}"
+                    for b in backends for lag in args.lag)
     print(f"{'model':9s} {'mode':9s} {'muscles':>7s} {'bare ms':>9s} {'mj_step ms':>10s} {head}")
     for name in ("elbow", "legs_osl"):
         bench_rows(name, args, backends, ratios)

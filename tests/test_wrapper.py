@@ -159,10 +159,12 @@ def test_wrapper_on_elbow_reach_agrees_with_the_exact_length_chain():
     assert d_ia[:, 0].max() < 4.0 and d_ia[:, 0].mean() < 0.5
 
 
-def test_vector_sub_env_equals_the_single_wrapper():
+@pytest.mark.parametrize("lag", [False, True])
+def test_vector_sub_env_equals_the_single_wrapper(lag):
     n, seed = 3, 11
-    vec = SpindleAfferentsVector(gym.vector.SyncVectorEnv([elbow_env] * n))
-    singles = [SpindleAfferents(elbow_env()) for _ in range(n)]
+    vec = SpindleAfferentsVector(gym.vector.SyncVectorEnv([elbow_env] * n),
+                                 lag_physics_step=lag)
+    singles = [SpindleAfferents(elbow_env(), lag_physics_step=lag) for _ in range(n)]
     obs_v, _ = vec.reset(seed=seed)
     for i, s in enumerate(singles):
         obs_s, _ = s.reset(seed=seed + i)
@@ -179,11 +181,12 @@ def test_vector_sub_env_equals_the_single_wrapper():
             np.testing.assert_allclose(obs_v[i], obs_s, rtol=0, atol=1e-9)
 
 
-def test_vector_autoreset_re_equilibrates_the_ended_env():
+@pytest.mark.parametrize("lag", [False, True])
+def test_vector_autoreset_re_equilibrates_the_ended_env(lag):
     def make():
         return gym.wrappers.TimeLimit(elbow_env(), max_episode_steps=5)
 
-    vec = SpindleAfferentsVector(gym.vector.SyncVectorEnv([make, make]))
+    vec = SpindleAfferentsVector(gym.vector.SyncVectorEnv([make, make]), lag_physics_step=lag)
     vec.reset(seed=0)
     for step in range(12):
         actions = np.tile(bang_bang(step, 2), (2, 1))
@@ -229,6 +232,46 @@ def test_afferents_from_trajectory_equal_the_wrapper_along_the_same_motion():
     assert np.abs(approx.ia_pps - out.ia_pps).max() < 2.0
 
 
+def shadow_physics_steps(model, data, ctrl, n_steps):
+    """(qpos, qvel) after each of the next ``n_steps`` physics steps from ``data``'s state
+    with ``ctrl``, on a copy (the env's own steps are the same, bit for bit)."""
+    shadow = mujoco.MjData(model)
+    shadow.qpos[:], shadow.qvel[:], shadow.act[:] = data.qpos, data.qvel, data.act
+    shadow.time, shadow.ctrl[:] = data.time, ctrl
+    out = []
+    for _ in range(n_steps):
+        mujoco.mj_step(model, shadow)
+        out.append((shadow.qpos.copy(), shadow.qvel.copy()))
+    return out
+
+
+def test_lagging_one_physics_step_gives_the_afferents_one_physics_step_earlier():
+    """lag_physics_step=True: after env step k the rates are those of the motion up to the
+    state after physics step 10k - 1, exactly (afferents_from_trajectory on the same states,
+    the spindles at rest from one physics step before the reset); the default's are those up
+    to physics step 10k."""
+    lagged, current = (SpindleAfferents(elbow_env(), lag_physics_step=lag) for lag in (True, False))
+    model = lagged.unwrapped.model
+    for env in (lagged, current):
+        env.reset(seed=2)
+    data = lagged.unwrapped.data
+    states = [(data.qpos.copy(), data.qvel.copy())] * 2  # at rest one physics step before
+    ia_lagged, ia_current = [], []
+    for i in range(30):
+        ctrl = bang_bang(i, 4)
+        states += shadow_physics_steps(model, data, ctrl, 10)
+        ia_lagged.append(lagged.step(ctrl)[4]["spindle_ia_pps"])
+        ia_current.append(current.step(ctrl)[4]["spindle_ia_pps"])
+    qpos, qvel = (np.array([s[j] for s in states]) for j in (0, 1))
+    t = data.time - (len(states) - 2) * model.opt.timestep \
+        + np.arange(-1, len(states) - 1) * model.opt.timestep
+    out = afferents_from_trajectory(model, qpos, t, qvel_t=qvel)
+    np.testing.assert_allclose(out.ia_pps[10::10], ia_lagged, rtol=0, atol=1e-9)
+    # sample 10k + 1 is the state after physics step 10k: the default wrapper's
+    np.testing.assert_allclose(out.ia_pps[11::10], ia_current, rtol=0, atol=1e-9)
+    assert np.abs(np.array(ia_lagged) - np.array(ia_current)).max() > 1.0
+
+
 def test_out_of_range_lengths_are_clamped_and_counted_never_nan():
     bank = SpindleBank(2, np.full(3, 0.7), np.full(3, 1.3))
     bank.reset(None, np.zeros(2), np.array([[0.3, 1.0, 1.7], [1.0, 1.0, np.nan]]))
@@ -251,6 +294,8 @@ def test_bad_arguments_name_the_value():
         SpindleAfferents(elbow_env(), muscles=["r_elbow_servo"])
     with pytest.raises(ValueError, match="substep_source"):
         SpindleAfferents(elbow_env(), substep_source="sometimes")
+    with pytest.raises(ValueError, match="lag_physics_step=True needs the recorded"):
+        SpindleAfferents(elbow_env(), substep_source="hermite", lag_physics_step=True)
     with pytest.raises(ValueError, match="gamma_static_pps"):
         ConstantFusimotor(gamma_static_pps=-1.0)
     with pytest.raises(ValueError, match="uniform"):

@@ -340,13 +340,17 @@ class SpindleBank:
 
     def _slew(self, L: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         limit = self.max_speed_L0_s * dt
+        steps = np.diff(L, axis=0, prepend=self.length_L0[None])
+        if np.abs(steps).max() <= limit:  # nothing to limit: one check, not one per knot
+            return L, np.zeros(L.shape, dtype=bool)
         out = np.empty_like(L)
         slewed = np.zeros(L.shape, dtype=bool)
         previous = self.length_L0
         for q in range(L.shape[0]):
             change = L[q] - previous
             slewed[q] = np.abs(change) > limit
-            out[q] = previous + np.clip(change, -limit, limit)
+            # a knot within the limit is kept as it is (bit for bit, as in the check above)
+            out[q] = np.where(slewed[q], previous + np.clip(change, -limit, limit), L[q])
             previous = out[q]
         return out, slewed
 

@@ -150,11 +150,11 @@ class FrameRecorder:
         return None
 
     def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The records since the last call: times (F,), lengths (F, M) m, velocities (F, M)
-        m/s, each at the start of a physics step (fresh arrays)."""
+        """The records since the last call: times (F,), lengths (F, nu) m, velocities (F, nu)
+        m/s of every actuator, each at the start of a physics step. Views of the recorder's
+        buffers, valid until its next physics step (the wrappers gather them at once)."""
         count, self._count = self._count, 0
-        return (self._times[:count].copy(), self._lengths[:count, self.ids],
-                self._velocities[:count, self.ids])
+        return self._times[:count], self._lengths[:count], self._velocities[:count]
 
     def remove(self) -> None:
         self.env.__dict__.pop("_step_mujoco_simulation" if self.kind == "gymnasium"
@@ -188,9 +188,13 @@ class EnvTap:
         env: the env (its ``unwrapped`` is used).
         muscles: the muscle set (:func:`~proprio_env.wrappers.muscles.find_muscles`).
         substep_source: one of :data:`SUBSTEP_SOURCES`.
+        lag_physics_step: end each env step's knots at the last recorded physics step (the
+            state one physics step before the env's), not at the env's state: no kinematics
+            per env step (see :meth:`end`). Needs the recorded frames.
     """
 
-    def __init__(self, env: Any, muscles: Any, substep_source: str = "auto") -> None:
+    def __init__(self, env: Any, muscles: Any, substep_source: str = "auto",
+                 lag_physics_step: bool = False) -> None:
         from proprio_env.wrappers.muscles import ActuatorKinematics, model_and_data
 
         if substep_source not in SUBSTEP_SOURCES:
@@ -208,6 +212,20 @@ class EnvTap:
                          if substep_source != "hermite" and reason is None else None)
         self.substep_source = "frames" if self.recorder is not None else "hermite"
         self.why_hermite = reason if self.recorder is None else None
+        if lag_physics_step and self.recorder is None:
+            raise ValueError("lag_physics_step=True needs the recorded physics steps "
+                             f"(substep_source 'frames'), not possible here: {reason}")
+        self.lag_physics_step = bool(lag_physics_step)
+
+    def time(self) -> float:
+        """The env's time (s)."""
+        return float(self.data.time)
+
+    def rest_time(self, t_s: float) -> float:
+        """The time of the knot at which spindles reset at the env's time ``t_s`` rest: one
+        physics step earlier when lagging, so that the next step's records (the first at
+        ``t_s``) follow it at the physics step's interval, as after any other step."""
+        return t_s - self.timestep_s if self.lag_physics_step else t_s
 
     def now(self) -> tuple[float, np.ndarray, np.ndarray]:
         """(time s, normalised lengths L0, velocities L0/s) of the env's current state."""
@@ -216,49 +234,105 @@ class EnvTap:
         return (float(self.data.time), self.muscles.length_L0(length),
                 self.muscles.velocity_L0_s(velocity))
 
-    def frames(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """Normalised records since the last call (see :meth:`FrameRecorder.take`), or None."""
-        if self.recorder is None:
-            return None
-        t, length, velocity = self.recorder.take()
-        return t, self.muscles.length_L0(length), self.muscles.velocity_L0_s(velocity)
+    def records(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The raw records since the last call (:meth:`FrameRecorder.take`), or None."""
+        return None if self.recorder is None else self.recorder.take()
 
     def close(self) -> None:
         if self.recorder is not None:
             self.recorder.remove()
 
 
-def env_step_knots(t_prev: np.ndarray, L_prev: np.ndarray, V_prev: np.ndarray,
-                   t_end: np.ndarray, L_end: np.ndarray, V_end: np.ndarray,
-                   frames: list, timestep_s: float, moving: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """The knots of one env step of n rows: times (K, n), lengths and slopes (K, n, M), and
-    ``"frames"`` or ``"hermite"``.
+TIME_TOL_S = 1e-9
+"""Times closer than this are the same physics step (sums of ``mj_step``'s dt)."""
 
-    The recorded frames are used when every moving row has them, their first record is the
-    row's previous knot (nothing moved the state in between) and all rows have as many;
-    otherwise the Hermite curve from the previous knot to the end, sampled every physics
-    step. Rows not ``moving`` get copies of the first moving row's times (the bank holds
-    them still).
+
+def gather_records(records: list, rows: np.ndarray, muscles: Any
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The raw records (:meth:`EnvTap.records`) of ``rows`` as normalised arrays: times
+    (F, r), lengths L0 and velocities L0/s (F, r, M); None unless every row has the same
+    number F >= 1. One stack and one normalisation for all rows."""
+    chosen = [records[i] for i in rows]
+    if not chosen or any(r is None for r in chosen):
+        return None
+    count = chosen[0][0].size
+    if count == 0 or any(r[0].size != count for r in chosen):
+        return None
+    t = np.stack([r[0] for r in chosen], axis=1)
+    length = np.stack([r[1] for r in chosen], axis=1)[..., muscles.ids]
+    velocity = np.stack([r[2] for r in chosen], axis=1)[..., muscles.ids]
+    return t, muscles.length_L0(length), muscles.velocity_L0_s(velocity)
+
+
+def _stacked(states: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return (np.array([x[0] for x in states]), np.stack([x[1] for x in states]),
+            np.stack([x[2] for x in states]))
+
+
+def _step_end(taps: list, records: list, rows: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The last knot of each row's env step, (r,) and (r, M): its env's state now, or,
+    lagging, its last record (its env's state now if it has none)."""
+    ends = []
+    for i in rows:
+        tap, r = taps[i], records[i]
+        if not tap.lag_physics_step or r is None or r[0].size == 0:
+            ends.append(tap.now())
+        else:
+            m = tap.muscles
+            ends.append((float(r[0][-1]), m.length_L0(r[1][-1, m.ids]),
+                         m.velocity_L0_s(r[2][-1, m.ids])))
+    return _stacked(ends)
+
+
+def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray,
+               V_prev: np.ndarray, moving: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """The knots of one env step of n envs (``taps``, one per row, all alike): times (K, n),
+    normalised lengths and velocities (K, n, M), and ``"frames"`` or ``"hermite"``.
+
+    Args:
+        taps: the envs' :class:`EnvTap`.
+        records: each env's raw records of this step (:meth:`EnvTap.records`).
+        t_prev, L_prev, V_prev: each row's previous knot, (n,) and (n, M).
+        moving: (n,) bool, the rows to advance. The others get copies of the first moving
+            row's times (the bank holds them still).
+
+    The recorded frames are used when every moving row has as many, and they line up with
+    the previous knot the same way in every row: their first record is the previous knot
+    itself (nothing moved the state in between; it is dropped), or one physics step after it
+    (lagging). The env's state now follows them, unless lagging (then the last record is the
+    step's last knot, and the state after the last physics step is the next env step's first
+    record: every physics step's lengths are used exactly once). Otherwise the Hermite curve
+    from the previous knot to the step's end, sampled every physics step.
     """
     rows = np.flatnonzero(moving)
-    n, M = L_end.shape
-    usable = [frames[i] for i in rows]
-    if rows.size and all(f is not None and f[0].size >= 1 for f in usable):
-        counts = {f[0].size for f in usable}
-        starts = np.array([f[0][0] for f in usable])
-        if len(counts) == 1 and np.abs(starts - t_prev[rows]).max() <= 1e-9:
-            K = counts.pop()
-            t = np.empty((K, n))
-            L = np.empty((K, n, M))
-            V = np.empty((K, n, M))
-            # the records after the first, then the end of the step, for all rows at once
-            t[:-1, rows] = np.stack([f[0][1:] for f in usable], axis=1)
-            L[:-1, rows] = np.stack([f[1][1:] for f in usable], axis=1)
-            V[:-1, rows] = np.stack([f[2][1:] for f in usable], axis=1)
-            t[-1, rows], L[-1, rows], V[-1, rows] = t_end[rows], L_end[rows], V_end[rows]
+    n, M = L_prev.shape
+    lag, timestep_s = taps[0].lag_physics_step, taps[0].timestep_s
+    stacked = gather_records(records, rows, taps[0].muscles)
+    if stacked is not None:
+        t_rec, L_rec, V_rec = stacked
+        first = t_rec[0] - t_prev[rows]
+        drop = int(np.all(np.abs(first) <= TIME_TOL_S))
+        follows = drop or bool(np.all(np.abs(first - timestep_s) <= TIME_TOL_S))
+        if follows and t_rec.shape[0] - drop + (not lag) >= 1:
+            t_r, L_r, V_r = t_rec[drop:], L_rec[drop:], V_rec[drop:]
+            if not lag:
+                t_end, L_end, V_end = _step_end(taps, records, rows)
+                t_r = np.concatenate((t_r, t_end[None]))
+                L_r = np.concatenate((L_r, L_end[None]))
+                V_r = np.concatenate((V_r, V_end[None]))
+            if rows.size == n:
+                return t_r, L_r, V_r, "frames"
+            K = t_r.shape[0]
+            t, L, V = np.empty((K, n)), np.empty((K, n, M)), np.empty((K, n, M))
+            t[:, rows], L[:, rows], V[:, rows] = t_r, L_r, V_r
             _fill_held(t, L, V, rows, moving)
             return t, L, V, "frames"
+    t_end, L_end, V_end = (np.array(t_prev, float), np.array(L_prev, float),
+                           np.array(V_prev, float))
+    if rows.size:
+        t_end[rows], L_end[rows], V_end[rows] = _step_end(taps, records, rows)
     span = t_end[rows] - t_prev[rows]
     counts = np.maximum(1, np.rint(span / timestep_s)).astype(int)
     if rows.size and np.any(counts != counts[0]):

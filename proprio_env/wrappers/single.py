@@ -15,7 +15,7 @@ from proprio_env.wrappers.bank import (
     SpindleBank,
     TemplateFusimotor,
 )
-from proprio_env.wrappers.capture import EnvTap, env_step_knots
+from proprio_env.wrappers.capture import EnvTap, step_knots
 from proprio_env.wrappers.muscles import MuscleSet, find_muscles, model_and_data
 from spindle.params import HUMAN, SpindleParams
 
@@ -132,8 +132,16 @@ class SpindleAfferents(gym.Wrapper):
             built on first use; needs a C compiler or a cached build) or ``"auto"`` (C when
             it builds or loads here, else numpy). Both give the same rates to ~1e-10 pps;
             C costs a fraction of numpy (``scripts/bench_wrapper.py``).
+        lag_physics_step: the afferents describe the muscles one physics step before the
+            env's state: each env step's spindles stop at its last physics step but one
+            (whose lengths ``mj_step`` computed anyway) and take the last one at the start of
+            the next env step. Every physics step's lengths are still used, exactly, once;
+            this saves the end-of-step kinematics (on myo-sim's legs as much as a physics
+            step, ``docs/wrapper.md``). Needs the recorded physics steps
+            (``substep_source`` ``"frames"``). After a reset, the spindles rest at the reset
+            lengths from one physics step before it. Default False: the env's state now.
 
-    Version history: v0 (first release); v0.1: ``backend``.
+    Version history: v0 (first release); v0.1: ``backend``; v0.2: ``lag_physics_step``.
     """
 
     def __init__(self, env: gym.Env, muscles: Sequence[str] | None = None,
@@ -142,7 +150,7 @@ class SpindleAfferents(gym.Wrapper):
                  observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
                  substep_source: str = "auto", method: str = "trapezoidal",
                  step_s: float | None = None, max_speed_L0_s: float = 8.0,
-                 backend: str = "numpy") -> None:
+                 backend: str = "numpy", lag_physics_step: bool = False) -> None:
         super().__init__(env)
         model, _ = model_and_data(env)
         self.muscles: MuscleSet = find_muscles(model, muscles)
@@ -150,7 +158,7 @@ class SpindleAfferents(gym.Wrapper):
         self.observation_mode = observation
         self.observation_space = afferent_spaces(env.observation_space, self.muscles.n,
                                                  observation)
-        self.tap = EnvTap(env, self.muscles, substep_source)
+        self.tap = EnvTap(env, self.muscles, substep_source, lag_physics_step)
         self.bank = SpindleBank(1, self.muscles.range_low_L0, self.muscles.range_high_L0,
                                 params, fusimotor, method, step_s, max_speed_L0_s, backend)
         self._measured = np.ones((1, self.muscles.n))
@@ -168,7 +176,7 @@ class SpindleAfferents(gym.Wrapper):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
-        self.tap.frames()  # whatever the reset stepped belongs to no env step
+        self.tap.records()  # whatever the reset stepped belongs to no env step
         self._rest()
         self._started = True
         return self._observation(obs), {**info, **self._info()}
@@ -177,20 +185,19 @@ class SpindleAfferents(gym.Wrapper):
         if not self._started:
             raise RuntimeError("call reset() before step()")
         obs, reward, terminated, truncated, info = self.env.step(action)
-        t, L, V = self.tap.now()
+        records = [self.tap.records()]
+        t_env = self.tap.time()
         t_prev = float(self.bank.t_s[0])
-        frames = self.tap.frames()
-        if t < t_prev or not np.isfinite(t):
+        if t_env < t_prev or not np.isfinite(t_env):
             # the env reset itself inside step (time ran back): start again at rest there
             self.bank.restarts += 1
             self._rest()
-        elif t > t_prev:
-            knots = env_step_knots(self.bank.t_s, self.bank.length_L0, self.bank.velocity_L0_s,
-                                   np.array([t]), L[None], V[None], [frames],
-                                   self.tap.timestep_s, np.ones(1, bool))
-            self._source = knots[3]
-            self.bank.advance(*knots[:3])
-            self._measured[0] = L
+        elif t_env > t_prev:
+            t, L, V, self._source = step_knots([self.tap], records, self.bank.t_s,
+                                               self.bank.length_L0, self.bank.velocity_L0_s,
+                                               np.ones(1, bool))
+            self.bank.advance(t, L, V)
+            self._measured[0] = L[-1, 0]
         return (self._observation(obs), reward, terminated, truncated,
                 {**info, **self._info()})
 
@@ -200,7 +207,7 @@ class SpindleAfferents(gym.Wrapper):
 
     def _rest(self) -> None:
         t, L, V = self.tap.now()
-        self.bank.reset(None, np.array([t]), L[None], V[None])
+        self.bank.reset(None, np.array([self.tap.rest_time(t)]), L[None], V[None])
         self._measured[0] = L
 
     def _observation(self, obs):

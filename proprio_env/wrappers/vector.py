@@ -11,7 +11,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
 from proprio_env.wrappers.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
-from proprio_env.wrappers.capture import EnvTap, env_step_knots
+from proprio_env.wrappers.capture import EnvTap, step_knots
 from proprio_env.wrappers.muscles import find_muscles, model_and_data
 from proprio_env.wrappers.single import (
     RATE_SCALE_PPS,
@@ -50,7 +50,7 @@ class SpindleAfferentsVector(VectorWrapper):
                  observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
                  substep_source: str = "auto", method: str = "trapezoidal",
                  step_s: float | None = None, max_speed_L0_s: float = 8.0,
-                 backend: str = "numpy") -> None:
+                 backend: str = "numpy", lag_physics_step: bool = False) -> None:
         super().__init__(env)
         subs = getattr(env, "envs", None)
         if subs is None:
@@ -64,7 +64,8 @@ class SpindleAfferentsVector(VectorWrapper):
             raise ValueError("the sub-envs' muscles differ: "
                              f"{sorted({s.names for s in sets})}")
         self.muscles = sets[0]
-        self.taps = [EnvTap(e, s, substep_source) for e, s in zip(subs, sets, strict=True)]
+        self.taps = [EnvTap(e, s, substep_source, lag_physics_step)
+                     for e, s in zip(subs, sets, strict=True)]
         if len({t.timestep_s for t in self.taps}) != 1:
             raise ValueError("the sub-envs' physics timesteps differ")
         self.rate_scale_pps = rate_scale_pps
@@ -91,7 +92,7 @@ class SpindleAfferentsVector(VectorWrapper):
         mask = None if options is None else options.get("reset_mask")
         rows = (np.arange(self.num_envs) if mask is None
                 else np.flatnonzero(np.asarray(mask, dtype=bool)))
-        self._rest(rows)
+        self._rest(rows, discard_records=True)
         self._pending[rows] = False
         self._started = True
         return self._observation(obs), self._info(info)
@@ -100,47 +101,45 @@ class SpindleAfferentsVector(VectorWrapper):
         if not self._started:
             raise RuntimeError("call reset() before step()")
         obs, rewards, terminations, truncations, info = self.env.step(actions)
-        now = [tap.now() for tap in self.taps]
-        t = np.array([x[0] for x in now])
-        L = np.stack([x[1] for x in now])
-        V = np.stack([x[2] for x in now])
-        frames = [tap.frames() for tap in self.taps]
+        records = [tap.records() for tap in self.taps]
+        t_env = np.array([tap.time() for tap in self.taps])
         ended = np.logical_or(terminations, truncations)
         reset = self._pending.copy() if self.autoreset_mode == AutoresetMode.NEXT_STEP \
             else (ended if self.autoreset_mode == AutoresetMode.SAME_STEP
                   else np.zeros(self.num_envs, bool))
-        back = ~(t >= self.bank.t_s)
+        back = ~(t_env >= self.bank.t_s)
         self.bank.restarts += int(np.count_nonzero(back & ~reset))
         reset |= back
-        moving = ~reset & (t > self.bank.t_s)
+        moving = ~reset & (t_env > self.bank.t_s)
         if moving.any():
-            knots = env_step_knots(self.bank.t_s, self.bank.length_L0,
-                                   self.bank.velocity_L0_s, t, L, V, frames,
-                                   self.taps[0].timestep_s, moving)
-            self._source = knots[3]
-            self.bank.advance(*knots[:3], hold=~moving)
-            self._measured[moving] = L[moving]
-        self._rest(np.flatnonzero(reset), now)
+            t, L, V, self._source = step_knots(self.taps, records, self.bank.t_s,
+                                               self.bank.length_L0, self.bank.velocity_L0_s,
+                                               moving)
+            self.bank.advance(t, L, V, hold=~moving)
+            self._measured[moving] = L[-1, moving]
+        self._rest(np.flatnonzero(reset))
         self._pending = (ended if self.autoreset_mode == AutoresetMode.NEXT_STEP
                          else np.zeros(self.num_envs, bool))
         return self._observation(obs), rewards, terminations, truncations, self._info(info)
 
     def close(self, **kwargs: Any) -> None:
-        for tap in self.taps:
+        for tap in getattr(self, "taps", ()):  # absent if __init__ refused the env
             tap.close()
         super().close(**kwargs)
 
-    def _rest(self, rows: np.ndarray, now: list | None = None) -> None:
+    def _rest(self, rows: np.ndarray, discard_records: bool = False) -> None:
+        """Rows ``rows`` at rest at their env's state now (``discard_records``: what a reset
+        stepped belongs to no env step)."""
         if rows.size == 0:
             return
-        if now is None:
-            now = [None] * self.num_envs
-            for i in rows:
-                self.taps[i].frames()  # what a reset stepped belongs to no env step
-                now[i] = self.taps[i].now()
-        t = np.array([now[i][0] for i in rows])
-        L = np.stack([now[i][1] for i in rows])
-        V = np.stack([now[i][2] for i in rows])
+        now = []
+        for i in rows:
+            if discard_records:
+                self.taps[i].records()
+            now.append(self.taps[i].now())
+        t = np.array([self.taps[i].rest_time(x[0]) for i, x in zip(rows, now, strict=True)])
+        L = np.stack([x[1] for x in now])
+        V = np.stack([x[2] for x in now])
         self.bank.reset(rows, t, L, V)
         self._measured[rows] = L
 
