@@ -804,16 +804,17 @@ PS_INLINE ps_real plan_start_force(const ps_plan *q, int i, ps_real T0, ps_real 
 /* Fibre i's implicit equation for the step with its new activation f1 (the equations of
  * implicit_fibre, constants from the plan) and Newton's start. */
 /* The same from fibre i's state values T0, v0, z0, f0 and length L0; returns the cube of
- * Newton's start (newton_start_cube). For a = 0.3 only when `a_is_03` (a constant to the
- * caller: the lanes inline it without the pow). */
-PS_INLINE ps_real plan_equation_terms(const ps_plan *q, int i, int a_is_03, ps_real T0, ps_real v0,
-                                   ps_real z0, ps_real f0, ps_real L0, ps_real L1, ps_real f1,
-                                   ps_real *A_out, ps_real *p0, ps_real *rhs, ps_real *cS,
-                                   ps_real *dC)
+ * Newton's start (newton_start_cube). For a = 0.3 only when `a_is_03`, with the start's
+ * force only when `uses_F0` (constants to the caller: the lanes inline it without the pow
+ * and without a branch). */
+PS_INLINE ps_real plan_equation_terms(const ps_plan *q, int i, int a_is_03, int uses_F0,
+                                      ps_real T0, ps_real v0, ps_real z0, ps_real f0,
+                                      ps_real L0, ps_real L1, ps_real f1, ps_real *A_out,
+                                      ps_real *p0, ps_real *rhs, ps_real *cS, ps_real *dC)
 {
     const ps_real z02 = z0 * z0, z03 = z02 * z0;
     const ps_real beta1 = q->beta0[i] + q->beta_drive[i] * f1;
-    const ps_real F0 = q->uses_F0 ? plan_start_force(q, i, T0, z0, z03, f0, L0) : R_(0);
+    const ps_real F0 = uses_F0 ? plan_start_force(q, i, T0, z0, z03, f0, L0) : R_(0);
     const ps_real A = T0 + q->KSR[i] * (L1 - L0) - q->c_Av[i] * v0;
     const ps_real z0_7 = a_is_03 ? z03 * z03 * ps_fabs(z0)
                                  : z02 * ps_pow(ps_fabs(z0), R_(3) / q->a[i] - R_(3));
@@ -829,9 +830,9 @@ PS_INLINE ps_real plan_equation_terms(const ps_plan *q, int i, int a_is_03, ps_r
 static void plan_equation(const ps_plan *q, int i, const ps_spindle *s, ps_real L1, ps_real f1,
                           plan_eq *e)
 {
-    e->z = cube_root(plan_equation_terms(q, i, q->a_is_03, s->T[i], s->v[i], s->z[i], s->f[i],
-                                         s->L, L1, f1, &e->A, &e->p0, &e->rhs, &e->cS,
-                                         &e->dC));
+    e->z = cube_root(plan_equation_terms(q, i, q->a_is_03, q->uses_F0, s->T[i], s->v[i],
+                                         s->z[i], s->f[i], s->L, L1, f1, &e->A, &e->p0,
+                                         &e->rhs, &e->cS, &e->dC));
 }
 
 /* Fibre i's step with its new activation f1 when a != 0.3 or theta = 0 (the equations of
@@ -857,17 +858,22 @@ static int plan_fibre(const ps_plan *q, int i, const ps_spindle *s, ps_real L1, 
     return PS_OK;
 }
 
+/* Fibre i's primary and secondary potentials at tension T and length L. */
+PS_INLINE void plan_potentials(const ps_plan *q, int i, ps_real T, ps_real L, ps_real *primary,
+                               ps_real *sec)
+{
+    ps_real t_ksr = T * q->inv_KSR[i];
+    ps_real stretch = t_ksr - q->stretch0[i];
+    *primary = max_r(q->G_pri[i] * stretch, R_(0));
+    *sec = q->c_sec1[i] * stretch + q->c_sec2[i] * (L - t_ksr - q->sec_off[i]);
+}
+
 PS_INLINE void plan_afferents(const ps_plan *q, const ps_real T[PS_NFIBRES], ps_real L,
-                           ps_real *ia, ps_real *ii)
+                              ps_real *ia, ps_real *ii)
 {
     ps_real primary[PS_NFIBRES], sec[PS_NFIBRES];
     int i;
-    for (i = 0; i < PS_NFIBRES; ++i) {
-        ps_real t_ksr = T[i] * q->inv_KSR[i];
-        ps_real stretch = t_ksr - q->stretch0[i];
-        primary[i] = max_r(q->G_pri[i] * stretch, R_(0));
-        sec[i] = q->c_sec1[i] * stretch + q->c_sec2[i] * (L - t_ksr - q->sec_off[i]);
-    }
+    for (i = 0; i < PS_NFIBRES; ++i) plan_potentials(q, i, T[i], L, &primary[i], &sec[i]);
     combine_rates(primary, sec, q->S, ia, ii);
 }
 
@@ -954,6 +960,7 @@ typedef struct lane_block {
     ps_real gd1[PS_LANES], gs1[PS_LANES];
     ps_real T0[PS_NFIBRES][PS_LANES], v0[PS_NFIBRES][PS_LANES], z0[PS_NFIBRES][PS_LANES];
     ps_real f0[PS_NFIBRES][PS_LANES], f1[PS_NFIBRES][PS_LANES];
+    ps_real drive0[PS_NFIBRES][PS_LANES], drive1[PS_NFIBRES][PS_LANES];
     ps_real A[PS_NFIBRES][PS_LANES], p0[PS_NFIBRES][PS_LANES], rhs[PS_NFIBRES][PS_LANES];
     ps_real cS[PS_NFIBRES][PS_LANES], dC[PS_NFIBRES][PS_LANES];
     ps_real x[PS_NFIBRES][PS_LANES]; /* a root's argument */
@@ -964,6 +971,7 @@ typedef struct lane_block {
     ps_real y[PS_NFIBRES][PS_LANES];
     lane_flag active[PS_NFIBRES][PS_LANES];
     ps_real T1[PS_NFIBRES][PS_LANES], v1[PS_NFIBRES][PS_LANES];
+    ps_real pri[PS_NFIBRES][PS_LANES], sec[PS_NFIBRES][PS_LANES];
     ps_real ia[PS_LANES], ii[PS_LANES];
 } lane_block;
 
@@ -983,18 +991,27 @@ PS_LANE_FN void lanes_activation(const ps_plan *q, lane_block *b)
 {
     int i, l;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        const ps_real *d0 = i == 0 ? b->gd0 : b->gs0, *d1 = i == 0 ? b->gd1 : b->gs1;
+        const ps_real *d0 = b->drive0[i], *d1 = b->drive1[i], freq_p = q->freq_p[i];
         const ps_real c_f0 = q->c_f0[i], c_a0 = q->c_a0[i], c_a1 = q->c_a1[i];
         const ps_real c_a01 = q->c_a01[i];
-        const int lagged = q->lagged[i], with_a0 = c_a0 != R_(0);
-        LANE_LOOP(l) {
-            const ps_real f0 = b->f0[i][l];
-            const ps_real t1 = plan_target(q, i, d1[l]), t0 = plan_target(q, i, d0[l]);
-            const int same_drive = d1[l] == d0[l];
-            const ps_real f_diff = c_f0 * f0 + c_a1 * t1;
-            const ps_real f_lag = same_drive ? c_f0 * f0 + c_a01 * t1
-                                             : (with_a0 ? f_diff + c_a0 * t0 : f_diff);
-            b->f1[i][l] = lagged ? f_lag : (same_drive ? f0 : t1);
+        ps_real t0[PS_LANES], t1[PS_LANES];
+        /* plan_target for p = 2 */
+        LANE_LOOP(l) t1[l] = target_from_power(d1[l] * d1[l], freq_p);
+        LANE_LOOP(l) t0[l] = target_from_power(d0[l] * d0[l], freq_p);
+        if (!q->lagged[i]) {
+            LANE_LOOP(l) b->f1[i][l] = d1[l] == d0[l] ? b->f0[i][l] : t1[l];
+        } else if (c_a0 != R_(0)) {
+            LANE_LOOP(l) {
+                const ps_real f0 = b->f0[i][l];
+                const ps_real f_diff = c_f0 * f0 + c_a1 * t1[l] + c_a0 * t0[l];
+                b->f1[i][l] = d1[l] == d0[l] ? c_f0 * f0 + c_a01 * t1[l] : f_diff;
+            }
+        } else {
+            LANE_LOOP(l) {
+                const ps_real f0 = b->f0[i][l];
+                const ps_real f_diff = c_f0 * f0 + c_a1 * t1[l];
+                b->f1[i][l] = d1[l] == d0[l] ? c_f0 * f0 + c_a01 * t1[l] : f_diff;
+            }
         }
     }
 }
@@ -1031,11 +1048,20 @@ PS_LANE_FN void lanes_equation(const ps_plan *q, lane_block *b)
 {
     int i, l;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        LANE_LOOP(l) {
-            b->x[i][l] = plan_equation_terms(q, i, 1, b->T0[i][l], b->v0[i][l], b->z0[i][l],
-                                             b->f0[i][l], b->L0[l], b->L1[l], b->f1[i][l],
-                                             &b->A[i][l], &b->p0[i][l], &b->rhs[i][l],
-                                             &b->cS[i][l], &b->dC[i][l]);
+        if (q->uses_F0) {
+            LANE_LOOP(l) {
+                b->x[i][l] = plan_equation_terms(
+                    q, i, 1, 1, b->T0[i][l], b->v0[i][l], b->z0[i][l], b->f0[i][l], b->L0[l],
+                    b->L1[l], b->f1[i][l], &b->A[i][l], &b->p0[i][l], &b->rhs[i][l],
+                    &b->cS[i][l], &b->dC[i][l]);
+            }
+        } else {
+            LANE_LOOP(l) {
+                b->x[i][l] = plan_equation_terms(
+                    q, i, 1, 0, b->T0[i][l], b->v0[i][l], b->z0[i][l], b->f0[i][l], b->L0[l],
+                    b->L1[l], b->f1[i][l], &b->A[i][l], &b->p0[i][l], &b->rhs[i][l],
+                    &b->cS[i][l], &b->dC[i][l]);
+            }
         }
 #ifdef PS_FAST_CBRT
         LANE_LOOP(l) b->z[i][l] = lane_cube_root(b->x[i][l]);
@@ -1127,12 +1153,18 @@ PS_LANE_FN int lanes_finish(const ps_plan *q, lane_block *b)
             bad |= !fibre_finite(b->T1[i][l], b->v1[i][l], b->z[i][l], b->f1[i][l]);
         }
     }
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        LANE_LOOP(l) plan_potentials(q, i, b->T1[i][l], b->L1[l], &b->pri[i][l], &b->sec[i][l]);
+    }
     LANE_LOOP(l) {
-        ps_real T[PS_NFIBRES];
-        T[0] = b->T1[0][l];
-        T[1] = b->T1[1][l];
-        T[2] = b->T1[2][l];
-        plan_afferents(q, T, b->L1[l], &b->ia[l], &b->ii[l]);
+        ps_real pri[PS_NFIBRES], sec[PS_NFIBRES];
+        pri[0] = b->pri[0][l];
+        pri[1] = b->pri[1][l];
+        pri[2] = b->pri[2][l];
+        sec[0] = b->sec[0][l];
+        sec[1] = b->sec[1][l];
+        sec[2] = b->sec[2][l];
+        combine_rates(pri, sec, q->S, &b->ia[l], &b->ii[l]);
         bad |= !(isfinite(b->ia[l]) && isfinite(b->ii[l]));
     }
     return !bad;
@@ -1158,6 +1190,8 @@ PS_LANE_FN long lanes_run(ps_spindle *s, long m, const ps_plan *q, const ps_real
             b.gd1[l] = gd1[j0 + l];
             b.gs1[l] = gs1[j0 + l];
             for (i = 0; i < PS_NFIBRES; ++i) {
+                b.drive0[i][l] = fibre_drive(i, sj->gd, sj->gs);
+                b.drive1[i][l] = fibre_drive(i, gd1[j0 + l], gs1[j0 + l]);
                 b.T0[i][l] = sj->T[i];
                 b.v0[i][l] = sj->v[i];
                 b.z0[i][l] = sj->z[i];
