@@ -932,7 +932,7 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
  * the scalar loop, which finds the status and the failing spindle as before. */
 #ifndef PS_BATCH_SCALAR
 #ifndef PS_LANES
-#define PS_LANES 4
+#define PS_LANES 8
 #endif
 
 #if defined(__GNUC__)
@@ -1047,6 +1047,7 @@ PS_LANE_FN ps_real lane_tenth_root(ps_real x)
 PS_LANE_FN void lanes_equation(const ps_plan *q, lane_block *b)
 {
     int i, l;
+    lane_flag fix;
     for (i = 0; i < PS_NFIBRES; ++i) {
         if (q->uses_F0) {
             LANE_LOOP(l) {
@@ -1064,18 +1065,26 @@ PS_LANE_FN void lanes_equation(const ps_plan *q, lane_block *b)
             }
         }
 #ifdef PS_FAST_CBRT
-        LANE_LOOP(l) b->z[i][l] = lane_cube_root(b->x[i][l]);
+        fix = 0;
         LANE_LOOP(l) {
             const ps_real ax = ps_fabs(b->x[i][l]);
-            if (!(ax > R_(1e-30) && ax < R_(1e30))) b->z[i][l] = cube_root(b->x[i][l]);
+            b->z[i][l] = lane_cube_root(b->x[i][l]);
+            fix |= !(ax > R_(1e-30) && ax < R_(1e30));
+        }
+        if (fix) {
+            LANE_LOOP(l) b->z[i][l] = cube_root(b->x[i][l]);
         }
 #else
         LANE_LOOP(l) b->z[i][l] = cube_root(b->x[i][l]);
 #endif
-        LANE_LOOP(l) b->bound[i][l] = lane_tenth_root(ps_fabs(b->rhs[i][l]) * q->inv_a2[i]);
+        fix = 0;
         LANE_LOOP(l) {
             const ps_real x = ps_fabs(b->rhs[i][l]) * q->inv_a2[i];
-            if (x > R_(1) && !(x < R_(1e30))) b->bound[i][l] = tenth_root_estimate(x);
+            b->bound[i][l] = lane_tenth_root(x);
+            fix |= x > R_(1) && !(x < R_(1e30));
+        }
+        if (fix) {
+            LANE_LOOP(l) b->bound[i][l] = tenth_root_estimate(ps_fabs(b->rhs[i][l]) * q->inv_a2[i]);
         }
         LANE_LOOP(l) {
             solve_03_work w;
@@ -1103,7 +1112,6 @@ PS_LANE_FN int lanes_solve_03(const ps_plan *q, lane_block *b)
 #else
     for (it = 0; it < PS_NEWTON_MAX_ITER && left; ++it) {
 #endif
-        left = 0;
         for (i = 0; i < PS_NFIBRES; ++i) {
             const ps_real a2 = q->a2[i], ten_a2 = R_(10) * a2;
             LANE_LOOP(l) {
@@ -1124,9 +1132,12 @@ PS_LANE_FN int lanes_solve_03(const ps_plan *q, lane_block *b)
                 b->y[i][l] = b->active[i][l] ? y : w.y;
 #if !(defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0)
                 b->active[i][l] = ps_fabs(dy) <= R_(PS_NEWTON_TOL_Z) ? 0 : b->active[i][l];
-                left |= b->active[i][l];
 #endif
             }
+        }
+        left = 0;
+        for (i = 0; i < PS_NFIBRES; ++i) {
+            LANE_LOOP(l) left |= b->active[i][l];
         }
     }
 #if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
