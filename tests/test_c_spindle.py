@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import subprocess
 
 import numpy as np
 import pytest
@@ -536,3 +537,55 @@ def test_batch_lanes_failure_in_a_block_or_the_tail_is_atomic(variant, n):
     ia, _ = batch.step(L[2], gd[2], gs[2])  # still usable
     np.testing.assert_array_equal(batch.fields, want)
     np.testing.assert_array_equal(ia, want_ia)
+
+
+@pytest.mark.parametrize("defines", [("-DPS_NEWTON_ITER=3",), ("-UPS_FAST_CBRT",),
+                                     ("-DPS_LANES_NO_AVX2",)])
+def test_batch_lanes_equal_the_scalar_step_in_other_builds(tmp_path, defines):
+    """The lanes follow the compile-time options of the scalar step (a fixed Newton
+    iteration count; libm's cube root for the start) and are bit for bit the scalar step in
+    the baseline instruction set too (-DPS_LANES_NO_AVX2: lanes without the AVX2 copy)."""
+    out = tmp_path / "libvariant.so"
+    flags = [*build.compile_flags("double"), *defines]
+    if "-UPS_FAST_CBRT" in defines:
+        flags = [f for f in flags if not f.startswith(("-DPS_FAST_CBRT", "-DPS_CBRT_REFINE"))]
+    cmd = [*build.compiler_command(), *flags, "-I", str(build.SOURCE_DIR),
+           *map(str, build.sources()), "-o", str(out), "-lm"]
+    subprocess.run(cmd, check=True, capture_output=True)
+    lib = ctypes.CDLL(str(out))
+    _, PsSpindle = abi.structs()
+    plan = abi.plan_struct()()
+    p = abi.params_struct(spindle.HUMAN)
+    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), ctypes.c_double(1e-3),
+                            ctypes.c_double(0.5)) == PS_OK
+    n, steps = 19, 40
+    rng = np.random.default_rng(11)
+    L, gd, gs = random_walk(rng, n, steps, 1e-3)
+    state = core.equilibrium_state(L[0], gd[0], gs[0], spindle.HUMAN)
+    spindles, backup = (PsSpindle * n)(), (PsSpindle * n)()
+    fields = np.frombuffer(spindles, dtype=np.float64).reshape(n, 15)
+    for name, a, b in native_spindle.STATE_FIELDS:
+        value = getattr(state, name)
+        fields[:, a:b] = value if value.ndim == 2 else value[:, None]
+    ia, ii = np.zeros(n), np.zeros(n)
+    r_ia, r_ii, failed = ctypes.c_double(), ctypes.c_double(), ctypes.c_long()
+    for j in range(1, steps + 1):
+        x = [np.ascontiguousarray(a[j]) for a in (L, gd, gs)]
+        want = fields.copy()
+        want_ia, want_ii = np.zeros(n), np.zeros(n)
+        for k in range(n):
+            s = PsSpindle.from_buffer(want[k])
+            assert lib.ps_spindle_step_plan(
+                ctypes.byref(s), ctypes.byref(plan), ctypes.c_double(x[0][k]),
+                ctypes.c_double(x[1][k]), ctypes.c_double(x[2][k]), ctypes.byref(r_ia),
+                ctypes.byref(r_ii)) == PS_OK
+            want_ia[k], want_ii[k] = r_ia.value, r_ii.value
+        assert lib.ps_spindle_batch_step(
+            ctypes.c_void_p(ctypes.addressof(spindles)), ctypes.c_long(n), ctypes.byref(plan),
+            ctypes.c_void_p(x[0].ctypes.data), ctypes.c_void_p(x[1].ctypes.data),
+            ctypes.c_void_p(x[2].ctypes.data), ctypes.c_void_p(ctypes.addressof(backup)),
+            ctypes.c_void_p(ia.ctypes.data), ctypes.c_void_p(ii.ctypes.data),
+            ctypes.byref(failed)) == PS_OK
+        np.testing.assert_array_equal(fields, want)
+        np.testing.assert_array_equal(ia, want_ia)
+        np.testing.assert_array_equal(ii, want_ii)

@@ -930,7 +930,14 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
  * by lane by the scalar functions. A block returns 0 when any of its lanes would fail (inputs,
  * speed, no convergence, non-finite): the caller then undoes the blocks before it and runs
  * the scalar loop, which finds the status and the failing spindle as before. */
-#ifndef PS_BATCH_SCALAR
+#if defined(PS_LANES_NO_AVX2) && !defined(PS_BATCH_SCALAR)
+#define PS_LANES_MODE 1 /* the lanes in the baseline instruction set, always */
+#elif !defined(PS_BATCH_SCALAR) && defined(__GNUC__) && defined(__x86_64__) \
+    && (!defined(__clang__) || __clang_major__ >= 6)
+#define PS_LANES_MODE 2 /* the AVX2 lanes where the CPU has AVX2, else the scalar loop */
+#endif
+
+#ifdef PS_LANES_MODE
 #ifndef PS_LANES
 #define PS_LANES 8
 #endif
@@ -939,11 +946,6 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
 #define PS_LANE_FN static inline __attribute__((always_inline))
 #else
 #define PS_LANE_FN static
-#endif
-
-#if defined(__GNUC__) && defined(__x86_64__) && !defined(PS_LANES_NO_AVX2) \
-    && (!defined(__clang__) || __clang_major__ >= 6)
-#define PS_LANES_AVX2 1
 #endif
 
 /* A lane's flag: an integer as wide as ps_real, so that selects on it stay in one vector. */
@@ -956,8 +958,7 @@ typedef long long lane_flag;
 #define LANE_LOOP(l) for ((l) = 0; (l) < PS_LANES; ++(l))
 
 typedef struct lane_block {
-    ps_real L0[PS_LANES], L1[PS_LANES], gd0[PS_LANES], gs0[PS_LANES];
-    ps_real gd1[PS_LANES], gs1[PS_LANES];
+    ps_real L0[PS_LANES], L1[PS_LANES];
     ps_real T0[PS_NFIBRES][PS_LANES], v0[PS_NFIBRES][PS_LANES], z0[PS_NFIBRES][PS_LANES];
     ps_real f0[PS_NFIBRES][PS_LANES], f1[PS_NFIBRES][PS_LANES];
     ps_real drive0[PS_NFIBRES][PS_LANES], drive1[PS_NFIBRES][PS_LANES];
@@ -980,7 +981,7 @@ PS_LANE_FN int lanes_inputs_ok(const ps_plan *q, const lane_block *b)
 {
     int l, bad = 0;
     for (l = 0; l < PS_LANES; ++l) {
-        bad |= check_inputs(b->L1[l], b->gd1[l], b->gs1[l]) != PS_OK;
+        bad |= check_inputs(b->L1[l], b->drive1[0][l], b->drive1[1][l]) != PS_OK;
         bad |= ps_fabs(b->L1[l] - b->L0[l]) > q->max_dL;
     }
     return !bad;
@@ -1192,47 +1193,39 @@ PS_LANE_FN long lanes_run(ps_spindle *s, long m, const ps_plan *q, const ps_real
     long j0;
     int i, l;
     for (j0 = 0; j0 < m; j0 += PS_LANES) {
-        LANE_LOOP(l) {
-            const ps_spindle *sj = &s[j0 + l];
-            b.L0[l] = sj->L;
-            b.gd0[l] = sj->gd;
-            b.gs0[l] = sj->gs;
-            b.L1[l] = L1[j0 + l];
-            b.gd1[l] = gd1[j0 + l];
-            b.gs1[l] = gs1[j0 + l];
-            for (i = 0; i < PS_NFIBRES; ++i) {
-                b.drive0[i][l] = fibre_drive(i, sj->gd, sj->gs);
-                b.drive1[i][l] = fibre_drive(i, gd1[j0 + l], gs1[j0 + l]);
-                b.T0[i][l] = sj->T[i];
-                b.v0[i][l] = sj->v[i];
-                b.z0[i][l] = sj->z[i];
-                b.f0[i][l] = sj->f[i];
-            }
+        const ps_spindle *sb = &s[j0];
+        /* field by field: strided loads the compiler assembles into vectors */
+        LANE_LOOP(l) b.L0[l] = sb[l].L;
+        LANE_LOOP(l) b.L1[l] = L1[j0 + l];
+        for (i = 0; i < PS_NFIBRES; ++i) {
+            LANE_LOOP(l) b.drive0[i][l] = fibre_drive(i, sb[l].gd, sb[l].gs);
+            LANE_LOOP(l) b.drive1[i][l] = fibre_drive(i, gd1[j0 + l], gs1[j0 + l]);
+            LANE_LOOP(l) b.T0[i][l] = sb[l].T[i];
+            LANE_LOOP(l) b.v0[i][l] = sb[l].v[i];
+            LANE_LOOP(l) b.z0[i][l] = sb[l].z[i];
+            LANE_LOOP(l) b.f0[i][l] = sb[l].f[i];
         }
         if (!lanes_inputs_ok(q, &b)) return j0;
         lanes_activation(q, &b);
         lanes_equation(q, &b);
         if (!lanes_solve_03(q, &b) || !lanes_finish(q, &b)) return j0;
-        LANE_LOOP(l) {
-            ps_spindle *sj = &s[j0 + l];
-            backup[j0 + l] = *sj;
-            for (i = 0; i < PS_NFIBRES; ++i) {
-                sj->T[i] = b.T1[i][l];
-                sj->v[i] = b.v1[i][l];
-                sj->z[i] = b.z[i][l];
-                sj->f[i] = b.f1[i][l];
-            }
-            sj->L = b.L1[l];
-            sj->gd = b.gd1[l];
-            sj->gs = b.gs1[l];
-            if (ia != NULL) ia[j0 + l] = b.ia[l];
-            if (ii != NULL) ii[j0 + l] = b.ii[l];
+        LANE_LOOP(l) backup[j0 + l] = s[j0 + l];
+        for (i = 0; i < PS_NFIBRES; ++i) {
+            LANE_LOOP(l) s[j0 + l].T[i] = b.T1[i][l];
+            LANE_LOOP(l) s[j0 + l].v[i] = b.v1[i][l];
+            LANE_LOOP(l) s[j0 + l].z[i] = b.z[i][l];
+            LANE_LOOP(l) s[j0 + l].f[i] = b.f1[i][l];
         }
+        LANE_LOOP(l) s[j0 + l].L = b.L1[l];
+        LANE_LOOP(l) s[j0 + l].gd = b.drive1[0][l];
+        LANE_LOOP(l) s[j0 + l].gs = b.drive1[1][l];
+        if (ia != NULL) LANE_LOOP(l) ia[j0 + l] = b.ia[l];
+        if (ii != NULL) LANE_LOOP(l) ii[j0 + l] = b.ii[l];
     }
     return m;
 }
 
-#ifdef PS_LANES_AVX2
+#if PS_LANES_MODE == 2
 __attribute__((target("avx2"))) static long lanes_run_avx2(
     ps_spindle *s, long m, const ps_plan *q, const ps_real *L1, const ps_real *gd1,
     const ps_real *gs1, ps_spindle *backup, ps_real *ia, ps_real *ii)
@@ -1241,25 +1234,22 @@ __attribute__((target("avx2"))) static long lanes_run_avx2(
 }
 #endif
 
-static long lanes_run_base(ps_spindle *s, long m, const ps_plan *q, const ps_real *L1,
-                           const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
-                           ps_real *ia, ps_real *ii)
-{
-    return lanes_run(s, m, q, L1, gd1, gs1, backup, ia, ii);
-}
-
+/* lanes_run in the best instruction set the CPU has; -1 where the lanes do not pay (SSE2
+ * alone: slower than the scalar loop, see above), for the scalar loop to do it all. */
 static long lanes_dispatch(ps_spindle *s, long m, const ps_plan *q, const ps_real *L1,
                            const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
                            ps_real *ia, ps_real *ii)
 {
-#ifdef PS_LANES_AVX2
+#if PS_LANES_MODE == 2
     if (__builtin_cpu_supports("avx2")) {
         return lanes_run_avx2(s, m, q, L1, gd1, gs1, backup, ia, ii);
     }
+    return -1;
+#else
+    return lanes_run(s, m, q, L1, gd1, gs1, backup, ia, ii);
 #endif
-    return lanes_run_base(s, m, q, L1, gd1, gs1, backup, ia, ii);
 }
-#endif /* PS_BATCH_SCALAR */
+#endif /* PS_LANES_MODE */
 
 int ps_spindle_batch_step(ps_spindle *s, long n, const ps_plan *q, const ps_real *L1,
                           const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
@@ -1274,11 +1264,11 @@ int ps_spindle_batch_step(ps_spindle *s, long n, const ps_plan *q, const ps_real
     if (s == NULL || q == NULL || L1 == NULL || gd1 == NULL || gs1 == NULL || backup == NULL) {
         return PS_ERR_NULL;
     }
-#ifndef PS_BATCH_SCALAR
+#ifdef PS_LANES_MODE
     if (q->a_is_03 && !q->explicit_step && q->p_is_2) {
         const long m = n - n % PS_LANES;
         j = lanes_dispatch(s, m, q, L1, gd1, gs1, backup, ia, ii);
-        if (j < m) { /* a lane fails: undo, and let the scalar loop name the status */
+        if (j < m) { /* a lane fails (or no lanes): undo, and let the scalar loop do it all */
             for (k = 0; k < j; ++k) s[k] = backup[k];
             j = 0;
         }
