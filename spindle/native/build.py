@@ -57,7 +57,8 @@ OPTIMISE_FLAGS = ("-O2", "-DPS_FAST_CBRT", "-DPS_CBRT_REFINE=1")
 libm's cbrt (the start only needs to be near the root; Newton converges to the same
 tolerance). Measured: 320 -> 275 ns per spindle step of the batch (864 spindles of the legs,
 1 ms, x86-64 gcc -O2); -O3 and -march=native gave nothing beyond the noise, and a cached
-library built with -march=native would not load on an older CPU sharing the cache."""
+library built with -march=native would not load on an older CPU sharing the cache (the batch
+step's AVX2 lanes are a run-time choice inside the library instead)."""
 FP_FLAGS = ("-ffp-contract=off", "-fno-trapping-math")
 """Every build: no contraction into fused multiply-adds (GCC's -std=c99 implies it, Clang's
 default does not), so each operation rounds as the numpy core's does and the batch's SIMD

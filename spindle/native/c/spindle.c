@@ -15,6 +15,8 @@
  *   the same accuracy (1.42 pps RMS against the stiff reference).
  * The pieces they share (activation target, force, Newton start and solve, the combination of
  * the potentials into Ia and II, commit) are the small static functions of the first section.
+ * The host's batch (ps_spindle_batch_step) runs ps_spindle_step_plan for 8 spindles at a time
+ * in SIMD lanes, from the same pieces, bit for bit (3-3.8x faster with AVX2, see there).
  *
  * No heap, no globals, no input is modified; on failure nothing is written.
  */
@@ -665,8 +667,8 @@ static ps_real tenth_root_estimate(ps_real x)
  * keep a superscalar core busy where one leaves it waiting. Measured on the host (x86-64,
  * gcc -O2, ps_spindle_batch_step on the 864 spindles of the legs under random controls, 1 ms,
  * 4.4 iterations per solve): 440 -> 330 ns per spindle step (275 with the host build's cube
- * root). The fibres of 2, 4 or 8 spindles of a batch side by side: 266, 292, 298 ns, no gain,
- * so not done. The Cortex-M0+ gains nothing (one instruction at a time) and pays for the
+ * root). The fibres of 2, 4 or 8 spindles of a batch side by side as scalar code gained nothing
+ * (266, 292, 298 ns); as SIMD lanes they do: see ps_spindle_batch_step. The Cortex-M0+ gains nothing (one instruction at a time) and pays for the
  * work kept in memory: the float plan step (scripts/bench_embedded.py --only 2 9) 41,861 ->
  * 42,594 instructions per step at 1 ms, 36,926 -> 37,473 at 5 ms (+1.5 %); the fixed-point
  * step, the device's configuration (--quick), is not this code (1.7224 MIPS, unchanged).
@@ -918,18 +920,29 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
 #ifndef PS_NO_BATCH
 
 /* ---- the batch in lanes (host) ----------------------------------------------------------
- * LANES_MEASUREMENT
+ * A second form of the planned step, kept because it pays on the host: replaying the 300
+ * ps_spindle_batch_step calls of myo-sim's 54-muscle legs in 16 envs (864 spindles, 1 ms,
+ * trapezoidal, random controls; PYTHONPATH=. python scripts/bench_batch_step.py, x86-64 AMD
+ * EPYC with AVX2, gcc 12 -O2, shared 2-core machine, medians of 9 and 15 rounds) the scalar
+ * loop takes 381 and 328 ns per spindle step, these lanes 101 and 109 ns (3.8x, 3.0x);
+ * 8 lanes: 2, 4, 16 lanes gave 209, 116, 108 ns against 101 in one run. Without AVX2
+ * (SSE2 only, -DPS_LANES_NO_AVX2) the lanes gave 285 and 351 ns against the scalar loop's
+ * 381 and 328: no clear gain, so a CPU without AVX2 runs the scalar loop.
  * The step of ps_spindle_step_plan for the a = 0.3 implicit plan (p = 2), PS_LANES spindles
  * at a time: each quantity of the scalar step is an array [fibre][lane] and each line of it a
- * loop over the lanes that the compiler turns into SIMD (SSE2 on any x86-64; the AVX2 copy
- * where the CPU has it, chosen at run time). Bit-identical to the scalar step lane by lane:
- * the same helpers (inlined) and so the same IEEE operations in the same order, contraction
- * off (-ffp-contract=off in the build); every branch of the scalar step is a per-lane select
- * of values both computed (activation targets of both drives, both Newton forms). The rare
- * cube and tenth roots the bit estimate does not cover (0, tiny, huge, NaN) are redone lane
- * by lane by the scalar functions. A block returns 0 when any of its lanes would fail (inputs,
- * speed, no convergence, non-finite): the caller then undoes the blocks before it and runs
- * the scalar loop, which finds the status and the failing spindle as before. */
+ * loop over the lanes that the compiler turns into SIMD (an AVX2 copy of the code, chosen at
+ * run time with __builtin_cpu_supports: the cached library must load on any x86-64, so no
+ * -march). Bit-identical to the scalar step lane by lane: the same helpers (inlined) and so
+ * the same IEEE operations in the same order, no contraction (-ffp-contract=off in the
+ * build, and target("avx2") does not enable FMA); every branch of the scalar step is a
+ * per-lane select of values both computed (activation targets of both drives, both Newton
+ * forms; -fno-trapping-math lets the compiler compute both), a lane whose Newton iteration
+ * converged keeps its y while the others iterate. The rare cube and tenth roots the bit
+ * estimate does not cover (tiny, huge, NaN) are redone lane by lane by the scalar
+ * functions. lanes_run stops at a block with any lane that would fail (inputs, speed, no
+ * convergence, non-finite): the caller then undoes the blocks before it and runs the scalar
+ * loop, which finds the status and the failing spindle as before. The tail (n mod PS_LANES)
+ * is the scalar loop's. */
 #if defined(PS_LANES_NO_AVX2) && !defined(PS_BATCH_SCALAR)
 #define PS_LANES_MODE 1 /* the lanes in the baseline instruction set, always */
 #elif !defined(PS_BATCH_SCALAR) && defined(__GNUC__) && defined(__x86_64__) \
