@@ -499,7 +499,7 @@ def test_batch_lanes_equal_the_scalar_step_bit_for_bit(variant, theta, step_s, p
 @pytest.mark.parametrize("variant", ["double", "float"])
 @pytest.mark.parametrize("n", [8, 11])
 def test_batch_lanes_failure_in_a_block_or_the_tail_is_atomic(variant, n):
-    """A spindle that fails in the middle of a block, at a block's edge or in the tail (n % 4)
+    """A spindle that fails in the middle of a block, at a block's edge or in the tail (n % 8)
     gives the status and index of the scalar loop, and leaves every spindle as it was; a
     failure found only after the solve (an infinite tension: no convergence) too."""
     rng = np.random.default_rng(3)
