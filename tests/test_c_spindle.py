@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import subprocess
 
 import numpy as np
 import pytest
@@ -420,3 +421,171 @@ def test_batch_step_is_atomic_and_names_the_failing_spindle():
     assert lib.ps_spindle_batch_afferents(args[1], 6, args[2], None, None) == PS_ERR_NULL
     np.testing.assert_array_equal(batch.fields, before)
     batch.step(length[2], gd[2], gs[2])  # still usable
+
+
+# ---- the batch's SIMD lanes against the scalar step ------------------------------------
+
+def scalar_steps(batch, before, L, gd, gs):
+    """Each spindle of ``before`` (an (n, 15) state array) stepped alone by
+    ps_spindle_step_plan: (new states, Ia, II, statuses)."""
+    lib, variant = batch.lib, batch.variant
+    real = abi.real_type(variant)
+    _, PsSpindle = abi.structs(variant)
+    n = before.shape[0]
+    out = before.copy()
+    ia, ii = np.zeros(n, batch.dtype), np.zeros(n, batch.dtype)
+    codes = np.zeros(n, int)
+    r_ia, r_ii = real(), real()
+    for j in range(n):
+        s = PsSpindle.from_buffer_copy(before[j].tobytes())
+        codes[j] = lib.ps_spindle_step_plan(ctypes.byref(s), ctypes.byref(batch._plan),
+                                            L[j], gd[j], gs[j], ctypes.byref(r_ia),
+                                            ctypes.byref(r_ii))
+        out[j] = np.frombuffer(bytes(s), dtype=batch.dtype)
+        ia[j], ii[j] = r_ia.value, r_ii.value
+    return out, ia, ii, codes
+
+
+def random_walk(rng, n: int, steps: int, step_s: float):
+    """Lengths of n spindles moving at random speeds up to ~9 L0/s with reversals (within
+    the speed limit of 10 L0/s), and drives that jump at random (sometimes to 0, sometimes
+    unchanged for a while)."""
+    speed = rng.uniform(-9.0, 9.0, (steps, n)) * (rng.random((steps, n)) < 0.7)
+    speed[rng.random((steps, n)) < 0.1] *= -1.0  # reversals
+    L = np.clip(rng.uniform(0.7, 1.3, n) + np.cumsum(speed * step_s, axis=0), 0.55, 1.45)
+    L = np.vstack([L[:1], L])
+    dL = np.clip(np.diff(L, axis=0), -9.9 * step_s, 9.9 * step_s)  # the clip must not speed up
+    L = L[0] + np.vstack([np.zeros(n), np.cumsum(dL, axis=0)])
+    drives = []
+    for _ in range(2):
+        d = rng.uniform(0.0, 200.0, (steps + 1, n))
+        hold = rng.random((steps + 1, n)) < 0.6
+        for j in range(1, steps + 1):
+            d[j, hold[j]] = d[j - 1, hold[j]]
+        d[rng.random(d.shape) < 0.1] = 0.0
+        drives.append(d)
+    return L, drives[0], drives[1]
+
+
+@pytest.mark.parametrize("variant", ["double", "float"])
+@pytest.mark.parametrize(("theta", "step_s", "params", "n"), [
+    (0.5, 1e-3, "HUMAN", 37), (1.0, 1e-3, "CAT", 13), (0.5, 5e-3, "CAT", 26)])
+def test_batch_lanes_equal_the_scalar_step_bit_for_bit(variant, theta, step_s, params, n):
+    """ps_spindle_batch_step (SIMD lanes for the a = 0.3 implicit plan, the tail n % lanes
+    scalar) gives every spindle exactly the state and rates of its own ps_spindle_step_plan,
+    over random lengthening, shortening, reversals and drive jumps from random states."""
+    rng = np.random.default_rng(n)
+    p = getattr(spindle, params)
+    steps = 60
+    L, gd, gs = random_walk(rng, n, steps, step_s)
+    state = core.equilibrium_state(L[0], gd[0], gs[0], p)
+    state.polar_velocity_L0_s[...] = rng.uniform(-2.0, 2.0, (n, 3))  # start off rest too
+    state.velocity_root[...] = np.sign(state.polar_velocity_L0_s) \
+        * np.abs(state.polar_velocity_L0_s) ** 0.1
+    batch = native_spindle.SpindleBatch(state, p, step_s, theta, variant)
+    moved = 0.0
+    for j in range(1, steps + 1):
+        before = batch.fields.copy()
+        want, want_ia, want_ii, codes = scalar_steps(batch, before, L[j], gd[j], gs[j])
+        assert (codes == PS_OK).all()
+        ia, ii = batch.step(L[j], gd[j], gs[j])
+        np.testing.assert_array_equal(batch.fields, want)
+        np.testing.assert_array_equal(ia, want_ia)
+        np.testing.assert_array_equal(ii, want_ii)
+        moved = max(moved, np.abs(before[:, 3:6]).max())
+    assert moved > 1.0  # the polar regions did move (not a batch at rest)
+
+
+@pytest.mark.parametrize("variant", ["double", "float"])
+@pytest.mark.parametrize("n", [8, 11])
+def test_batch_lanes_failure_in_a_block_or_the_tail_is_atomic(variant, n):
+    """A spindle that fails in the middle of a block, at a block's edge or in the tail (n % 8)
+    gives the status and index of the scalar loop, and leaves every spindle as it was; a
+    failure found only after the solve (an infinite tension: no convergence) too."""
+    rng = np.random.default_rng(3)
+    L, gd, gs = random_walk(rng, n, 2, 1e-3)
+    state = core.equilibrium_state(L[0], gd[0], gs[0], spindle.HUMAN)
+    batch = native_spindle.SpindleBatch(state, spindle.HUMAN, 1e-3, 0.5, variant)
+    batch.step(L[1], gd[1], gs[1])
+    before = batch.fields.copy()
+    lib = batch.lib
+    failed = ctypes.c_long()
+    for bad in ([1], [3], [4], [n - 1], [n - 2, 2], [5, n - 1]):
+        for field, value, status in ((0, 1.6, "PS_ERR_LENGTH_RANGE"),
+                                     (1, -1.0, "PS_ERR_NEGATIVE_DRIVE"),
+                                     (0, L[1] + 0.02, "PS_ERR_SPEED"),
+                                     ("state", np.inf, None)):
+            x = [L[2].copy(), gd[2].copy(), gs[2].copy()]
+            if field == "state":  # a tension that makes the step non-finite
+                batch.fields[bad, 0] = value
+            else:
+                x[field][bad] = value if np.isscalar(value) else value[bad]
+            start = batch.fields.copy()
+            arrays = [np.ascontiguousarray(a, dtype=batch.dtype) for a in x]
+            code = lib.ps_spindle_batch_step(
+                batch._address, n, ctypes.byref(batch._plan), arrays[0].ctypes.data,
+                arrays[1].ctypes.data, arrays[2].ctypes.data, batch._backup_address,
+                batch.ia_pps.ctypes.data, batch.ii_pps.ctypes.data, ctypes.byref(failed))
+            _, _, _, codes = scalar_steps(batch, start, *arrays)
+            assert (codes[:min(bad)] == PS_OK).all() and codes[min(bad)] != PS_OK
+            assert code == codes[min(bad)]
+            assert status is None or abi.status_name(code) == status
+            assert failed.value == min(bad)
+            np.testing.assert_array_equal(batch.fields, start)
+            batch.fields[...] = before
+    want, want_ia, _, _ = scalar_steps(batch, before, L[2], gd[2], gs[2])
+    ia, _ = batch.step(L[2], gd[2], gs[2])  # still usable
+    np.testing.assert_array_equal(batch.fields, want)
+    np.testing.assert_array_equal(ia, want_ia)
+
+
+@pytest.mark.parametrize("defines", [("-DPS_NEWTON_ITER=3",), ("-UPS_FAST_CBRT",),
+                                     ("-DPS_LANES_NO_AVX2",)])
+def test_batch_lanes_equal_the_scalar_step_in_other_builds(tmp_path, defines):
+    """The lanes follow the compile-time options of the scalar step (a fixed Newton
+    iteration count; libm's cube root for the start) and are bit for bit the scalar step in
+    the baseline instruction set too (-DPS_LANES_NO_AVX2: lanes without the AVX2 copy)."""
+    out = tmp_path / "libvariant.so"
+    flags = [*build.compile_flags("double"), *defines]
+    if "-UPS_FAST_CBRT" in defines:
+        flags = [f for f in flags if not f.startswith(("-DPS_FAST_CBRT", "-DPS_CBRT_REFINE"))]
+    cmd = [*build.compiler_command(), *flags, "-I", str(build.SOURCE_DIR),
+           *map(str, build.sources()), "-o", str(out), "-lm"]
+    subprocess.run(cmd, check=True, capture_output=True)
+    lib = ctypes.CDLL(str(out))
+    _, PsSpindle = abi.structs()
+    plan = abi.plan_struct()()
+    p = abi.params_struct(spindle.HUMAN)
+    assert lib.ps_plan_init(ctypes.byref(plan), ctypes.byref(p), ctypes.c_double(1e-3),
+                            ctypes.c_double(0.5)) == PS_OK
+    n, steps = 19, 40
+    rng = np.random.default_rng(11)
+    L, gd, gs = random_walk(rng, n, steps, 1e-3)
+    state = core.equilibrium_state(L[0], gd[0], gs[0], spindle.HUMAN)
+    spindles, backup = (PsSpindle * n)(), (PsSpindle * n)()
+    fields = np.frombuffer(spindles, dtype=np.float64).reshape(n, 15)
+    for name, a, b in native_spindle.STATE_FIELDS:
+        value = getattr(state, name)
+        fields[:, a:b] = value if value.ndim == 2 else value[:, None]
+    ia, ii = np.zeros(n), np.zeros(n)
+    r_ia, r_ii, failed = ctypes.c_double(), ctypes.c_double(), ctypes.c_long()
+    for j in range(1, steps + 1):
+        x = [np.ascontiguousarray(a[j]) for a in (L, gd, gs)]
+        want = fields.copy()
+        want_ia, want_ii = np.zeros(n), np.zeros(n)
+        for k in range(n):
+            s = PsSpindle.from_buffer(want[k])
+            assert lib.ps_spindle_step_plan(
+                ctypes.byref(s), ctypes.byref(plan), ctypes.c_double(x[0][k]),
+                ctypes.c_double(x[1][k]), ctypes.c_double(x[2][k]), ctypes.byref(r_ia),
+                ctypes.byref(r_ii)) == PS_OK
+            want_ia[k], want_ii[k] = r_ia.value, r_ii.value
+        assert lib.ps_spindle_batch_step(
+            ctypes.c_void_p(ctypes.addressof(spindles)), ctypes.c_long(n), ctypes.byref(plan),
+            ctypes.c_void_p(x[0].ctypes.data), ctypes.c_void_p(x[1].ctypes.data),
+            ctypes.c_void_p(x[2].ctypes.data), ctypes.c_void_p(ctypes.addressof(backup)),
+            ctypes.c_void_p(ia.ctypes.data), ctypes.c_void_p(ii.ctypes.data),
+            ctypes.byref(failed)) == PS_OK
+        np.testing.assert_array_equal(fields, want)
+        np.testing.assert_array_equal(ia, want_ia)
+        np.testing.assert_array_equal(ii, want_ii)

@@ -57,7 +57,14 @@ OPTIMISE_FLAGS = ("-O2", "-DPS_FAST_CBRT", "-DPS_CBRT_REFINE=1")
 libm's cbrt (the start only needs to be near the root; Newton converges to the same
 tolerance). Measured: 320 -> 275 ns per spindle step of the batch (864 spindles of the legs,
 1 ms, x86-64 gcc -O2); -O3 and -march=native gave nothing beyond the noise, and a cached
-library built with -march=native would not load on an older CPU sharing the cache."""
+library built with -march=native would not load on an older CPU sharing the cache (the batch
+step's AVX2 lanes are a run-time choice inside the library instead)."""
+FP_FLAGS = ("-ffp-contract=off", "-fno-trapping-math")
+"""Every build: no contraction into fused multiply-adds (GCC's -std=c99 implies it, Clang's
+default does not), so each operation rounds as the numpy core's does and the batch's SIMD
+lanes (``ps_spindle_batch_step``) round as its scalar step does; FP exceptions are not
+observed (the C port reports non-finite results by status), which lets the compiler turn the
+lanes' per-lane branches into selects. Neither changes a value."""
 SANITIZE_FLAGS = ("-O1", "-g", "-fsanitize=address,undefined", "-fno-omit-frame-pointer",
                   "-fno-sanitize-recover=all")
 CACHE_FORMAT = 2
@@ -116,7 +123,7 @@ def cache_dir() -> Path:
 def compile_flags(variant: str = "double", sanitize: bool = False) -> list[str]:
     if variant not in VARIANTS:
         raise ValueError(f"variant={variant!r} is not one of {VARIANTS}")
-    flags = [*WARNING_FLAGS, *(SANITIZE_FLAGS if sanitize else OPTIMISE_FLAGS),
+    flags = [*WARNING_FLAGS, *FP_FLAGS, *(SANITIZE_FLAGS if sanitize else OPTIMISE_FLAGS),
              "-fPIC", "-shared"]
     if variant == "float":
         flags.append("-DPS_FLOAT")

@@ -15,6 +15,8 @@
  *   the same accuracy (1.42 pps RMS against the stiff reference).
  * The pieces they share (activation target, force, Newton start and solve, the combination of
  * the potentials into Ia and II, commit) are the small static functions of the first section.
+ * The host's batch (ps_spindle_batch_step) runs ps_spindle_step_plan for 8 spindles at a time
+ * in SIMD lanes, from the same pieces, bit for bit (3-3.8x faster with AVX2, see there).
  *
  * No heap, no globals, no input is modified; on failure nothing is written.
  */
@@ -26,6 +28,15 @@
 #include <string.h>
 
 #define R_(x) ((ps_real)(x))
+
+/* The small pieces shared by the scalar step and the lanes of the batch: always inlined where
+ * speed is the aim (the lanes need them inline to become SIMD), the compiler's choice under
+ * -Os (the embedded builds). */
+#if defined(__GNUC__) && !defined(__OPTIMIZE_SIZE__)
+#define PS_INLINE static inline __attribute__((always_inline))
+#else
+#define PS_INLINE static
+#endif
 
 #ifdef PS_FLOAT
 #define ps_fabs fabsf
@@ -53,14 +64,14 @@
 
 /* ---- shared small pieces ------------------------------------------------------------ */
 
-static ps_real max_r(ps_real a, ps_real b) { return a < b ? b : a; }
+PS_INLINE ps_real max_r(ps_real a, ps_real b) { return a < b ? b : a; }
 
-static ps_real min_r(ps_real a, ps_real b) { return b < a ? b : a; }
+PS_INLINE ps_real min_r(ps_real a, ps_real b) { return b < a ? b : a; }
 
 /* The Newton step g/g' of both implicit paths: g' kept above PS_TINY (g' = 0 at z = 0 when the
  * polar region is no longer than R) and the step capped at PS_NEWTON_MAX_DZ. NaN propagates
  * through both clamps, as np.maximum/np.minimum do. */
-static ps_real newton_step(ps_real g, ps_real dg)
+PS_INLINE ps_real newton_step(ps_real g, ps_real dg)
 {
     ps_real d = g / (dg < R_(PS_TINY) ? R_(PS_TINY) : dg);
     if (d > R_(PS_NEWTON_MAX_DZ)) d = R_(PS_NEWTON_MAX_DZ);
@@ -72,14 +83,14 @@ static ps_real sign_r(ps_real x) { return x > R_(0) ? R_(1) : (x < R_(0) ? R_(-1
 
 static ps_real fibre_drive(int i, ps_real gd, ps_real gs) { return i == 0 ? gd : gs; }
 
-static ps_real drive_power(ps_real drive, ps_real p, int p_is_2)
+PS_INLINE ps_real drive_power(ps_real drive, ps_real p, int p_is_2)
 {
     return p_is_2 ? drive * drive : ps_pow(drive, p);
 }
 
 /* g^p / (g^p + freq^p) from gp = g^p (spindle.core.activation_target). A drive so large that
  * g^p overflows is saturated (numpy would give inf/inf = NaN). */
-static ps_real target_from_power(ps_real gp, ps_real freq_p)
+PS_INLINE ps_real target_from_power(ps_real gp, ps_real freq_p)
 {
     if (!isfinite(gp)) return R_(1);
     return gp / (gp + freq_p);
@@ -95,7 +106,7 @@ static ps_real activation_target(ps_real drive, ps_real freq, ps_real p, int p_i
  * which the caller may need too), polar length `polar`, drive terms beta and Gamma: the
  * damping C*beta*sgn(v)|v|^a is C*beta*z^3, times the polar length beyond R clipped at 0 (no
  * damping, never a negative one, where the polar region is not longer than R). */
-static ps_real force(ps_real T, ps_real z, ps_real z3, ps_real polar, ps_real beta,
+PS_INLINE ps_real force(ps_real T, ps_real z, ps_real z3, ps_real polar, ps_real beta,
                      ps_real Gamma, ps_real KPR, ps_real LPR0, ps_real R, ps_real CL, ps_real CS)
 {
     ps_real damping = (z > R_(0) ? CL : CS) * beta * z3;
@@ -110,7 +121,7 @@ static ps_real root_of_velocity(ps_real v, ps_real a)
 
 /* Ia and II from the fibres' primary and secondary potentials (pps): each clipped at 0, the
  * dynamic (bag1) and static (bag2 + chain) primaries combined with occlusion S. */
-static void combine_rates(const ps_real primary[PS_NFIBRES], const ps_real sec[PS_NFIBRES],
+PS_INLINE void combine_rates(const ps_real primary[PS_NFIBRES], const ps_real sec[PS_NFIBRES],
                           ps_real S, ps_real *ia, ps_real *ii)
 {
     ps_real a_dyn = primary[0];
@@ -128,7 +139,7 @@ static void copy3(ps_real dst[PS_NFIBRES], const ps_real src[PS_NFIBRES])
     dst[2] = src[2];
 }
 
-static int fibre_finite(ps_real T, ps_real v, ps_real z, ps_real f)
+PS_INLINE int fibre_finite(ps_real T, ps_real v, ps_real z, ps_real f)
 {
     return isfinite(T) && isfinite(v) && isfinite(z) && isfinite(f);
 }
@@ -160,7 +171,7 @@ static int all_equal(const ps_real x[PS_NFIBRES], ps_real value)
 }
 
 /* The inputs of a step or of an equilibrium, checked in the order of spindle.core. */
-static int check_inputs(ps_real L, ps_real gd, ps_real gs)
+PS_INLINE int check_inputs(ps_real L, ps_real gd, ps_real gs)
 {
     if (!isfinite(L) || !isfinite(gd) || !isfinite(gs)) return PS_ERR_NONFINITE;
     if (L < R_(PS_LENGTH_MIN_L0) || L > R_(PS_LENGTH_MAX_L0)) return PS_ERR_LENGTH_RANGE;
@@ -178,20 +189,25 @@ static int check_inputs(ps_real L, ps_real gd, ps_real gs)
 typedef union ps_bits { float f; unsigned int u; } ps_bits;
 typedef char ps_check_unsigned_is_32_bits[sizeof(unsigned int) == 4 ? 1 : -1];
 
+#ifdef PS_FAST_CBRT
+/* The bits of a float x in [1e-30, 1e30] -> those of ~x^(1/3): u/3 as a sum of shifts
+ * (1/3 = 1/4 + 1/16 + ...; no divide on cores without one). The sum stays below 2^31. */
+PS_INLINE unsigned int cbrt_bits(unsigned int u)
+{
+    return (u >> 2) + (u >> 4) + (u >> 6) + (u >> 8) + (u >> 10) + (u >> 12) + (u >> 14)
+           + (u >> 16) + 709921077u;
+}
+#endif
+
 static ps_real cube_root(ps_real x)
 {
 #ifdef PS_FAST_CBRT
     ps_bits b;
-    unsigned long u;
     ps_real ax = ps_fabs(x), y;
     int k;
     if (!(ax > R_(1e-30) && ax < R_(1e30))) return ps_cbrt(x); /* 0, huge, NaN: exact path */
     b.f = (float)ax;
-    u = b.u;
-    /* u/3 as a sum of shifts (1/3 = 1/4 + 1/16 + ...): no divide on cores without one */
-    u = (u >> 2) + (u >> 4) + (u >> 6) + (u >> 8) + (u >> 10) + (u >> 12) + (u >> 14)
-        + (u >> 16) + 709921077UL;
-    b.u = (unsigned int)u;
+    b.u = cbrt_bits(b.u);
     y = (ps_real)b.f;
     for (k = 0; k < PS_CBRT_REFINE; ++k) y = (R_(2) * y + ax / (y * y)) * R_(1.0 / 3.0);
     return x < R_(0) ? -y : y;
@@ -331,11 +347,17 @@ static int newton(ps_real *z, ps_real a2, ps_real p0, ps_real rhs, ps_real cS, p
 
 /* The linearised starting guess of Newton (spindle.core): z^3 times the slope of g near the
  * previous z, equal to rhs. */
+PS_INLINE ps_real newton_start_cube(ps_real z0_7, ps_real a2, ps_real rhs, ps_real cS,
+                                 ps_real dC, ps_real p0)
+{
+    ps_real slope = a2 * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
+    return rhs / slope;
+}
+
 static ps_real newton_start(ps_real z0_7, ps_real a2, ps_real rhs, ps_real cS, ps_real dC,
                             ps_real p0)
 {
-    ps_real slope = a2 * z0_7 + (rhs > R_(0) ? cS + dC : cS) * max_r(p0, R_(0));
-    return cube_root(rhs / slope);
+    return cube_root(newton_start_cube(z0_7, a2, rhs, cS, dC, p0));
 }
 
 /* The root z of g from the guess in *z (bounded first), and v = sgn(z)|z|^(3/a). */
@@ -615,17 +637,20 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
 
 /* x^(1/10) to ~1 %: the exponent bits divided by 10 (shifts), no refinement. Only a bound
  * for the starting guess below. */
+/* The bits of a float x in [1e-30, 1e30] -> those of ~x^(1/10): u/10 = u * 0.000110011...b
+ * (the sum stays below 2^31). */
+PS_INLINE unsigned int tenth_root_bits(unsigned int u)
+{
+    return (u >> 4) + (u >> 5) + (u >> 8) + (u >> 9) + (u >> 12) + (u >> 13) + (u >> 16)
+           + (u >> 17) + (u >> 20) + (u >> 21) + 958817894u;
+}
+
 static ps_real tenth_root_estimate(ps_real x)
 {
     ps_bits b;
-    unsigned long u;
     if (!(x > R_(1e-30) && x < R_(1e30))) return x > R_(1) ? ps_pow(x, R_(0.1)) : R_(0);
     b.f = (float)x;
-    u = b.u;
-    /* u/10 = u * 0.000110011001100...b */
-    u = (u >> 4) + (u >> 5) + (u >> 8) + (u >> 9) + (u >> 12) + (u >> 13) + (u >> 16)
-        + (u >> 17) + (u >> 20) + (u >> 21) + 958817894UL;
-    b.u = (unsigned int)u;
+    b.u = tenth_root_bits(b.u);
     return (ps_real)b.f;
 }
 
@@ -642,8 +667,8 @@ static ps_real tenth_root_estimate(ps_real x)
  * keep a superscalar core busy where one leaves it waiting. Measured on the host (x86-64,
  * gcc -O2, ps_spindle_batch_step on the 864 spindles of the legs under random controls, 1 ms,
  * 4.4 iterations per solve): 440 -> 330 ns per spindle step (275 with the host build's cube
- * root). The fibres of 2, 4 or 8 spindles of a batch side by side: 266, 292, 298 ns, no gain,
- * so not done. The Cortex-M0+ gains nothing (one instruction at a time) and pays for the
+ * root). The fibres of 2, 4 or 8 spindles of a batch side by side as scalar code gained nothing
+ * (266, 292, 298 ns); as SIMD lanes they do: see ps_spindle_batch_step. The Cortex-M0+ gains nothing (one instruction at a time) and pays for the
  * work kept in memory: the float plan step (scripts/bench_embedded.py --only 2 9) 41,861 ->
  * 42,594 instructions per step at 1 ms, 36,926 -> 37,473 at 5 ms (+1.5 %); the fixed-point
  * step, the device's configuration (--quick), is not this code (1.7224 MIPS, unchanged).
@@ -661,25 +686,55 @@ typedef struct solve_03_work {
     int active;
 } solve_03_work;
 
+/* Fibre i's equation from its terms and Newton's start z, bounded by `bound` (the estimate of
+ * (|rhs|/a2)^(1/10)). */
+PS_INLINE void solve_03_setup(solve_03_work *w, const ps_plan *q, int i, ps_real p0, ps_real rhs,
+                           ps_real cS, ps_real dC, ps_real z, ps_real bound)
+{
+    w->a2 = q->a2[i];
+    w->ten_a2 = R_(10) * w->a2;
+    w->r = ps_fabs(rhs);
+    w->p0 = p0;
+    w->s_th_h = rhs < R_(0) ? -q->th_h : q->th_h;
+    w->c = rhs > R_(0) ? cS + dC : cS;
+    w->ten_c_th_h = R_(10) * w->c * w->s_th_h;
+    w->three_c = R_(3) * w->c;
+    w->y = ps_fabs(z);
+    if (!(w->y <= bound)) w->y = bound; /* also replaces a NaN guess */
+    w->active = 1;
+}
+
+/* Newton's step dy at w->y (the new iterate is max(y - dy, 0)). */
+PS_INLINE ps_real solve_03_step(const solve_03_work *w)
+{
+    const ps_real y = w->y, y2 = y * y, y3 = y2 * y, y4 = y2 * y2, y9 = y4 * y4 * y;
+    const ps_real y10 = y9 * y, qy = w->p0 + w->s_th_h * y10;
+    ps_real g, dg;
+    if (qy > R_(0)) {
+        g = w->a2 * y10 + w->c * y3 * qy - w->r;
+        dg = y9 * (w->ten_a2 + w->ten_c_th_h * y3) + w->three_c * y2 * qy;
+    } else { /* the damping's polar-length factor clipped at 0 */
+        g = w->a2 * y10 - w->r;
+        dg = y9 * w->ten_a2;
+    }
+    return newton_step(g, dg);
+}
+
+/* y^10 (the velocity's magnitude at the root y = |z|). */
+PS_INLINE ps_real tenth_power(ps_real y)
+{
+    const ps_real y2 = y * y, y4 = y2 * y2;
+    return y4 * y4 * y2;
+}
+
 static void solve_03(const ps_plan *q, const plan_eq e[PS_NFIBRES], ps_real z[PS_NFIBRES],
                      ps_real v[PS_NFIBRES], int status[PS_NFIBRES])
 {
     solve_03_work work[PS_NFIBRES];
     int left = PS_NFIBRES, i, it;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        solve_03_work *w = &work[i];
-        ps_real bound = tenth_root_estimate(ps_fabs(e[i].rhs) * q->inv_a2[i]);
-        w->a2 = q->a2[i];
-        w->ten_a2 = R_(10) * w->a2;
-        w->r = ps_fabs(e[i].rhs);
-        w->p0 = e[i].p0;
-        w->s_th_h = e[i].rhs < R_(0) ? -q->th_h : q->th_h;
-        w->c = e[i].rhs > R_(0) ? e[i].cS + e[i].dC : e[i].cS;
-        w->ten_c_th_h = R_(10) * w->c * w->s_th_h;
-        w->three_c = R_(3) * w->c;
-        w->y = ps_fabs(e[i].z);
-        if (!(w->y <= bound)) w->y = bound; /* also replaces a NaN guess */
-        w->active = 1;
+        solve_03_setup(&work[i], q, i, e[i].p0, e[i].rhs, e[i].cS, e[i].dC, e[i].z,
+                       tenth_root_estimate(ps_fabs(e[i].rhs) * q->inv_a2[i]));
         status[i] = PS_ERR_NO_CONVERGENCE;
     }
 #if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
@@ -689,23 +744,10 @@ static void solve_03(const ps_plan *q, const plan_eq e[PS_NFIBRES], ps_real z[PS
 #endif
         for (i = 0; i < PS_NFIBRES; ++i) {
             solve_03_work *w = &work[i];
-            ps_real y = w->y, y2, y3, y4, y9, y10, qy, g, dg, dy;
+            ps_real y, dy;
             if (!w->active) continue;
-            y2 = y * y;
-            y3 = y2 * y;
-            y4 = y2 * y2;
-            y9 = y4 * y4 * y;
-            y10 = y9 * y;
-            qy = w->p0 + w->s_th_h * y10;
-            if (qy > R_(0)) {
-                g = w->a2 * y10 + w->c * y3 * qy - w->r;
-                dg = y9 * (w->ten_a2 + w->ten_c_th_h * y3) + w->three_c * y2 * qy;
-            } else { /* the damping's polar-length factor clipped at 0 */
-                g = w->a2 * y10 - w->r;
-                dg = y9 * w->ten_a2;
-            }
-            dy = newton_step(g, dg);
-            y -= dy;
+            dy = solve_03_step(w);
+            y = w->y - dy;
             w->y = y < R_(0) ? R_(0) : y;
 #if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
             status[i] = PS_OK;
@@ -720,13 +762,13 @@ static void solve_03(const ps_plan *q, const plan_eq e[PS_NFIBRES], ps_real z[PS
     }
     (void)left;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        const ps_real y = work[i].y, y2 = y * y, y4 = y2 * y2, y10 = y4 * y4 * y2;
+        const ps_real y = work[i].y, y10 = tenth_power(y);
         z[i] = e[i].rhs < R_(0) ? -y : y;
         v[i] = e[i].rhs < R_(0) ? -y10 : y10;
     }
 }
 
-static ps_real plan_target(const ps_plan *q, int i, ps_real drive)
+PS_INLINE ps_real plan_target(const ps_plan *q, int i, ps_real drive)
 {
     return target_from_power(drive_power(drive, q->p[i], q->p_is_2), q->freq_p[i]);
 }
@@ -751,32 +793,48 @@ static ps_real plan_activation(const ps_plan *q, int i, const ps_spindle *s, ps_
     return f;
 }
 
-static ps_real plan_start_force(const ps_plan *q, int i, const ps_spindle *s, ps_real z03)
+/* Fibre i's force at the start of the step from its state T0, z0 (z03 = z0^3), f0 and the
+ * length L0. */
+PS_INLINE ps_real plan_start_force(const ps_plan *q, int i, ps_real T0, ps_real z0, ps_real z03,
+                                ps_real f0, ps_real L0)
 {
-    const ps_real f0 = s->f[i];
-    return force(s->T[i], s->z[i], z03, s->L - q->LSR0[i] - s->T[i] * q->inv_KSR[i],
+    return force(T0, z0, z03, L0 - q->LSR0[i] - T0 * q->inv_KSR[i],
                  q->beta0[i] + q->beta_drive[i] * f0, q->Gamma_drive[i] * f0, q->KPR[i],
                  q->LPR0[i], q->R[i], q->CL[i], q->CS[i]);
 }
 
 /* Fibre i's implicit equation for the step with its new activation f1 (the equations of
  * implicit_fibre, constants from the plan) and Newton's start. */
+/* The same from fibre i's state values T0, v0, z0, f0 and length L0; returns the cube of
+ * Newton's start (newton_start_cube). For a = 0.3 only when `a_is_03`, with the start's
+ * force only when `uses_F0` (constants to the caller: the lanes inline it without the pow
+ * and without a branch). */
+PS_INLINE ps_real plan_equation_terms(const ps_plan *q, int i, int a_is_03, int uses_F0,
+                                      ps_real T0, ps_real v0, ps_real z0, ps_real f0,
+                                      ps_real L0, ps_real L1, ps_real f1, ps_real *A_out,
+                                      ps_real *p0, ps_real *rhs, ps_real *cS, ps_real *dC)
+{
+    const ps_real z02 = z0 * z0, z03 = z02 * z0;
+    const ps_real beta1 = q->beta0[i] + q->beta_drive[i] * f1;
+    const ps_real F0 = uses_F0 ? plan_start_force(q, i, T0, z0, z03, f0, L0) : R_(0);
+    const ps_real A = T0 + q->KSR[i] * (L1 - L0) - q->c_Av[i] * v0;
+    const ps_real z0_7 = a_is_03 ? z03 * z03 * ps_fabs(z0)
+                                 : z02 * ps_pow(ps_fabs(z0), R_(3) / q->a[i] - R_(3));
+    *A_out = A;
+    *p0 = L1 - q->LSR0_R[i] - A * q->inv_KSR[i];
+    *rhs = q->M_h[i] * v0 + q->th_k1[i] * A - q->theta * (q->Gamma_drive[i] * f1)
+           - q->th_KPR[i] * (L1 - q->LSR0_LPR0[i]) + q->one_minus_theta * F0;
+    *cS = q->th_CS[i] * beta1;
+    *dC = q->th_dC[i] * beta1;
+    return newton_start_cube(z0_7, q->a2[i], *rhs, *cS, *dC, *p0);
+}
+
 static void plan_equation(const ps_plan *q, int i, const ps_spindle *s, ps_real L1, ps_real f1,
                           plan_eq *e)
 {
-    const ps_real v0 = s->v[i], z0 = s->z[i], z02 = z0 * z0, z03 = z02 * z0;
-    const ps_real beta1 = q->beta0[i] + q->beta_drive[i] * f1;
-    const ps_real F0 = q->uses_F0 ? plan_start_force(q, i, s, z03) : R_(0);
-    const ps_real A = s->T[i] + q->KSR[i] * (L1 - s->L) - q->c_Av[i] * v0;
-    const ps_real z0_7 = q->a_is_03 ? z03 * z03 * ps_fabs(z0)
-                                    : z02 * ps_pow(ps_fabs(z0), R_(3) / q->a[i] - R_(3));
-    e->A = A;
-    e->p0 = L1 - q->LSR0_R[i] - A * q->inv_KSR[i];
-    e->rhs = q->M_h[i] * v0 + q->th_k1[i] * A - q->theta * (q->Gamma_drive[i] * f1)
-             - q->th_KPR[i] * (L1 - q->LSR0_LPR0[i]) + q->one_minus_theta * F0;
-    e->cS = q->th_CS[i] * beta1;
-    e->dC = q->th_dC[i] * beta1;
-    e->z = newton_start(z0_7, q->a2[i], e->rhs, e->cS, e->dC, e->p0);
+    e->z = cube_root(plan_equation_terms(q, i, q->a_is_03, q->uses_F0, s->T[i], s->v[i],
+                                         s->z[i], s->f[i], s->L, L1, f1, &e->A, &e->p0,
+                                         &e->rhs, &e->cS, &e->dC));
 }
 
 /* Fibre i's step with its new activation f1 when a != 0.3 or theta = 0 (the equations of
@@ -788,7 +846,7 @@ static int plan_fibre(const ps_plan *q, int i, const ps_spindle *s, ps_real L1, 
     int status;
     if (q->explicit_step) {
         const ps_real v0 = s->v[i], z0 = s->z[i];
-        const ps_real F0 = plan_start_force(q, i, s, z0 * z0 * z0);
+        const ps_real F0 = plan_start_force(q, i, s->T[i], z0, z0 * z0 * z0, s->f[i], s->L);
         *T1 = s->T[i] + q->KSR[i] * (L1 - s->L) - q->h_KSR[i] * v0;
         *v1 = v0 + q->h_M[i] * F0;
         *z1 = root_of_velocity(*v1, q->a[i]);
@@ -802,17 +860,22 @@ static int plan_fibre(const ps_plan *q, int i, const ps_spindle *s, ps_real L1, 
     return PS_OK;
 }
 
-static void plan_afferents(const ps_plan *q, const ps_real T[PS_NFIBRES], ps_real L,
-                           ps_real *ia, ps_real *ii)
+/* Fibre i's primary and secondary potentials at tension T and length L. */
+PS_INLINE void plan_potentials(const ps_plan *q, int i, ps_real T, ps_real L, ps_real *primary,
+                               ps_real *sec)
+{
+    ps_real t_ksr = T * q->inv_KSR[i];
+    ps_real stretch = t_ksr - q->stretch0[i];
+    *primary = max_r(q->G_pri[i] * stretch, R_(0));
+    *sec = q->c_sec1[i] * stretch + q->c_sec2[i] * (L - t_ksr - q->sec_off[i]);
+}
+
+PS_INLINE void plan_afferents(const ps_plan *q, const ps_real T[PS_NFIBRES], ps_real L,
+                              ps_real *ia, ps_real *ii)
 {
     ps_real primary[PS_NFIBRES], sec[PS_NFIBRES];
     int i;
-    for (i = 0; i < PS_NFIBRES; ++i) {
-        ps_real t_ksr = T[i] * q->inv_KSR[i];
-        ps_real stretch = t_ksr - q->stretch0[i];
-        primary[i] = max_r(q->G_pri[i] * stretch, R_(0));
-        sec[i] = q->c_sec1[i] * stretch + q->c_sec2[i] * (L - t_ksr - q->sec_off[i]);
-    }
+    for (i = 0; i < PS_NFIBRES; ++i) plan_potentials(q, i, T[i], L, &primary[i], &sec[i]);
     combine_rates(primary, sec, q->S, ia, ii);
 }
 
@@ -856,11 +919,356 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
  * (PS_NO_BATCH). */
 #ifndef PS_NO_BATCH
 
+/* ---- the batch in lanes (host) ----------------------------------------------------------
+ * A second form of the planned step, kept because it pays on the host: replaying the 300
+ * ps_spindle_batch_step calls of myo-sim's 54-muscle legs in 16 envs (864 spindles, 1 ms,
+ * trapezoidal, random controls; PYTHONPATH=. python scripts/bench_batch_step.py, x86-64 AMD
+ * EPYC with AVX2, gcc 12 -O2, shared 2-core machine, medians of 9 and 15 rounds) the scalar
+ * loop takes 381 and 328 ns per spindle step, these lanes 101 and 109 ns (3.8x, 3.0x);
+ * 8 lanes: 2, 4, 16 lanes gave 209, 116, 108 ns against 101 in one run. Without AVX2
+ * (SSE2 only, -DPS_LANES_NO_AVX2) the lanes gave 285 and 351 ns against the scalar loop's
+ * 381 and 328: no clear gain, so a CPU without AVX2 runs the scalar loop.
+ * The step of ps_spindle_step_plan for the a = 0.3 implicit plan (p = 2), PS_LANES spindles
+ * at a time: each quantity of the scalar step is an array [fibre][lane] and each line of it a
+ * loop over the lanes that the compiler turns into SIMD (an AVX2 copy of the code, chosen at
+ * run time with __builtin_cpu_supports: the cached library must load on any x86-64, so no
+ * -march). Bit-identical to the scalar step lane by lane: the same helpers (inlined) and so
+ * the same IEEE operations in the same order, no contraction (-ffp-contract=off in the
+ * build, and target("avx2") does not enable FMA); every branch of the scalar step is a
+ * per-lane select of values both computed (activation targets of both drives, both Newton
+ * forms; -fno-trapping-math lets the compiler compute both), a lane whose Newton iteration
+ * converged keeps its y while the others iterate. The rare cube and tenth roots the bit
+ * estimate does not cover (tiny, huge, NaN) are redone lane by lane by the scalar
+ * functions. lanes_run stops at a block with any lane that would fail (inputs, speed, no
+ * convergence, non-finite): the caller then undoes the blocks before it and runs the scalar
+ * loop, which finds the status and the failing spindle as before. The tail (n mod PS_LANES)
+ * is the scalar loop's. */
+#if defined(PS_LANES_NO_AVX2) && !defined(PS_BATCH_SCALAR)
+#define PS_LANES_MODE 1 /* the lanes in the baseline instruction set, always */
+#elif !defined(PS_BATCH_SCALAR) && defined(__GNUC__) && defined(__x86_64__) \
+    && (!defined(__clang__) || __clang_major__ >= 6)
+#define PS_LANES_MODE 2 /* the AVX2 lanes where the CPU has AVX2, else the scalar loop */
+#endif
+
+#ifdef PS_LANES_MODE
+#ifndef PS_LANES
+#define PS_LANES 8
+#endif
+
+#if defined(__GNUC__)
+#define PS_LANE_FN static inline __attribute__((always_inline))
+#else
+#define PS_LANE_FN static
+#endif
+
+/* A lane's flag: an integer as wide as ps_real, so that selects on it stay in one vector. */
+#ifdef PS_FLOAT
+typedef int lane_flag;
+#else
+typedef long long lane_flag;
+#endif
+
+#define LANE_LOOP(l) for ((l) = 0; (l) < PS_LANES; ++(l))
+
+typedef struct lane_block {
+    ps_real L0[PS_LANES], L1[PS_LANES];
+    ps_real T0[PS_NFIBRES][PS_LANES], v0[PS_NFIBRES][PS_LANES], z0[PS_NFIBRES][PS_LANES];
+    ps_real f0[PS_NFIBRES][PS_LANES], f1[PS_NFIBRES][PS_LANES];
+    ps_real drive0[PS_NFIBRES][PS_LANES], drive1[PS_NFIBRES][PS_LANES];
+    ps_real A[PS_NFIBRES][PS_LANES], p0[PS_NFIBRES][PS_LANES], rhs[PS_NFIBRES][PS_LANES];
+    ps_real cS[PS_NFIBRES][PS_LANES], dC[PS_NFIBRES][PS_LANES];
+    ps_real x[PS_NFIBRES][PS_LANES]; /* a root's argument */
+    ps_real z[PS_NFIBRES][PS_LANES], bound[PS_NFIBRES][PS_LANES];
+    /* solve_03_work by fields */
+    ps_real r[PS_NFIBRES][PS_LANES], s_th_h[PS_NFIBRES][PS_LANES], c[PS_NFIBRES][PS_LANES];
+    ps_real ten_c_th_h[PS_NFIBRES][PS_LANES], three_c[PS_NFIBRES][PS_LANES];
+    ps_real y[PS_NFIBRES][PS_LANES];
+    lane_flag active[PS_NFIBRES][PS_LANES];
+    ps_real T1[PS_NFIBRES][PS_LANES], v1[PS_NFIBRES][PS_LANES];
+    ps_real pri[PS_NFIBRES][PS_LANES], sec[PS_NFIBRES][PS_LANES];
+    ps_real ia[PS_LANES], ii[PS_LANES];
+} lane_block;
+
+/* 1 if every lane's inputs pass the scalar step's checks (check_inputs, speed). */
+PS_LANE_FN int lanes_inputs_ok(const ps_plan *q, const lane_block *b)
+{
+    int l, bad = 0;
+    for (l = 0; l < PS_LANES; ++l) {
+        bad |= check_inputs(b->L1[l], b->drive1[0][l], b->drive1[1][l]) != PS_OK;
+        bad |= ps_fabs(b->L1[l] - b->L0[l]) > q->max_dL;
+    }
+    return !bad;
+}
+
+/* plan_activation with both targets computed and the branches as selects. */
+PS_LANE_FN void lanes_activation(const ps_plan *q, lane_block *b)
+{
+    int i, l;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        const ps_real *d0 = b->drive0[i], *d1 = b->drive1[i], freq_p = q->freq_p[i];
+        const ps_real c_f0 = q->c_f0[i], c_a0 = q->c_a0[i], c_a1 = q->c_a1[i];
+        const ps_real c_a01 = q->c_a01[i];
+        ps_real t0[PS_LANES], t1[PS_LANES];
+        /* plan_target for p = 2 */
+        LANE_LOOP(l) t1[l] = target_from_power(d1[l] * d1[l], freq_p);
+        LANE_LOOP(l) t0[l] = target_from_power(d0[l] * d0[l], freq_p);
+        if (!q->lagged[i]) {
+            LANE_LOOP(l) b->f1[i][l] = d1[l] == d0[l] ? b->f0[i][l] : t1[l];
+        } else if (c_a0 != R_(0)) {
+            LANE_LOOP(l) {
+                const ps_real f0 = b->f0[i][l];
+                const ps_real f_diff = c_f0 * f0 + c_a1 * t1[l] + c_a0 * t0[l];
+                b->f1[i][l] = d1[l] == d0[l] ? c_f0 * f0 + c_a01 * t1[l] : f_diff;
+            }
+        } else {
+            LANE_LOOP(l) {
+                const ps_real f0 = b->f0[i][l];
+                const ps_real f_diff = c_f0 * f0 + c_a1 * t1[l];
+                b->f1[i][l] = d1[l] == d0[l] ? c_f0 * f0 + c_a01 * t1[l] : f_diff;
+            }
+        }
+    }
+}
+
+#ifdef PS_FAST_CBRT
+/* cube_root's estimate for |x| in (1e-30, 1e30); x itself elsewhere (fixed by the caller). */
+PS_LANE_FN ps_real lane_cube_root(ps_real x)
+{
+    const ps_real ax = ps_fabs(x);
+    ps_bits b;
+    ps_real y;
+    int k;
+    b.f = (float)ax;
+    b.u = cbrt_bits(b.u);
+    y = (ps_real)b.f;
+    for (k = 0; k < PS_CBRT_REFINE; ++k) y = (R_(2) * y + ax / (y * y)) * R_(1.0 / 3.0);
+    y = x < R_(0) ? -y : y;
+    return ax > R_(1e-30) && ax < R_(1e30) ? y : x;
+}
+#endif
+
+/* tenth_root_estimate for x in (1e-30, 1e30), 0 for x <= 1 outside, x above (fixed by the
+ * caller). */
+PS_LANE_FN ps_real lane_tenth_root(ps_real x)
+{
+    ps_bits b;
+    b.f = (float)x;
+    b.u = tenth_root_bits(b.u);
+    return x > R_(1e-30) && x < R_(1e30) ? (ps_real)b.f : (x > R_(1) ? x : R_(0));
+}
+
+/* plan_equation and solve_03's set-up. */
+PS_LANE_FN void lanes_equation(const ps_plan *q, lane_block *b)
+{
+    int i, l;
+    lane_flag fix;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        if (q->uses_F0) {
+            LANE_LOOP(l) {
+                b->x[i][l] = plan_equation_terms(
+                    q, i, 1, 1, b->T0[i][l], b->v0[i][l], b->z0[i][l], b->f0[i][l], b->L0[l],
+                    b->L1[l], b->f1[i][l], &b->A[i][l], &b->p0[i][l], &b->rhs[i][l],
+                    &b->cS[i][l], &b->dC[i][l]);
+            }
+        } else {
+            LANE_LOOP(l) {
+                b->x[i][l] = plan_equation_terms(
+                    q, i, 1, 0, b->T0[i][l], b->v0[i][l], b->z0[i][l], b->f0[i][l], b->L0[l],
+                    b->L1[l], b->f1[i][l], &b->A[i][l], &b->p0[i][l], &b->rhs[i][l],
+                    &b->cS[i][l], &b->dC[i][l]);
+            }
+        }
+#ifdef PS_FAST_CBRT
+        fix = 0;
+        LANE_LOOP(l) {
+            const ps_real ax = ps_fabs(b->x[i][l]);
+            b->z[i][l] = lane_cube_root(b->x[i][l]);
+            fix |= !(ax > R_(1e-30) && ax < R_(1e30));
+        }
+        if (fix) {
+            LANE_LOOP(l) b->z[i][l] = cube_root(b->x[i][l]);
+        }
+#else
+        LANE_LOOP(l) b->z[i][l] = cube_root(b->x[i][l]);
+#endif
+        fix = 0;
+        LANE_LOOP(l) {
+            const ps_real x = ps_fabs(b->rhs[i][l]) * q->inv_a2[i];
+            b->bound[i][l] = lane_tenth_root(x);
+            fix |= x > R_(1) && !(x < R_(1e30));
+        }
+        if (fix) {
+            LANE_LOOP(l) b->bound[i][l] = tenth_root_estimate(ps_fabs(b->rhs[i][l]) * q->inv_a2[i]);
+        }
+        LANE_LOOP(l) {
+            solve_03_work w;
+            solve_03_setup(&w, q, i, b->p0[i][l], b->rhs[i][l], b->cS[i][l], b->dC[i][l],
+                           b->z[i][l], b->bound[i][l]);
+            b->r[i][l] = w.r;
+            b->s_th_h[i][l] = w.s_th_h;
+            b->c[i][l] = w.c;
+            b->ten_c_th_h[i][l] = w.ten_c_th_h;
+            b->three_c[i][l] = w.three_c;
+            b->y[i][l] = w.y;
+            b->active[i][l] = 1;
+        }
+    }
+}
+
+/* solve_03's iterations, all fibres of all lanes side by side; a lane that converged keeps
+ * its y. 1 if every lane converged. */
+PS_LANE_FN int lanes_solve_03(const ps_plan *q, lane_block *b)
+{
+    int i, l, it;
+    lane_flag left = 1;
+#if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
+    for (it = 0; it < PS_NEWTON_ITER; ++it) {
+#else
+    for (it = 0; it < PS_NEWTON_MAX_ITER && left; ++it) {
+#endif
+        for (i = 0; i < PS_NFIBRES; ++i) {
+            const ps_real a2 = q->a2[i], ten_a2 = R_(10) * a2;
+            LANE_LOOP(l) {
+                solve_03_work w;
+                ps_real dy, y;
+                w.a2 = a2;
+                w.ten_a2 = ten_a2;
+                w.r = b->r[i][l];
+                w.p0 = b->p0[i][l];
+                w.s_th_h = b->s_th_h[i][l];
+                w.c = b->c[i][l];
+                w.ten_c_th_h = b->ten_c_th_h[i][l];
+                w.three_c = b->three_c[i][l];
+                w.y = b->y[i][l];
+                dy = solve_03_step(&w);
+                y = w.y - dy;
+                y = y < R_(0) ? R_(0) : y;
+                b->y[i][l] = b->active[i][l] ? y : w.y;
+#if !(defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0)
+                b->active[i][l] = ps_fabs(dy) <= R_(PS_NEWTON_TOL_Z) ? 0 : b->active[i][l];
+#endif
+            }
+        }
+        left = 0;
+        for (i = 0; i < PS_NFIBRES; ++i) {
+            LANE_LOOP(l) left |= b->active[i][l];
+        }
+    }
+#if defined(PS_NEWTON_ITER) && PS_NEWTON_ITER > 0
+    (void)left;
+    return 1;
+#else
+    return !left;
+#endif
+}
+
+/* The end of ps_spindle_step_plan: T, the checks of finiteness, the rates. 1 if all pass. */
+PS_LANE_FN int lanes_finish(const ps_plan *q, lane_block *b)
+{
+    int i, l;
+    lane_flag bad = 0;
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        const ps_real th_h_KSR = q->th_h_KSR[i];
+        LANE_LOOP(l) {
+            const ps_real y = b->y[i][l], y10 = tenth_power(y);
+            const int negative = b->rhs[i][l] < R_(0);
+            b->z[i][l] = negative ? -y : y;
+            b->v1[i][l] = negative ? -y10 : y10;
+            b->T1[i][l] = b->A[i][l] - th_h_KSR * b->v1[i][l];
+            bad |= !fibre_finite(b->T1[i][l], b->v1[i][l], b->z[i][l], b->f1[i][l]);
+        }
+    }
+    for (i = 0; i < PS_NFIBRES; ++i) {
+        LANE_LOOP(l) plan_potentials(q, i, b->T1[i][l], b->L1[l], &b->pri[i][l], &b->sec[i][l]);
+    }
+    LANE_LOOP(l) {
+        ps_real pri[PS_NFIBRES], sec[PS_NFIBRES];
+        pri[0] = b->pri[0][l];
+        pri[1] = b->pri[1][l];
+        pri[2] = b->pri[2][l];
+        sec[0] = b->sec[0][l];
+        sec[1] = b->sec[1][l];
+        sec[2] = b->sec[2][l];
+        combine_rates(pri, sec, q->S, &b->ia[l], &b->ii[l]);
+        bad |= !(isfinite(b->ia[l]) && isfinite(b->ii[l]));
+    }
+    return !bad;
+}
+
+/* Spindles [0, m) (m a multiple of PS_LANES) block by block, each saved to backup before it
+ * is written; returns m, or the first spindle of the first block with a failing lane (the
+ * spindles before it advanced, the others untouched). */
+PS_LANE_FN long lanes_run(ps_spindle *s, long m, const ps_plan *q, const ps_real *L1,
+                          const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
+                          ps_real *ia, ps_real *ii)
+{
+    lane_block b;
+    long j0;
+    int i, l;
+    for (j0 = 0; j0 < m; j0 += PS_LANES) {
+        const ps_spindle *sb = &s[j0];
+        /* field by field: strided loads the compiler assembles into vectors */
+        LANE_LOOP(l) b.L0[l] = sb[l].L;
+        LANE_LOOP(l) b.L1[l] = L1[j0 + l];
+        for (i = 0; i < PS_NFIBRES; ++i) {
+            LANE_LOOP(l) b.drive0[i][l] = fibre_drive(i, sb[l].gd, sb[l].gs);
+            LANE_LOOP(l) b.drive1[i][l] = fibre_drive(i, gd1[j0 + l], gs1[j0 + l]);
+            LANE_LOOP(l) b.T0[i][l] = sb[l].T[i];
+            LANE_LOOP(l) b.v0[i][l] = sb[l].v[i];
+            LANE_LOOP(l) b.z0[i][l] = sb[l].z[i];
+            LANE_LOOP(l) b.f0[i][l] = sb[l].f[i];
+        }
+        if (!lanes_inputs_ok(q, &b)) return j0;
+        lanes_activation(q, &b);
+        lanes_equation(q, &b);
+        if (!lanes_solve_03(q, &b) || !lanes_finish(q, &b)) return j0;
+        LANE_LOOP(l) backup[j0 + l] = s[j0 + l];
+        for (i = 0; i < PS_NFIBRES; ++i) {
+            LANE_LOOP(l) s[j0 + l].T[i] = b.T1[i][l];
+            LANE_LOOP(l) s[j0 + l].v[i] = b.v1[i][l];
+            LANE_LOOP(l) s[j0 + l].z[i] = b.z[i][l];
+            LANE_LOOP(l) s[j0 + l].f[i] = b.f1[i][l];
+        }
+        LANE_LOOP(l) s[j0 + l].L = b.L1[l];
+        LANE_LOOP(l) s[j0 + l].gd = b.drive1[0][l];
+        LANE_LOOP(l) s[j0 + l].gs = b.drive1[1][l];
+        if (ia != NULL) LANE_LOOP(l) ia[j0 + l] = b.ia[l];
+        if (ii != NULL) LANE_LOOP(l) ii[j0 + l] = b.ii[l];
+    }
+    return m;
+}
+
+#if PS_LANES_MODE == 2
+__attribute__((target("avx2"))) static long lanes_run_avx2(
+    ps_spindle *s, long m, const ps_plan *q, const ps_real *L1, const ps_real *gd1,
+    const ps_real *gs1, ps_spindle *backup, ps_real *ia, ps_real *ii)
+{
+    return lanes_run(s, m, q, L1, gd1, gs1, backup, ia, ii);
+}
+#endif
+
+/* lanes_run in the best instruction set the CPU has; -1 where the lanes do not pay (SSE2
+ * alone: slower than the scalar loop, see above), for the scalar loop to do it all. */
+static long lanes_dispatch(ps_spindle *s, long m, const ps_plan *q, const ps_real *L1,
+                           const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
+                           ps_real *ia, ps_real *ii)
+{
+#if PS_LANES_MODE == 2
+    if (__builtin_cpu_supports("avx2")) {
+        return lanes_run_avx2(s, m, q, L1, gd1, gs1, backup, ia, ii);
+    }
+    return -1;
+#else
+    return lanes_run(s, m, q, L1, gd1, gs1, backup, ia, ii);
+#endif
+}
+#endif /* PS_LANES_MODE */
+
 int ps_spindle_batch_step(ps_spindle *s, long n, const ps_plan *q, const ps_real *L1,
                           const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
                           ps_real *ia, ps_real *ii, long *failed)
 {
-    long j, k;
+    long j = 0, k;
     int status;
 
     if (failed != NULL) *failed = -1;
@@ -869,7 +1277,17 @@ int ps_spindle_batch_step(ps_spindle *s, long n, const ps_plan *q, const ps_real
     if (s == NULL || q == NULL || L1 == NULL || gd1 == NULL || gs1 == NULL || backup == NULL) {
         return PS_ERR_NULL;
     }
-    for (j = 0; j < n; ++j) {
+#ifdef PS_LANES_MODE
+    if (q->a_is_03 && !q->explicit_step && q->p_is_2) {
+        const long m = n - n % PS_LANES;
+        j = lanes_dispatch(s, m, q, L1, gd1, gs1, backup, ia, ii);
+        if (j < m) { /* a lane fails (or no lanes): undo, and let the scalar loop do it all */
+            for (k = 0; k < j; ++k) s[k] = backup[k];
+            j = 0;
+        }
+    }
+#endif
+    for (; j < n; ++j) {
         backup[j] = s[j];
         status = ps_spindle_step_plan(&s[j], q, L1[j], gd1[j], gs1[j],
                                       ia != NULL ? &ia[j] : NULL, ii != NULL ? &ii[j] : NULL);
