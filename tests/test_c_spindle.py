@@ -391,6 +391,44 @@ def test_batch_step_names_the_first_failing_spindle_anywhere():
         assert (got[0][0], got[1][0]) == (ia[j], ii[j])
 
 
+def test_batch_steps_equal_one_call_per_step_and_are_atomic_over_all_steps():
+    """ps_spindle_batch_steps: k steps in one call = k ps_spindle_batch_step calls, bit for
+    bit (rates of the last); a failure at any step leaves every spindle as before the call
+    and names the step and the spindle."""
+    n, k = 21, 6  # not a multiple of the lanes
+    length, gd, gs = batch_inputs(n=n, duration_s=0.05)
+    state = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)
+    one, many = (native_spindle.SpindleBatch(state.copy(), spindle.HUMAN) for _ in range(2))
+    for start in (1, 1 + k, 1 + 2 * k):
+        rows = slice(start, start + k)
+        for j in range(start, start + k):
+            want = [x.copy() for x in one.step(length[j], gd[j], gs[j])]
+        got = many.steps(length[rows], gd[rows], gs[rows])
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        np.testing.assert_array_equal(many.fields, one.fields)
+    before = many.fields.copy()
+    rows = slice(1 + 3 * k, 1 + 4 * k)
+    for step, spindle_j, bad, error in ((0, 4, 1.6, ValueError), (3, 17, 1.6, ValueError),
+                                        (5, 0, math.nan, ValueError)):
+        L = length[rows].copy()
+        L[step, spindle_j] = bad
+        with pytest.raises(error, match=f"spindle {spindle_j} of {n} failed at step {step} "
+                                        f"of {k} with"):
+            many.steps(L, gd[rows], gs[rows])
+        np.testing.assert_array_equal(many.fields, before)
+    with pytest.raises(ValueError, match=r"each must be \(steps, 21\)"):
+        many.steps(length[rows][:, :5], gd[rows], gs[rows])
+    failed_step, failed = ctypes.c_long(9), ctypes.c_long(9)
+    assert many.lib.ps_spindle_batch_steps(
+        many._address, n, -1, ctypes.byref(many._plan), None, None, None, None, None, None,
+        None, ctypes.byref(failed_step), ctypes.byref(failed)) == abi.Status.PS_ERR_ARGUMENT
+    assert (failed_step.value, failed.value) == (-1, -1)
+    assert many.lib.ps_spindle_batch_steps(
+        many._address, n, 2, ctypes.byref(many._plan), None, None, None, None, None, None,
+        None, None, None) == PS_ERR_NULL
+
+
 def test_batch_step_is_atomic_and_names_the_failing_spindle():
     length, gd, gs = batch_inputs(n=6, duration_s=0.01)
     state = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)

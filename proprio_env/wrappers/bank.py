@@ -307,6 +307,11 @@ class SpindleBank:
         batch.set_step(h)
         last = sub.shape[0] - 1
         self._recorded_upto = 0
+        if not record:  # the rates only at the end: every sub-step in one C call
+            gd_sub, gs_sub = ((np.repeat(x, k, axis=0) for x in (gd, gs)) if k > 1
+                              else (gd, gs))
+            ia, ii = batch.steps(sub, gd_sub, gs_sub)
+            return ia.copy(), ii.copy()
         gs_rows = np.ascontiguousarray(gs)
         gd_rows = np.ascontiguousarray(gd)
         for j in range(sub.shape[0]):

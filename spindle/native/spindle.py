@@ -59,6 +59,10 @@ def library(variant: str = "double", sanitize: bool = False) -> ctypes.CDLL:
     lib.ps_spindle_batch_step.argtypes = [vp, ctypes.c_long, P(PsPlan), vp, vp, vp, vp, vp, vp,
                                           P(ctypes.c_long)]
     lib.ps_spindle_batch_step.restype = ctypes.c_int
+    lib.ps_spindle_batch_steps.argtypes = [vp, ctypes.c_long, ctypes.c_long, P(PsPlan), vp, vp,
+                                           vp, vp, vp, vp, vp, P(ctypes.c_long),
+                                           P(ctypes.c_long)]
+    lib.ps_spindle_batch_steps.restype = ctypes.c_int
     lib.ps_spindle_batch_afferents.argtypes = [vp, ctypes.c_long, P(PsPlan), vp, vp]
     lib.ps_spindle_batch_afferents.restype = ctypes.c_int
     return lib
@@ -228,6 +232,9 @@ class SpindleBatch:
         self._backup = (PsSpindle * max(self.n, 1))()
         self._address = ctypes.addressof(self._spindles)
         self._backup_address = ctypes.addressof(self._backup)
+        self._start = (PsSpindle * max(self.n, 1))()
+        self._start_address = ctypes.addressof(self._start)
+        self._failed_step = ctypes.c_long()
         self.fields = np.frombuffer(self._spindles, dtype=self.dtype).reshape(-1, 15)[:self.n]
         self.ia_pps = np.zeros(self.n, dtype=self.dtype)
         self.ii_pps = np.zeros(self.n, dtype=self.dtype)
@@ -287,15 +294,40 @@ class SpindleBatch:
             arrays[1].ctypes.data, arrays[2].ctypes.data, self._backup_address, ia, ii,
             ctypes.byref(self._failed))
         if code != Status.PS_OK:
-            message = (f"C spindle {self._failed.value} of {self.n} failed with "
-                       f"{status_name(code)} (step {self.step_s!r} s); no spindle was advanced")
-            # PS_ERR_NONFINITE is also a non-finite input: that one is the caller's error
-            bad_input = not all(np.isfinite(x[self._failed.value]) for x in arrays)
-            if code == Status.PS_ERR_NO_CONVERGENCE or (code == Status.PS_ERR_NONFINITE
-                                                        and not bad_input):
-                raise FloatingPointError(message)
-            raise ValueError(message)
+            self._raise(code, [x[None] for x in arrays], 0, "")
         return self.ia_pps, self.ii_pps
+
+    def steps(self, length_L0: np.ndarray, gamma_dyn_pps: np.ndarray,
+              gamma_stat_pps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`step` for each row of (steps, n) arrays, in one C call
+        (``ps_spindle_batch_steps``); returns (Ia, II) of the last step (as :meth:`step`).
+        Atomic over all the steps; the errors of :meth:`step`, naming the step too."""
+        arrays = [np.ascontiguousarray(x, dtype=self.dtype)
+                  for x in (length_L0, gamma_dyn_pps, gamma_stat_pps)]
+        shape = arrays[0].shape
+        if len(shape) != 2 or shape[1] != self.n or any(x.shape != shape for x in arrays):
+            raise ValueError(f"inputs of shapes {[x.shape for x in arrays]} for {self.n} "
+                             f"spindles; each must be (steps, {self.n})")
+        code = self.lib.ps_spindle_batch_steps(
+            self._address, self.n, shape[0], ctypes.byref(self._plan), arrays[0].ctypes.data,
+            arrays[1].ctypes.data, arrays[2].ctypes.data, self._start_address,
+            self._backup_address, self.ia_pps.ctypes.data, self.ii_pps.ctypes.data,
+            ctypes.byref(self._failed_step), ctypes.byref(self._failed))
+        if code != Status.PS_OK:
+            self._raise(code, arrays, self._failed_step.value,
+                        f" at step {self._failed_step.value} of {shape[0]}")
+        return self.ia_pps, self.ii_pps
+
+    def _raise(self, code: int, arrays: list, step: int, where: str) -> None:
+        j = self._failed.value
+        message = (f"C spindle {j} of {self.n} failed{where} with {status_name(code)} (step "
+                   f"{self.step_s!r} s); no spindle was advanced")
+        # PS_ERR_NONFINITE is also a non-finite input: that one is the caller's error
+        bad_input = not all(np.isfinite(x[step, j]) for x in arrays)
+        if code == Status.PS_ERR_NO_CONVERGENCE or (code == Status.PS_ERR_NONFINITE
+                                                    and not bad_input):
+            raise FloatingPointError(message)
+        raise ValueError(message)
 
     def afferents(self) -> tuple[np.ndarray, np.ndarray]:
         """(Ia, II) in pps of the current state, fresh (n,) arrays."""

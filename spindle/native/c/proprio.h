@@ -164,12 +164,24 @@ int ps_spindle_step_plan(ps_spindle *s, const ps_plan *q, ps_real L1, ps_real gd
  * meaningless after). PS_ERR_ARGUMENT for n < 0, PS_ERR_NULL for a NULL s, q, L1, gd1, gs1
  * or backup when n > 0.
  *
+ * ps_spindle_batch_steps: `steps` calls of ps_spindle_batch_step in one, step t on
+ * L1 + t*n, gd1 + t*n, gs1 + t*n (row-major (steps, n) arrays); Ia and II of the last step
+ * only (ia, ii may be NULL). Atomic over all steps: if step t fails, every spindle is left
+ * as it was before the call, *failed_step (if not NULL) receives t and *failed the spindle
+ * (both -1 on success). `start` and `backup` are n states of working memory each.
+ * PS_ERR_ARGUMENT for n < 0 or steps < 0, PS_ERR_NULL for a NULL pointer other than ia,
+ * ii, failed_step, failed when n, steps > 0.
+ *
  * ps_spindle_batch_afferents: Ia and II (pps) of each state into ia[j], ii[j] (the rates
  * ps_spindle_step_plan reports). PS_ERR_ARGUMENT for n < 0, PS_ERR_NULL as above. */
 #ifndef PS_NO_BATCH
 int ps_spindle_batch_step(ps_spindle *s, long n, const ps_plan *q, const ps_real *L1,
                           const ps_real *gd1, const ps_real *gs1, ps_spindle *backup,
                           ps_real *ia, ps_real *ii, long *failed);
+int ps_spindle_batch_steps(ps_spindle *s, long n, long steps, const ps_plan *q,
+                           const ps_real *L1, const ps_real *gd1, const ps_real *gs1,
+                           ps_spindle *start, ps_spindle *backup, ps_real *ia, ps_real *ii,
+                           long *failed_step, long *failed);
 int ps_spindle_batch_afferents(const ps_spindle *s, long n, const ps_plan *q, ps_real *ia,
                                ps_real *ii);
 #endif /* PS_NO_BATCH */
