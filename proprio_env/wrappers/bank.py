@@ -242,14 +242,17 @@ class SpindleBank:
         V = np.where(clamped, 0.0, np.clip(V, -self.max_speed_L0_s, self.max_speed_L0_s))
         L, slewed = self._slew(L, dt)
         counted = moving[None, :, None]
-        self.counters["length_clamped"] += (clamped & counted).sum(axis=0)
-        self.counters["slew_limited"] += (slewed & counted).sum(axis=0)
+        for name, hit in (("length_clamped", clamped), ("slew_limited", slewed)):
+            if hit.any():
+                self.counters[name] += (hit & counted).sum(axis=0)
         gs, gd = self._drive(t, L, moving)  # (K, n_rows, n_muscles) each
         n = self.n_rows * self.n_muscles
         knots = np.concatenate((self.length_L0.reshape(1, n), L.reshape(K, n)))
-        slopes = np.concatenate((self.velocity_L0_s.reshape(1, n), V.reshape(K, n)))
         k = substeps(dt, self.step_s)
-        sub, changed = substep_lengths(knots, [slopes], k, dt)
+        # one sub-step per knot interval ends on the knot: the curve's slopes are not needed
+        slopes = [np.concatenate((self.velocity_L0_s.reshape(1, n), V.reshape(K, n)))] \
+            if k > 1 else []
+        sub, changed = substep_lengths(knots, slopes, k, dt)
         self.substeps_limited += changed
         ia, ii = self._integrate(sub, gs.reshape(K, n), gd.reshape(K, n), k, dt / k, record)
         if record:
