@@ -4,10 +4,10 @@ For myo-sim's 6-muscle elbow and 54-muscle legs (``MuscleModelEnv``, 10 physics 
 env step), single env and ``SyncVectorEnv`` of 16 and 64 envs (``--envs``), numpy and C
 spindle backends, each with the afferents of the env's state now and lagging one physics step
 (``lag_physics_step``, no end-of-step kinematics; ``--lag``), side by side: the bare env and
-the wrapped envs step the same random actions, in turn in ``--repeats`` rounds (CPU time).
-The wrapper's cost is the difference; "x" divides it by the bare env's own step time in the
-same round (physics plus Gymnasium's own work: ``mj_step`` x 10 is ~95 % of it on the legs)
-and takes the median over rounds.
+the wrapped envs step the same random actions side by side, each action in turn by every env
+(CPU time per step, ``--repeats`` passes). The wrapper's cost is the difference; "x" divides
+it by the bare env's own step on the same action (physics plus Gymnasium's own work) and takes
+the median over steps.
 
 Also: the lengths of the Hermite fallback against the recorded physics steps on this
 project's elbow during a fast bang-bang movement.
@@ -21,7 +21,9 @@ and the same for the other rows. Targets (legs, >= 16 envs): numpy <= 0.3, C <= 
 
 Usage: ``PYTHONPATH=. python scripts/bench_wrapper.py [--envs 16 64] [--steps 40]
 [--repeats 3] [--myosuite-python /work/myovenv/bin/python]`` (needs the ``myo`` extra);
-``--figure docs/img/wrapper_legs_afferents.png`` draws the docs figure instead.
+``--figure docs/img/wrapper_legs_afferents.png`` draws the docs figure instead;
+``--breakdown 16 [--steps 40 --repeats 3]`` prints where the time of a wrapped legs vector step
+of 16 envs goes (C, lagging, unless ``--backends`` / ``--lag`` say otherwise).
 """
 
 from __future__ import annotations
@@ -61,31 +63,29 @@ def physics_step_s(path, repeats: int = 3, steps: int = 300) -> float:
     return float(np.median(times))
 
 
-def env_step_s(env, actions) -> float:
-    env.reset(seed=0)
-    t = time.process_time()
-    for a in actions:
-        env.step(a)
-    return (time.process_time() - t) / len(actions)
-
-
 def compare(make_bare, makers: dict, actions, repeats: int) -> tuple[float, dict, dict]:
-    """CPU seconds per step of the bare env and of each wrapped env, measured in turn (the
-    order rotates from round to round): the bare env's median, each wrapped env's median, and
-    the median over rounds of each wrapped env's added time over the bare env's in the same
-    round (robust to the load drifting between rounds on a shared machine)."""
+    """CPU seconds per step of the bare env and of each wrapped env, stepped side by side: the
+    envs take each action in turn (the order rotating from action to action), ``repeats``
+    passes over ``actions`` from the same reset. Returns the bare env's median step, each
+    wrapped env's median step, and the median over steps of each wrapped env's added time over
+    the bare env's on the same action (the same physics state, a few milliseconds apart: the
+    load of a shared machine drifts little in between)."""
     envs = {"bare": make_bare(), **{k: m() for k, m in makers.items()}}
-    times: dict[str, list[float]] = {k: [] for k in envs}
     names = list(envs)
-    for r in range(repeats):
-        order = names[r % len(names):] + names[:r % len(names)]
-        for k in order:
-            times[k].append(env_step_s(envs[k], actions))
+    times: dict[str, list[float]] = {k: [] for k in envs}
+    for _ in range(repeats):
+        for env in envs.values():
+            env.reset(seed=0)
+        for i, action in enumerate(actions):
+            for k in names[i % len(names):] + names[:i % len(names)]:
+                t = time.process_time()
+                envs[k].step(action)
+                times[k].append(time.process_time() - t)
     for env in envs.values():
         env.close()
     bare = np.array(times.pop("bare"))
-    ratios = {k: float(np.median((np.array(v) - bare) / bare)) for k, v in times.items()}
-    return float(np.median(bare)), {k: float(np.median(v)) for k, v in times.items()}, ratios
+    return (float(np.median(bare)), {k: float(np.median(v)) for k, v in times.items()},
+            {k: float(np.median((np.array(v) - bare) / bare)) for k, v in times.items()})
 
 
 def hermite_error_L0(steps: int = 150) -> float:
@@ -209,6 +209,70 @@ def variant_name(backend: str, lag: bool) -> str:
     return f"{backend}_lag" if lag else backend
 
 
+def breakdown(n_envs: int, backend: str, lag: bool, steps: int, repeats: int) -> None:
+    """Where the added time of one wrapped legs vector step goes: CPU time per vector step of
+    the bare vector env, of the wrapped env's inner vector step (physics, Gymnasium and the
+    recording of every physics step) and of the wrapper's own parts, stepped side by side."""
+    import proprio_env.wrappers.vector as vector_module
+
+    path = myo_sim_model_path("legs_osl")
+    compiled = mujoco.MjModel.from_xml_path(str(path))
+
+    def make():
+        return MuscleModelEnv(path, frame_skip=FRAME_SKIP, model=compiled)
+
+    bare = gym.vector.SyncVectorEnv([make] * n_envs)
+    wrapped = SpindleAfferentsVector(gym.vector.SyncVectorEnv([make] * n_envs),
+                                     backend=backend, lag_physics_step=lag)
+    spent: dict[str, float] = {}
+
+    def timed(name, fn):
+        def run(*args, **kwargs):
+            t = time.process_time()
+            out = fn(*args, **kwargs)
+            spent[name] = spent.get(name, 0.0) + time.process_time() - t
+            return out
+        return run
+
+    wrapped.env.step = timed("inner vector step (physics + recording)", wrapped.env.step)
+    wrapped.bank._integrate = timed("spindle sub-steps", wrapped.bank._integrate)
+    wrapped.bank.advance = timed("bank (rules, sub-step lengths) + spindle sub-steps",
+                                 wrapped.bank.advance)
+    original_knots = vector_module.step_knots
+    vector_module.step_knots = timed("knots (records of all envs, end of step)",
+                                     original_knots)
+    rng = np.random.default_rng(0)
+    low, high = bare.single_action_space.low, bare.single_action_space.high
+    actions = [rng.uniform(low, high, (n_envs, low.size)).astype(np.float32)
+               for _ in range(steps)]
+    bare_s = wrapped_s = 0.0
+    try:
+        for _ in range(repeats):
+            bare.reset(seed=0)
+            wrapped.reset(seed=0)
+            for a in actions:
+                t = time.process_time()
+                bare.step(a)
+                bare_s += time.process_time() - t
+                t = time.process_time()
+                wrapped.step(a)
+                wrapped_s += time.process_time() - t
+    finally:
+        vector_module.step_knots = original_knots
+    count = repeats * len(actions)
+    print(f"breakdown legs_osl vector{n_envs} backend={backend} lag_physics_step={lag} "
+          f"(ms per vector step, x: over the bare vector step)")
+    rows = [("bare vector step", bare_s), ("wrapped vector step", wrapped_s),
+            *spent.items()]
+    for name, total in rows:
+        print(f"  {name:55s} {total / count * 1e3:8.2f} ms {total / bare_s:7.3f} x")
+    inner = spent["inner vector step (physics + recording)"]
+    print(f"  {'inner vector step - bare vector step':55s} "
+          f"{(inner - bare_s) / count * 1e3:8.2f} ms {(inner - bare_s) / bare_s:7.3f} x")
+    bare.close()
+    wrapped.close()
+
+
 def myosuite_child(env_ids: list[str], steps: int, repeats: int) -> None:
     """Runs inside MyoSuite's interpreter: each env bare and wrapped (numpy and C), side by
     side; prints one line per env."""
@@ -263,6 +327,12 @@ def main() -> None:
     parser.add_argument("--lag", nargs="+", type=lambda x: {"0": False, "1": True}[x],
                         default=[False, True], metavar="{0,1}",
                         help="lag_physics_step settings to run (default: 0 1)")
+    parser.add_argument("--models", nargs="+", default=["elbow", "legs_osl"],
+                        choices=["elbow", "legs_osl"], help="myo-sim models (default: both)")
+    parser.add_argument("--breakdown", type=int, metavar="N_ENVS",
+                        help="only print where the time of a wrapped legs vector step of "
+                             "N_ENVS envs goes (C backend if it builds, lagging; --backends, "
+                             "--lag to change)")
     parser.add_argument("--figure", metavar="PNG",
                         help="only draw the docs figure (needs matplotlib) to this path")
     parser.add_argument("--myosuite-python", metavar="PATH",
@@ -280,13 +350,18 @@ def main() -> None:
         return
     from spindle.chain import resolve_backend
 
+    if args.breakdown:
+        backend = (args.backends or [resolve_backend("auto")])[0]
+        breakdown(args.breakdown, backend, args.lag[-1], args.steps, args.repeats)
+        return
+
     backends = tuple(args.backends or (("numpy", "c") if resolve_backend("auto") == "c"
                                        else ("numpy",)))
     ratios: dict[str, float] = {}
     head = " ".join(f"{'us/mus':>9s} {variant_name(b, lag) + ' x':>7s}"
                     for b in backends for lag in args.lag)
     print(f"{'model':9s} {'mode':9s} {'muscles':>7s} {'bare ms':>9s} {'mj_step ms':>10s} {head}")
-    for name in ("elbow", "legs_osl"):
+    for name in args.models:
         bench_rows(name, args, backends, ratios)
     if "c" not in backends:
         print("C backend: not available here (no C compiler or cached build)")

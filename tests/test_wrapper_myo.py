@@ -28,9 +28,10 @@ def make(name: str, episode_steps: int = 100):
         MuscleModelEnv(path, frame_skip=10, model=model), max_episode_steps=episode_steps)
 
 
-def soak(name: str, steps: int, n_envs: int) -> dict[str, float]:
+def soak(name: str, steps: int, n_envs: int, **wrapper_args) -> dict[str, float]:
     """Random controls through the vector wrapper; every afferent checked at every step."""
-    vec = SpindleAfferentsVector(gym.vector.SyncVectorEnv([make(name)] * n_envs))
+    vec = SpindleAfferentsVector(gym.vector.SyncVectorEnv([make(name)] * n_envs),
+                                 **wrapper_args)
     assert vec.muscles.n == MODELS[name]
     obs, _ = vec.reset(seed=0)
     space = vec.single_observation_space
@@ -82,6 +83,19 @@ def test_legs_name_their_muscles_and_skip_the_prosthesis_motors():
 def test_soak_1e5_steps(name):
     """10^5 env steps of random controls (16 envs), episodes of 100 steps."""
     result = soak(name, steps=100_000, n_envs=16)
+    assert result["restarts"] == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_soak_1e5_steps_c_lagged(name):
+    """The same soak on the fast configuration: the C batch step (SIMD lanes where the CPU
+    has them), afferents lagging one physics step."""
+    from spindle.chain import resolve_backend
+
+    if resolve_backend("auto") != "c":
+        pytest.skip("no C compiler or cached C build")
+    result = soak(name, steps=100_000, n_envs=16, backend="c", lag_physics_step=True)
     assert result["restarts"] == 0
 
 

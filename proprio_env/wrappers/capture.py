@@ -10,7 +10,9 @@ between, chosen per env (``substep_source``):
   the same ``mj_rnePostConstraint``, reading after each call ``actuator_length`` and
   ``actuator_velocity``, which ``mj_step`` computed at the step's *start* (so the physics and
   the env's own data are bit-for-bit what they were). The state after the last step comes
-  from :class:`~proprio_env.wrappers.muscles.ActuatorKinematics` on a scratch ``MjData``.
+  from :class:`~proprio_env.wrappers.muscles.ActuatorKinematics` on a scratch ``MjData``,
+  or, with ``lag_physics_step``, is the next env step's first record (the afferents then
+  describe the state one physics step before the env's; see :func:`step_knots`).
   Not with the RK4 integrator (its last stage leaves intermediate values in those fields).
   MyoSuite 3 (``MyoGymnasiumEnv._step_physics``: ``mj_step(nstep=frame_skip)`` then
   ``mj_forward``, not overridden by the task) is hooked the same way: its own
@@ -96,7 +98,7 @@ class FrameRecorder:
         self.ids = np.asarray(ids, dtype=int)
         # the records go into preallocated buffers (grown when a step has more frames), the
         # whole actuator vectors copied from views of the data's own arrays: a slice copy per
-        # physics step, the muscles picked once per env step in take()
+        # physics step, the muscles picked once per env step for all envs (gather_records)
         self._length_view = self.data.actuator_length
         self._velocity_view = self.data.actuator_velocity
         self._count = 0
@@ -190,7 +192,7 @@ class EnvTap:
         substep_source: one of :data:`SUBSTEP_SOURCES`.
         lag_physics_step: end each env step's knots at the last recorded physics step (the
             state one physics step before the env's), not at the env's state: no kinematics
-            per env step (see :meth:`end`). Needs the recorded frames.
+            per env step (see :func:`step_knots`). Needs the recorded frames.
     """
 
     def __init__(self, env: Any, muscles: Any, substep_source: str = "auto",
