@@ -91,6 +91,34 @@ def test_recording_the_physics_steps_changes_nothing_in_the_env():
     assert wrapped.observation_space.contains(o2)
 
 
+def test_recorded_physics_steps_are_the_states_at_each_step_start_bit_for_bit():
+    """The recorder's times, lengths and velocities are data.time, actuator_length and
+    actuator_velocity as mj_step leaves them, step by step (a shadow stepped one call at a
+    time and read back after each), over many steps (the times are accumulated, not read)."""
+    from proprio_env.wrappers.capture import FrameRecorder
+
+    env = elbow_env()
+    env.reset(seed=3)
+    model, data = env.model, env.data
+    recorder = FrameRecorder(env, np.arange(model.nu))
+    shadow = mujoco.MjData(model)
+    for i in range(60):
+        ctrl = bang_bang(i, 7)
+        shadow.qpos[:], shadow.qvel[:], shadow.act[:] = data.qpos, data.qvel, data.act
+        shadow.time, shadow.ctrl[:] = data.time, ctrl
+        want = []
+        for _ in range(10):
+            t = shadow.time
+            mujoco.mj_step(model, shadow)
+            want.append((t, shadow.actuator_length.copy(), shadow.actuator_velocity.copy()))
+        env.step(ctrl)
+        times, lengths, velocities = recorder.take()
+        np.testing.assert_array_equal(times, [w[0] for w in want])
+        np.testing.assert_array_equal(lengths, [w[1] for w in want])
+        np.testing.assert_array_equal(velocities, [w[2] for w in want])
+    assert data.time == shadow.time
+
+
 def test_wrapper_equals_the_chain_fed_the_same_lengths():
     """The wrapper (physics steps recorded) against ``ArmChain`` fed the same normalised
     lengths at every physics step, unfiltered, with the same fusimotor model: the chain
