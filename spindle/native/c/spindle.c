@@ -635,8 +635,6 @@ int ps_plan_init(ps_plan *q, const ps_params *p, ps_real h, ps_real theta)
     return PS_OK;
 }
 
-/* x^(1/10) to ~1 %: the exponent bits divided by 10 (shifts), no refinement. Only a bound
- * for the starting guess below. */
 /* The bits of a float x in [1e-30, 1e30] -> those of ~x^(1/10): u/10 = u * 0.000110011...b
  * (the sum stays below 2^31). */
 PS_INLINE unsigned int tenth_root_bits(unsigned int u)
@@ -645,6 +643,8 @@ PS_INLINE unsigned int tenth_root_bits(unsigned int u)
            + (u >> 17) + (u >> 20) + (u >> 21) + 958817894u;
 }
 
+/* x^(1/10) to ~1 %: the exponent bits divided by 10 (shifts), no refinement. Only a bound
+ * for the starting guess below. */
 static ps_real tenth_root_estimate(ps_real x)
 {
     ps_bits b;
@@ -667,8 +667,9 @@ static ps_real tenth_root_estimate(ps_real x)
  * keep a superscalar core busy where one leaves it waiting. Measured on the host (x86-64,
  * gcc -O2, ps_spindle_batch_step on the 864 spindles of the legs under random controls, 1 ms,
  * 4.4 iterations per solve): 440 -> 330 ns per spindle step (275 with the host build's cube
- * root). The fibres of 2, 4 or 8 spindles of a batch side by side as scalar code gained nothing
- * (266, 292, 298 ns); as SIMD lanes they do: see ps_spindle_batch_step. The Cortex-M0+ gains nothing (one instruction at a time) and pays for the
+ * root). The fibres of 2, 4 or 8 spindles of a batch side by side as scalar code gained
+ * nothing (266, 292, 298 ns); as SIMD lanes they do: see ps_spindle_batch_step. The
+ * Cortex-M0+ gains nothing (one instruction at a time) and pays for the
  * work kept in memory: the float plan step (scripts/bench_embedded.py --only 2 9) 41,861 ->
  * 42,594 instructions per step at 1 ms, 36,926 -> 37,473 at 5 ms (+1.5 %); the fixed-point
  * step, the device's configuration (--quick), is not this code (1.7224 MIPS, unchanged).
@@ -804,11 +805,10 @@ PS_INLINE ps_real plan_start_force(const ps_plan *q, int i, ps_real T0, ps_real 
 }
 
 /* Fibre i's implicit equation for the step with its new activation f1 (the equations of
- * implicit_fibre, constants from the plan) and Newton's start. */
-/* The same from fibre i's state values T0, v0, z0, f0 and length L0; returns the cube of
- * Newton's start (newton_start_cube). For a = 0.3 only when `a_is_03`, with the start's
- * force only when `uses_F0` (constants to the caller: the lanes inline it without the pow
- * and without a branch). */
+ * implicit_fibre, constants from the plan) from its state values T0, v0, z0, f0 and length
+ * L0; returns the cube of Newton's start (newton_start_cube). For a = 0.3 only when
+ * `a_is_03`, with the start's force only when `uses_F0` (constants to the caller: the lanes
+ * inline it without the pow and without a branch). */
 PS_INLINE ps_real plan_equation_terms(const ps_plan *q, int i, int a_is_03, int uses_F0,
                                       ps_real T0, ps_real v0, ps_real z0, ps_real f0,
                                       ps_real L0, ps_real L1, ps_real f1, ps_real *A_out,
@@ -1098,7 +1098,9 @@ PS_LANE_FN void lanes_equation(const ps_plan *q, lane_block *b)
             fix |= x > R_(1) && !(x < R_(1e30));
         }
         if (fix) {
-            LANE_LOOP(l) b->bound[i][l] = tenth_root_estimate(ps_fabs(b->rhs[i][l]) * q->inv_a2[i]);
+            LANE_LOOP(l) {
+                b->bound[i][l] = tenth_root_estimate(ps_fabs(b->rhs[i][l]) * q->inv_a2[i]);
+            }
         }
         LANE_LOOP(l) {
             solve_03_work w;
