@@ -60,7 +60,15 @@ def record(n_envs: int, steps: int, seed: int = 0) -> tuple[list, SpindleBatch]:
         batches.append(self)
         return original(self, length_L0, gamma_dyn_pps, gamma_stat_pps, rates)
 
+    def one_call_per_step(self, length_L0, gamma_dyn_pps, gamma_stat_pps):
+        # the bank's one call per env step, split into the sub-steps it runs
+        for row in zip(length_L0, gamma_dyn_pps, gamma_stat_pps, strict=True):
+            out = recording(self, *row)
+        return out
+
+    original_steps = SpindleBatch.steps
     SpindleBatch.step = recording
+    SpindleBatch.steps = one_call_per_step
     try:
         env = SpindleAfferentsVector(gym.vector.SyncVectorEnv(
             [lambda: MuscleModelEnv(path, frame_skip=10, model=compiled)] * n_envs),
@@ -73,6 +81,9 @@ def record(n_envs: int, steps: int, seed: int = 0) -> tuple[list, SpindleBatch]:
         env.close()
     finally:
         SpindleBatch.step = original
+        SpindleBatch.steps = original_steps
+    if not calls:
+        raise RuntimeError("no SpindleBatch step was recorded")
     if len({id(b) for b in batches}) != 1:
         raise RuntimeError("expected one C spindle bank")
     return calls, batches[0]

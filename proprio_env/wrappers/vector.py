@@ -28,8 +28,8 @@ class SpindleAfferentsVector(VectorWrapper):
     this process (``gymnasium.vector.SyncVectorEnv``: ``env.envs``).
 
     Every muscle of every sub-env is one spindle of one :class:`SpindleBank`, advanced by one
-    batched call per 1 ms sub-step. Sub-env i gives the same afferents as the single wrapper
-    on that env with the same seed and actions.
+    batched call per 1 ms sub-step (numpy) or per env step (C). Sub-env i gives the same
+    afferents as the single wrapper on that env with the same seed and actions.
 
     Autoreset: ``NEXT_STEP`` (Gymnasium's default: the step after a sub-env ended resets it)
     and ``SAME_STEP`` re-equilibrate that sub-env's spindles at its reset lengths; with

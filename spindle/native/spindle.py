@@ -281,12 +281,7 @@ class SpindleBatch:
         ValueError for an input the C step refuses (out of range, too fast), each naming the
         spindle and the status.
         """
-        arrays = [np.ascontiguousarray(x, dtype=self.dtype)
-                  for x in (length_L0, gamma_dyn_pps, gamma_stat_pps)]
-        for x in arrays:
-            if x.shape != (self.n,):
-                raise ValueError(f"inputs of shape {x.shape} for {self.n} spindles; each must "
-                                 f"be ({self.n},)")
+        arrays = self._inputs((length_L0, gamma_dyn_pps, gamma_stat_pps), 1)
         ia, ii = ((self.ia_pps.ctypes.data, self.ii_pps.ctypes.data) if rates
                   else (None, None))
         code = self.lib.ps_spindle_batch_step(
@@ -302,12 +297,8 @@ class SpindleBatch:
         """:meth:`step` for each row of (steps, n) arrays, in one C call
         (``ps_spindle_batch_steps``); returns (Ia, II) of the last step (as :meth:`step`).
         Atomic over all the steps; the errors of :meth:`step`, naming the step too."""
-        arrays = [np.ascontiguousarray(x, dtype=self.dtype)
-                  for x in (length_L0, gamma_dyn_pps, gamma_stat_pps)]
+        arrays = self._inputs((length_L0, gamma_dyn_pps, gamma_stat_pps), 2)
         shape = arrays[0].shape
-        if len(shape) != 2 or shape[1] != self.n or any(x.shape != shape for x in arrays):
-            raise ValueError(f"inputs of shapes {[x.shape for x in arrays]} for {self.n} "
-                             f"spindles; each must be (steps, {self.n})")
         code = self.lib.ps_spindle_batch_steps(
             self._address, self.n, shape[0], ctypes.byref(self._plan), arrays[0].ctypes.data,
             arrays[1].ctypes.data, arrays[2].ctypes.data, self._start_address,
@@ -317,6 +308,17 @@ class SpindleBatch:
             self._raise(code, arrays, self._failed_step.value,
                         f" at step {self._failed_step.value} of {shape[0]}")
         return self.ia_pps, self.ii_pps
+
+    def _inputs(self, inputs: tuple, ndim: int) -> list[np.ndarray]:
+        """The inputs as contiguous arrays of the build's type; ValueError unless all are
+        (n,) (``ndim`` 1) or all (steps, n) of one shape (``ndim`` 2)."""
+        arrays = [np.ascontiguousarray(x, dtype=self.dtype) for x in inputs]
+        shape = arrays[0].shape
+        if len(shape) != ndim or shape[-1] != self.n or any(x.shape != shape for x in arrays):
+            expected = f"({self.n},)" if ndim == 1 else f"(steps, {self.n})"
+            raise ValueError(f"inputs of shapes {[x.shape for x in arrays]} for {self.n} "
+                             f"spindles; each must be {expected}")
+        return arrays
 
     def _raise(self, code: int, arrays: list, step: int, where: str) -> None:
         j = self._failed.value
