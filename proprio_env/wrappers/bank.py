@@ -29,9 +29,9 @@ Backends: ``"numpy"`` steps the bank's :class:`spindle.core.SpindleState` with
 keeps the spindles in one C array (:class:`spindle.native.spindle.SpindleBatch`, one
 ``ps_spindle_batch_steps`` call for all the sub-steps of an env step, one
 ``ps_spindle_batch_step`` per sub-step when every knot's rates are recorded); ``"auto"``
-is C when the library builds or loads here (:func:`spindle.chain.resolve_backend`). Both take the same sub-step lengths
-and drives; their rates agree to ~1e-10 pps (the C step multiplies by reciprocals where
-numpy divides). Only the trapezoidal family (theta > 0) runs in C.
+is C when the library builds or loads here (:func:`spindle.chain.resolve_backend`). Both take
+the same sub-step lengths and drives; their rates agree to ~1e-10 pps (the C step multiplies
+by reciprocals where numpy divides). Only the trapezoidal family (theta > 0) runs in C.
 """
 
 from __future__ import annotations
