@@ -15,6 +15,8 @@ from typing import Protocol
 import numpy as np
 
 from spindle import core
+from spindle.backends import BACKEND_CHOICES
+from spindle.backends import BACKENDS as BACKENDS  # re-exported: the one table lives there
 from spindle.chain.conditioning import natural_rad_s
 from spindle.chain.fusimotor import SEED_PAPER, FusimotorParams
 from spindle.chain.sensor import AX12, Calibration, EncoderParams
@@ -23,15 +25,6 @@ from spindle.params import HUMAN, SpindleParams
 
 MUSCLES = ("BRA", "TRImed")
 """The muscles of the arm, in the order of every per-muscle axis of the project."""
-BACKENDS = ("numpy", "c")
-"""The chain's implementations: ``"numpy"`` (:class:`spindle.chain.arm.ArmChain`) and ``"c"``
-(``spindle/native/c/chain.c`` through :class:`spindle.native.chain.CArmChain`, compiled on
-first use: same API, outputs and counters); :func:`spindle.chain.make_chain` and
-:func:`spindle.chain.make_batched_chain` build the one ``ChainConfig.backend`` names."""
-BACKEND_CHOICES = (*BACKENDS, "auto")
-"""What ``ChainConfig.backend`` accepts: a backend of :data:`BACKENDS`, or ``"auto"`` (C where
-the library can be loaded or built, else numpy: :func:`spindle.chain.resolve_backend`)."""
-
 COUNTERS = (
     "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
     "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped", "restarts",

@@ -1,50 +1,15 @@
 """The one place that knows both chains: :func:`make_chain` and :func:`make_batched_chain`
-build the numpy or the C one, :func:`resolve_backend` says which ``"auto"`` means here."""
+build the numpy or the C one (:func:`spindle.backends.resolve_backend` says which
+``"auto"`` means here)."""
 
 from __future__ import annotations
 
-import os
 from dataclasses import replace
-from functools import cache
 
+from spindle.backends import resolve_backend
 from spindle.chain.arm import ArmChain
-from spindle.chain.config import BACKEND_CHOICES, Chain, ChainConfig
+from spindle.chain.config import Chain, ChainConfig
 from spindle.chain.length_model import LengthFits
-
-
-def resolve_backend(name: str) -> str:
-    """The backend ``name`` selects: ``"numpy"`` or ``"c"``.
-
-    ``"auto"`` is ``"c"`` when the native library can be used here: a valid cached build (see
-    :mod:`spindle.native.build`), or a C compiler that builds it now (once: the build is
-    cached and the chain loads that same library); otherwise ``"numpy"``. It never raises
-    for a missing or failing compiler, a damaged cache or a library that does not load: each
-    falls back to numpy.
-
-    Raises:
-        ValueError: ``name`` is not one of :data:`~spindle.chain.config.BACKEND_CHOICES`.
-    """
-    if not isinstance(name, str) or name not in BACKEND_CHOICES:
-        raise ValueError(f"backend={name!r} is not one of {BACKEND_CHOICES}")
-    if name != "auto":
-        return name
-    usable = _native_usable(os.environ.get("CC", ""), os.environ.get("PROPRIO_C_CACHE", ""))
-    return "c" if usable else "numpy"
-
-
-@cache
-def _native_usable(cc: str, cache_dir: str) -> bool:
-    """Whether the C library loads (built first if need be) with this $CC and cache: a
-    failing build is tried once per setting, not at every chain built."""
-    del cc, cache_dir  # the cache key: what the build reads from the environment
-    try:
-        # imported here so that numpy-only use of the chain never loads ctypes or the C build
-        from spindle.native.chain import library
-
-        library("double")
-    except Exception:  # any reason the library cannot be used means numpy
-        return False
-    return True
 
 
 def _resolved(config: ChainConfig | None) -> ChainConfig:
