@@ -57,7 +57,8 @@ from spindle.params import CAT, SpindleParams
 from spindle.scalar import SMALL_N, advance_small, afferents_one, as_floats
 
 __all__ = [
-    "LENGTH_RANGE_L0", "MAX_DRIVE_POWER", "MAX_SPEED_L0_S", "SMALL_N", "SpindleState",
+    "LENGTH_RANGE_L0", "MAX_DRIVE_POWER", "MAX_SPEED_L0_S", "SLEW_LIMIT_L0_S", "SMALL_N",
+    "STATE_FIELDS", "SpindleState",
     "activation_target", "advance", "afferents", "afferents_from_tension", "check_inputs",
     "check_speed", "check_step", "columns", "commit", "equilibrium_state", "force",
     "plain_advance", "step",
@@ -71,6 +72,15 @@ fitted."""
 
 MAX_SPEED_L0_S = 10.0
 """Largest accepted |dL/dt|: about the maximum shortening velocity of fast muscle fibres."""
+
+SLEW_LIMIT_L0_S = 8.0
+"""The default slew limit on the lengths a chain or a spindle bank feeds its spindles (L0/s):
+1000 deg/s of elbow motion for the brachialis, above the servo's 684 deg/s no-load speed and
+below :data:`MAX_SPEED_L0_S`; a faster change (a jump after a gap, a spike) is limited to it."""
+
+STATE_FIELDS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activation",
+                "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
+"""The arrays of a :class:`SpindleState`, in its fields' order."""
 
 AFFERENT_CHUNK = 8192
 """Spindles per block of :func:`afferents_from_tension` (its temporaries stay in cache)."""
@@ -113,10 +123,7 @@ class SpindleState:
         return {k: v for k, v in self.__dict__.items() if k != "_workspace"}
 
     def _arrays(self) -> tuple[np.ndarray, ...]:
-        return (
-            self.tension_FU, self.polar_velocity_L0_s, self.velocity_root, self.activation,
-            self.length_L0, self.gamma_dyn_pps, self.gamma_stat_pps,
-        )
+        return tuple(getattr(self, name) for name in STATE_FIELDS)
 
 
 def _fibre_major(buffer_3n: np.ndarray) -> np.ndarray:

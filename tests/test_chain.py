@@ -38,9 +38,11 @@ def test_median_filter_equals_scipy_on_random_data():
     # origin=3 puts the 7-sample window at x[k-6 .. k]; mode="nearest" pads with x[0]
     ref = scipy_ndimage.median_filter(x, size=7, mode="nearest", origin=3)
     np.testing.assert_array_equal(median_filter(x, 7), ref)
-    stream = MedianFilter(7)
-    stream.reset(x[0])
-    np.testing.assert_array_equal([stream.push(v) for v in x[1:]], ref[1:])
+    stream = MedianFilter(7)  # one signal, pushed one sample at a time and in blocks
+    stream.reset(x[:1])
+    pushed = [stream.push(x[None, i:i + 1])[0, 0] for i in range(1, 2000)]
+    pushed += list(stream.push(x[None, 2000:])[0])
+    np.testing.assert_array_equal(pushed, ref[1:])
 
 
 def test_median_filter_removes_isolated_spikes():
@@ -164,10 +166,11 @@ def test_chain_gammas_follow_their_formulas_on_a_constructed_trace():
 
 
 def predictor_step_response(params, t_end=2.0, dt=1e-3, size=0.1):
-    pred = MotionPredictor(params)
-    pred.reset(0.0, np.array([1.0]))
+    pred = MotionPredictor(params, n=1, n_muscles=1)
+    pred.reset(np.zeros(1), np.array([[1.0]]))
     t = np.arange(dt, t_end, dt)
-    out = np.array([pred.update(ti, np.array([1.0 + size]))[0] for ti in t])
+    out = np.array([pred.update(np.array([[ti]]), np.array([[[1.0 + size]]]))[0][0, 0, 0]
+                    for ti in t])
     return t, out
 
 

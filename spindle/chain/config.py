@@ -102,7 +102,7 @@ class ChainConfig:
     max_bridge_s: float = 0.05
     resync_after_samples: int = 7
     max_speed_deg_s: float = 1000.0
-    max_speed_L0_s: float = 8.0
+    max_speed_L0_s: float = core.SLEW_LIMIT_L0_S
     fits_path: str | Path | None = None
     backend: str = "numpy"
 

@@ -12,14 +12,13 @@ This module holds the device-side pieces, each usable alone:
   (:class:`proprio_env.encoder.Encoder`) draws from;
 - :func:`is_valid_reading`: integers in 0..max_count;
 - :class:`Calibration`: f(x), elbow angle = sign * (counts - zero_count) * deg_per_count;
-- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming), causal;
-  :class:`BatchedMedianFilter` streams many independent signals (one per arm) at once;
-  :func:`valid_readings` is :func:`is_valid_reading` over an array.
+- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming, many
+  independent signals at once: one per arm), causal;
+  :func:`valid_readings` is :func:`is_valid_reading` over an array (the one rule).
 """
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -121,19 +120,22 @@ class Calibration:
 
 
 def is_valid_reading(counts: float, max_count: int = AX12.max_count) -> bool:
-    """True for an integer reading in 0..max_count (NaN, fractions and others are invalid)."""
+    """True for an integer reading in 0..max_count (NaN, fractions and others are invalid):
+    :func:`valid_readings` of one value."""
     try:
-        x = float(counts)
-    except (TypeError, ValueError):
+        x = np.float64(counts)
+    except (TypeError, ValueError, OverflowError):
         return False
-    return bool(np.isfinite(x) and x == np.floor(x) and 0 <= x <= max_count)
+    return bool(valid_readings(x, max_count))
 
 
 def valid_readings(counts: np.ndarray, max_count: int = AX12.max_count) -> np.ndarray:
-    """:func:`is_valid_reading` elementwise over a float array (NaN for non-real values)."""
+    """Whether each reading of a float array is an integer in 0..max_count (NaN for
+    non-real values fails)."""
     # comparisons with NaN are False (and raise no warning)
-    return np.isfinite(counts) & (counts == np.floor(counts)) & (counts >= 0) & (
-        counts <= max_count)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(counts) & (counts == np.floor(counts)) & (counts >= 0) & (
+            counts <= max_count)
 
 
 def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
@@ -152,92 +154,51 @@ def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
 
 
 class MedianFilter:
-    """Streaming causal median of the last ``window`` accepted samples (window odd).
-
-    Many signals at once: :class:`BatchedMedianFilter` (the single chain pushes faster on
-    this deque and ``sorted``; the figure is in :class:`~spindle.chain.fusimotor.MotionPredictor`).
-    """
-
-    def __init__(self, window: int = 7) -> None:
-        _check_window(window)
-        self.window = window
-        self._buffer: deque[float] = deque(maxlen=window)
-
-    def reset(self, value: float) -> float:
-        """Fill the window with ``value`` (a signal at rest) and return it."""
-        self._buffer.clear()
-        self._buffer.extend([float(value)] * self.window)
-        return float(value)
-
-    def push(self, value: float) -> float:
-        """Add one sample and return the median of the window."""
-        if not self._buffer:
-            return self.reset(value)
-        self._buffer.append(float(value))
-        return sorted(self._buffer)[self.window // 2]
-
-    def snapshot(self) -> tuple[float, ...]:
-        """The window's contents, for :meth:`restore` (a caller undoing a failed update)."""
-        return tuple(self._buffer)
-
-    def restore(self, snapshot: tuple[float, ...]) -> None:
-        """Put back the window a :meth:`snapshot` of this filter returned."""
-        self._buffer.clear()
-        self._buffer.extend(snapshot)
-
-
-class BatchedMedianFilter:
     """Streaming causal medians of ``n`` independent signals, each over its own last
-    ``window`` accepted samples: :class:`MedianFilter` over a leading axis.
+    ``window`` accepted samples (window odd; one signal is ``n = 1``).
 
-    Each signal's window is a row of an (n, window) array, oldest first. ``rows`` (an index
-    array, or None for every signal) picks the signals a call concerns.
+    Each signal's window is a row of an (n, window) array, oldest first; :meth:`reset` fills
+    it with one value (a signal at rest), as :func:`median_filter` pads its start.
+    :meth:`filter` computes the medians of a block of k samples per signal (k = 1: one
+    sample each) without changing the windows; :meth:`push` is that, kept.
     """
 
-    def __init__(self, n: int, window: int = 7) -> None:
+    def __init__(self, window: int = 7, n: int = 1) -> None:
         _check_window(window)
         self.window = window
         self._buffer = np.zeros((n, window))
 
     def reset(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        """Fill the windows of ``rows`` with ``values`` (signals at rest); return them."""
+        """Fill the windows of ``rows`` (None: all) with ``values`` (r,); return them."""
         values = np.asarray(values, dtype=float)
         self._buffer[slice(None) if rows is None else rows] = values[:, None]
         return values.copy()
 
-    def push(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        """Add one sample to each signal of ``rows``; return their medians."""
-        if rows is None:
-            window = self._buffer
-            window[:, :-1] = window[:, 1:]
-            window[:, -1] = values
-        else:
-            window = self._buffer[rows]
-            window[:, :-1] = window[:, 1:]
-            window[:, -1] = values
-            self._buffer[rows] = window
-        middle = self.window // 2
-        return np.partition(window, middle, axis=1)[:, middle]
-
-    def push_block(self, values: np.ndarray, n_values: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`push` column by column of ``values[i, :n_values[i]]`` (n, k) for every
-        signal, without changing the windows: returns the medians after each (n, k)
-        (entries past ``n_values[i]`` are padding and their medians meaningless) and the
-        windows after the last, which :meth:`restore` makes the filter's."""
+    def filter(self, values: np.ndarray, n_values: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The medians after each of ``values[i, :n_values[i]]`` (n, k) pushed in order
+        (None: all k), without changing the windows: returns the medians (n, k) (entries past
+        ``n_values[i]`` are padding and their medians meaningless) and the windows after the
+        last, which :meth:`restore` makes the filter's."""
         n, w = self._buffer.shape
+        n_values = np.full(n, values.shape[1]) if n_values is None else n_values
         extended = np.concatenate((self._buffer, values), axis=1)
         windows = np.lib.stride_tricks.sliding_window_view(extended, w, axis=1)[:, 1:]
         middle = self.window // 2
         medians = np.partition(windows, middle, axis=2)[:, :, middle]
         return medians, extended[np.arange(n)[:, None], n_values[:, None] + np.arange(w)]
 
+    def push(self, values: np.ndarray) -> np.ndarray:
+        """Push ``values`` (n, k) in order; return the medians after each (n, k)."""
+        medians, self._buffer = self.filter(np.asarray(values, dtype=float))
+        return medians
+
     def snapshot(self) -> np.ndarray:
         """The windows, for :meth:`restore` (a caller undoing a failed update)."""
         return self._buffer.copy()
 
     def restore(self, snapshot: np.ndarray) -> None:
-        """Put back the windows a :meth:`snapshot` of this filter returned (once)."""
+        """Put back the windows a :meth:`snapshot` (or :meth:`filter`) returned (once)."""
         self._buffer = snapshot
 
 

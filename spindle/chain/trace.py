@@ -6,10 +6,10 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from spindle.chain.arm import checked_lengths
 from spindle.chain.config import MUSCLES, ArmSample, ChainConfig, real_array
 from spindle.chain.factory import make_chain
 from spindle.chain.length_model import LengthFits
+from spindle.chain.samples import checked_lengths
 from spindle.chain.sensor import is_valid_reading
 
 
