@@ -27,6 +27,7 @@ from proprio_env.experiments.training import POLICY_NAMES, TrainConfig, sb3_ppo_
 from proprio_env.experiments.training import run as run_sb3
 from proprio_env.experiments.training_rllib import RLlibOptions
 from proprio_env.experiments.training_rllib import run as run_rllib
+from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 
 FULL_TIMESTEPS = 250_000
 """Env steps of the documented full run."""
@@ -37,7 +38,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--engine", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
-    parser.add_argument("--backend", choices=("c", "numpy", "auto"), default="c",
+    parser.add_argument("--backend", choices=BACKEND_CHOICES, default=DEFAULT_BACKEND,
                         help="spindle chain backend (c: compiled on first use; needs a C "
                              "compiler)")
     parser.add_argument("--afferent-source", default=None,

@@ -29,6 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from spindle.backends import DEFAULT_BACKEND
+
 HELD_OUT_BANDS = ((35.0, 40.0), (60.0, 65.0), (85.0, 90.0))
 """Target bands (deg) never drawn during training; evaluation targets come only from them."""
 TARGET_SPAN_DEG = (15.0, 115.0)
@@ -211,7 +213,7 @@ class TrainConfig:
     """One training run: the env, its afferent path, the budget and the evaluation."""
 
     env_id: str = "proprio_env/ElbowReach-v0"
-    backend: str = "c"
+    backend: str = DEFAULT_BACKEND
     afferent_source: str | None = None
     """exact | reduced | encoder (None: the env's default)"""
     timesteps: int = 250_000

@@ -9,14 +9,16 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from proprio_env.wrappers.bank import (
+from proprio_env.wrappers.capture import EnvTap, step_knots
+from proprio_env.wrappers.muscles import MuscleSet, find_muscles, model_and_data
+from spindle.backends import DEFAULT_BACKEND
+from spindle.chain.bank import (
     COUNTERS,
     ConstantFusimotor,
     SpindleBank,
     TemplateFusimotor,
 )
-from proprio_env.wrappers.capture import EnvTap, step_knots
-from proprio_env.wrappers.muscles import MuscleSet, find_muscles, model_and_data
+from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
 
 OBSERVATION_MODES = ("box", "dict")
@@ -128,10 +130,11 @@ class SpindleAfferents(gym.Wrapper):
         method, step_s: the spindle integrator and its largest sub-step (default
             trapezoidal, 1 ms).
         max_speed_L0_s: the lengths' slew limit (L0/s).
-        backend: the spindle core, ``"numpy"`` (default), ``"c"`` (the C port's batch step,
-            built on first use; needs a C compiler or a cached build) or ``"auto"`` (C when
-            it builds or loads here, else numpy). Both give the same rates to ~1e-10 pps;
-            C costs a fraction of numpy (``scripts/bench_wrapper.py``).
+        backend: the spindle core, ``"numpy"``, ``"c"`` (the C port's batch step, built on
+            first use; needs a C compiler or a cached build) or ``"auto"`` (the default: C when
+            it builds or loads here, else numpy; :func:`spindle.backends.resolve_backend`). Both
+            give the same rates to ~1e-10 pps; C costs a fraction of numpy
+            (``scripts/bench_wrapper.py``).
         lag_physics_step: the afferents describe the muscles one physics step before the
             env's state: each env step's spindles stop at its last physics step but one
             (whose lengths ``mj_step`` computed anyway) and take the last one at the start of
@@ -141,7 +144,8 @@ class SpindleAfferents(gym.Wrapper):
             (``substep_source`` ``"frames"``). After a reset, the spindles rest at the reset
             lengths from one physics step before it. Default False: the env's state now.
 
-    Version history: v0 (first release); v0.1: ``backend``; v0.2: ``lag_physics_step``.
+    Version history: v0 (first release); v0.1: ``backend``; v0.2: ``lag_physics_step``;
+    v0.3: ``backend`` defaults to ``"auto"`` (was ``"numpy"``).
     """
 
     def __init__(self, env: gym.Env, muscles: Sequence[str] | None = None,
@@ -149,8 +153,8 @@ class SpindleAfferents(gym.Wrapper):
                  fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
                  observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
                  substep_source: str = "auto", method: str = "trapezoidal",
-                 step_s: float | None = None, max_speed_L0_s: float = 8.0,
-                 backend: str = "numpy", lag_physics_step: bool = False) -> None:
+                 step_s: float | None = None, max_speed_L0_s: float = SLEW_LIMIT_L0_S,
+                 backend: str = DEFAULT_BACKEND, lag_physics_step: bool = False) -> None:
         super().__init__(env)
         model, _ = model_and_data(env)
         self.muscles: MuscleSet = find_muscles(model, muscles)

@@ -8,13 +8,15 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from proprio_env.wrappers.bank import (
+from proprio_env.wrappers.muscles import ActuatorKinematics, find_muscles
+from spindle.backends import DEFAULT_BACKEND
+from spindle.chain.bank import (
     COUNTERS,
     ConstantFusimotor,
     SpindleBank,
     TemplateFusimotor,
 )
-from proprio_env.wrappers.muscles import ActuatorKinematics, find_muscles
+from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
 
 UNIFORM_TOLERANCE = 1e-6
@@ -61,8 +63,8 @@ def afferents_from_trajectory(
     fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
     method: str = "trapezoidal",
     step_s: float | None = None,
-    max_speed_L0_s: float = 8.0,
-    backend: str = "numpy",
+    max_speed_L0_s: float = SLEW_LIMIT_L0_S,
+    backend: str = DEFAULT_BACKEND,
 ) -> TrajectoryAfferents:
     """Ia and II of every muscle of ``model`` along recorded joint motion.
 

@@ -10,7 +10,6 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
-from proprio_env.wrappers.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
 from proprio_env.wrappers.capture import EnvTap, step_knots
 from proprio_env.wrappers.muscles import find_muscles, model_and_data
 from proprio_env.wrappers.single import (
@@ -20,6 +19,9 @@ from proprio_env.wrappers.single import (
     bank_info,
     check_rate_scale,
 )
+from spindle.backends import DEFAULT_BACKEND
+from spindle.chain.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
+from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
 
 
@@ -49,8 +51,8 @@ class SpindleAfferentsVector(VectorWrapper):
                  fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
                  observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
                  substep_source: str = "auto", method: str = "trapezoidal",
-                 step_s: float | None = None, max_speed_L0_s: float = 8.0,
-                 backend: str = "numpy", lag_physics_step: bool = False) -> None:
+                 step_s: float | None = None, max_speed_L0_s: float = SLEW_LIMIT_L0_S,
+                 backend: str = DEFAULT_BACKEND, lag_physics_step: bool = False) -> None:
         super().__init__(env)
         subs = getattr(env, "envs", None)
         if subs is None:

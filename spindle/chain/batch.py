@@ -38,7 +38,7 @@ from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.chain.samples import BatchSample, lengths_valid
 from spindle.chain.sensor import MedianFilter, valid_readings
 from spindle.methods import get_method
-from spindle.substeps import bounded_hermite_length
+from spindle.substeps import bounded_hermite_length, slew_limited
 
 _COUNTER = {name: i for i, name in enumerate(COUNTERS)}
 _OUTPUTS = tuple(f.name for f in fields(ArmSample) if f.name != "accepted")
@@ -484,8 +484,8 @@ class BatchedArmChain:
         u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
         limit = cfg.max_speed_L0_s * dt[..., None]
         if bool((okm & (np.abs(L - u0) > limit)).any()):
-            L, slewed = _slew_lengths(L, limit, ok, self._u)
-            block.slewed += slewed.sum(axis=1)
+            L, slewed = slew_limited(L, self._u, limit, axis=1)
+            block.slewed += (ok & slewed.any(axis=2)).sum(axis=1)
         return angle, L, filtered, windows
 
     def _count_block(self, kind: str, block: _Block) -> None:
@@ -765,21 +765,6 @@ def _slew_angles(angle, limit, ok, last, lo, hi) -> tuple[np.ndarray, np.ndarray
         out[:, j] = np.where(slew, last + np.copysign(limit[:, j], change), angle[:, j])
         slewed[:, j] = slew
         last = np.minimum(np.maximum(out[:, j], lo), hi)
-    return out, slewed
-
-
-def _slew_lengths(L, limit, ok, last) -> tuple[np.ndarray, np.ndarray]:
-    """:meth:`BatchedArmChain._step`'s slew limit of the lengths column by column over
-    (n, k, 2) lengths from ``last`` (n, 2); returns them limited and where the limit acted
-    (on ``ok``, per arm)."""
-    out = L.copy()
-    slewed = np.zeros(L.shape[:2], dtype=bool)
-    for j in range(L.shape[1]):
-        change = L[:, j] - last
-        slew = ok[:, j] & (np.abs(change) > limit[:, j]).any(axis=1)
-        limited = L[:, j] - change + np.clip(change, -limit[:, j], limit[:, j])
-        out[:, j] = last = np.where(slew[:, None], limited, L[:, j])
-        slewed[:, j] = slew
     return out, slewed
 
 

@@ -15,7 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from spindle import core
-from spindle.backends import BACKEND_CHOICES
+from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 from spindle.backends import BACKENDS as BACKENDS  # re-exported: the one table lives there
 from spindle.chain.conditioning import natural_rad_s
 from spindle.chain.fusimotor import SEED_PAPER, FusimotorParams
@@ -104,7 +104,7 @@ class ChainConfig:
     max_speed_deg_s: float = 1000.0
     max_speed_L0_s: float = core.SLEW_LIMIT_L0_S
     fits_path: str | Path | None = None
-    backend: str = "numpy"
+    backend: str = DEFAULT_BACKEND
 
     def __post_init__(self) -> None:
         # bool is an int and a float to Python; here it is always a mistake
