@@ -179,10 +179,8 @@ class BatchedArmChain:
             self._per_arm("t_s", t_s, (m,), rows)
         _check_finite("t_s", t, rows)
         _check_finite("angle_deg", angle, rows)
-        lo, hi = self.angle_range_deg
         if length_L0 is None:
-            clamped = (angle < lo) | (angle > hi)
-            recorded = np.minimum(np.maximum(angle, lo), hi)
+            clamped, recorded = _clamped_angles(angle, self.angle_range_deg)
             L = self.fits.length_L0(np.radians(recorded))
         else:
             clamped = np.zeros(m, dtype=bool)
@@ -232,11 +230,10 @@ class BatchedArmChain:
             i = int(np.argmax(np.isinf(angle)))
             raise ValueError(f"angle_deg of arm {i} is {angle[i]!r}; it must be a finite real "
                              "number (NaN: the measured motion)")
-        lo, hi = self.angle_range_deg
         given = ~np.isnan(angle)
         intended = np.full((n, 2), math.nan)
         if given.any():
-            clamped = np.minimum(np.maximum(angle[given], lo), hi)
+            _, clamped = _clamped_angles(angle[given], self.angle_range_deg)
             intended[given] = self.fits.length_L0(np.radians(clamped))
         self._intended = intended
         self._following = not given.any()
@@ -456,7 +453,6 @@ class BatchedArmChain:
         cfg = self.config
         ok, dt, x = block.ok, block.dt, block.x
         okm = ok[..., None]
-        lo, hi = self.angle_range_deg
         filtered = windows = None
         if kind == "length_L0":
             L = np.where(okm, x, self._u[:, None])
@@ -468,16 +464,16 @@ class BatchedArmChain:
             else:
                 angle = x
             angle = np.where(ok, angle, self._angle[:, None])
-            bounded = np.minimum(np.maximum(angle, lo), hi)
+            outside, bounded = _clamped_angles(angle, self.angle_range_deg)
             before = np.concatenate((self._angle[:, None], bounded[:, :-1]), axis=1)
             limit = cfg.max_speed_deg_s * dt
             if bool((ok & (np.abs(angle - before) > limit)).any()):
                 # the slew limit reached: each column's limit depends on the last
-                angle, slewed = _slew_angles(angle, limit, ok, self._angle, lo, hi)
+                angle, slewed = _slew_angles(angle, limit, ok, self._angle,
+                                             self.angle_range_deg)
                 block.slewed += slewed.sum(axis=1)
-                bounded = np.minimum(np.maximum(angle, lo), hi)
-            outside = (angle < lo) | (angle > hi)  # (padding: the last angle, inside)
-            if bool(outside.any()):
+                outside, bounded = _clamped_angles(angle, self.angle_range_deg)
+            if bool(outside.any()):  # (padding: the last angle, inside)
                 block.clamped = outside.sum(axis=1)
             angle = bounded
             L = self.fits.length_L0(np.radians(angle))
@@ -601,9 +597,8 @@ class BatchedArmChain:
             else:
                 given, counts, filtered = x, none, none
                 reading = self._rest_reading(given)
-            lo, hi = self.angle_range_deg
-            counters[rows, _COUNTER["angle_clamped"]] += (given < lo) | (given > hi)
-            angle = np.minimum(np.maximum(given, lo), hi)
+            clamped, angle = _clamped_angles(given, self.angle_range_deg)
+            counters[rows, _COUNTER["angle_clamped"]] += clamped
             L = self.fits.length_L0(np.radians(angle))
         counters[rows, _COUNTER["restarts"]] += 1
         counters[rows, _COUNTER["clock_resyncs"]] += dt < 0.0
@@ -753,10 +748,18 @@ def _valid_samples(kind: str, x: np.ndarray, max_count: int) -> np.ndarray:
     return lengths_valid(x)
 
 
-def _slew_angles(angle, limit, ok, last, lo, hi) -> tuple[np.ndarray, np.ndarray]:
-    """:meth:`BatchedArmChain._limit_angle`'s slew limit column by column over (n, k)
-    angles (each column's last angle the previous one's, clamped to lo..hi); returns the
-    limited angles (before the clamp) and where the limit acted (on ``ok``)."""
+def _clamped_angles(angle: np.ndarray, angle_range_deg: tuple[float, float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The angle rule: an angle outside the length model's range is clamped to it. Returns
+    where it acted and the clamped angles."""
+    lo, hi = angle_range_deg
+    return (angle < lo) | (angle > hi), np.minimum(np.maximum(angle, lo), hi)
+
+
+def _slew_angles(angle, limit, ok, last, angle_range_deg) -> tuple[np.ndarray, np.ndarray]:
+    """The angles' slew limit column by column over (n, k) angles (each column's last angle
+    the previous one's, clamped to the range); returns the limited angles (before the clamp)
+    and where the limit acted (on ``ok``)."""
     out = angle.copy()
     slewed = np.zeros(angle.shape, dtype=bool)
     for j in range(angle.shape[1]):
@@ -764,7 +767,7 @@ def _slew_angles(angle, limit, ok, last, lo, hi) -> tuple[np.ndarray, np.ndarray
         slew = ok[:, j] & (np.abs(change) > limit[:, j])
         out[:, j] = np.where(slew, last + np.copysign(limit[:, j], change), angle[:, j])
         slewed[:, j] = slew
-        last = np.minimum(np.maximum(out[:, j], lo), hi)
+        last = _clamped_angles(out[:, j], angle_range_deg)[1]
     return out, slewed
 
 
