@@ -194,7 +194,7 @@ def test_pi_predictor_overshoots_a_step_and_settles_as_its_loop_predicts():
 def test_predictor_refuses_unstable_gains():
     with pytest.raises(ValueError, match="not stable"):
         FusimotorParams(predictor_kp_1_s=150.0)
-    with pytest.raises(ValueError, match="must be finite"):
+    with pytest.raises(ValueError, match=r"delay_s=-1\.0 must be a finite real number >= 0"):
         FusimotorParams(delay_s=-1.0)
 
 
