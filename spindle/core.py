@@ -53,7 +53,7 @@ from spindle.fibre_constants import (
     step_constants,
 )
 from spindle.methods import Method, get_method
-from spindle.numbers import real_array, real_scalar
+from spindle.number_rule import real_array, real_scalar
 from spindle.params import CAT, SpindleParams
 from spindle.scalar import SMALL_N, advance_small, afferents_one, as_floats
 
@@ -175,7 +175,7 @@ def check_speed(length_change_L0: np.ndarray, dt_s: float) -> None:
 
 
 def check_step(step_s: float, method: Method, name: str = "step") -> float:
-    """``step_s`` as a Python float (:mod:`spindle.numbers`' rule); refuse a non-positive
+    """``step_s`` as a Python float (the rule of :mod:`spindle.number_rule`); refuse a non-positive
     step or one beyond the method's limit."""
     h = real_scalar(name, step_s, low=0.0, low_open=True)
     if h > method.max_step_s * (1 + 1e-9):

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spindle.numbers import check_fields
+from spindle.number_rule import check_fields
 
 FIBRES = ("bag1", "bag2", "chain")
 """Intrafusal fibre order used on every fibre axis of the package."""

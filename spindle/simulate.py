@@ -21,7 +21,7 @@ import numpy as np
 from spindle import core
 from spindle.fibre_constants import step_constants
 from spindle.methods import Method, get_method
-from spindle.numbers import real_array, real_scalar
+from spindle.number_rule import real_array, real_scalar
 from spindle.params import CAT, SpindleParams
 from spindle.scalar import afferents_one, step_floats
 from spindle.substeps import substep_lengths, substeps
@@ -93,7 +93,7 @@ def prepare_inputs(length, dt, velocity, acceleration, gamma_dyn, gamma_stat, me
                    step) -> PreparedInputs:
     """Check and broadcast :func:`simulate`'s arguments (its Raises section applies)."""
     m = get_method(method)
-    # spindle.numbers' rule: no bool, string, bytes or complex taken as a number, and every
+    # spindle.number_rule: no bool, string, bytes or complex taken as a number, and every
     # number a Python float / float64 before anything (the step constants' cache) keeps it
     length = real_array("length", length)
     if length.ndim not in (1, 2) or length.shape[0] < 1:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from spindle.numbers import real_scalar
+from spindle.number_rule import real_scalar
 
 
 def natural_rad_s(natural_hz: float) -> float:

@@ -20,11 +20,11 @@ from spindle.chain.conditioning import natural_rad_s
 from spindle.chain.fusimotor import SEED_PAPER, FusimotorParams
 from spindle.chain.sensor import AX12, Calibration, EncoderParams
 from spindle.methods import get_method
-from spindle.numbers import check_fields, positive_int
+from spindle.number_rule import check_fields, positive_int
 
 # the chain's bad-sample rule, under the names its pushes use
-from spindle.numbers import sample_array as real_array  # noqa: F401
-from spindle.numbers import sample_number as real_number  # noqa: F401
+from spindle.number_rule import sample_array as real_array  # noqa: F401
+from spindle.number_rule import sample_number as real_number  # noqa: F401
 from spindle.params import HUMAN, SpindleParams
 
 MUSCLES = ("BRA", "TRImed")
@@ -111,7 +111,7 @@ class ChainConfig:
     backend: str = "numpy"
 
     def __post_init__(self) -> None:
-        # the project's number rule (spindle.numbers): a bool, a string or a complex value
+        # the project's number rule (spindle.number_rule): a bool, a string or a complex value
         # is a mistake here, and a numpy scalar is kept as the Python number it stands for
         object.__setattr__(self, "median_window",
                            positive_int("median_window", self.median_window))

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spindle.numbers import check_fields
+from spindle.number_rule import check_fields
 
 
 @dataclass(frozen=True)

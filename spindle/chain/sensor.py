@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from spindle.numbers import NumberError, check_fields, positive_int
+from spindle.number_rule import NumberError, check_fields, positive_int
 
 INVALID_READING = -1
 """The driver's error code for a dropped reading (what the simulated encoder returns too)."""
