@@ -94,7 +94,7 @@ def _interval(low, high, low_open, high_open) -> str:
         return f"{'>' if low_open else '>='} {low:g}"
     if low is None:
         return f"{'<' if high_open else '<='} {high:g}"
-    return f"lie in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
 
 
 def positive_int(name: str, value: object, *, high: int | None = None) -> int:
@@ -143,6 +143,25 @@ def _as_real_array(value: object) -> np.ndarray | None:
     return items
 
 
+def _shown(value: object) -> str:
+    text = " ".join(repr(value).split())
+    return text if len(text) <= 80 else f"{text[:60]}...{text[-12:]}"
+
+
+def _first_stranger(value: object) -> str:
+    """What in ``value`` is not a real number, for the error message."""
+    if isinstance(value, np.ndarray):
+        return f"got an array of dtype {value.dtype}"
+    try:
+        items = np.asarray(value, dtype=object)
+    except ValueError:
+        return "got a ragged nesting"
+    for x in items.flat:
+        if not (is_real_number(x) or isinstance(x, np.ndarray)):
+            return f"it holds {x!r}, a {type(x).__name__}"
+    return "got a nesting of arrays that are not all real"
+
+
 def _to_float64(items: np.ndarray) -> np.ndarray:
     with np.errstate(over="ignore"):  # float128 beyond float64 becomes inf
         try:
@@ -162,11 +181,11 @@ def real_array(name: str, value: object, *, finite: bool = False) -> np.ndarray:
     """``value`` as a float64 array if it holds only real numbers (finite too with
     ``finite``); :class:`NumberError` naming ``name`` otherwise. A Python int beyond
     float's range becomes +-inf (refused with ``finite``)."""
-    items = _as_real_array(value)
+    items = None if isinstance(value, np.ndarray) and value.dtype.kind == "O" else \
+        _as_real_array(value)
     if items is None:
-        shown = value if np.size(value) <= 8 else f"{type(value).__name__} of {np.size(value)}"
-        raise NumberError(f"{name}={shown!r} must hold real numbers only (got "
-                          f"{_kind(value) if isinstance(value, np.ndarray) else 'other kinds'})")
+        raise NumberError(f"{name}={_shown(value)} must hold real numbers only "
+                          f"({_first_stranger(value)})")
     x = _to_float64(items)
     if finite and not np.isfinite(x).all():
         bad = x[~np.isfinite(x)].flat[0]
