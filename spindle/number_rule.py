@@ -174,7 +174,7 @@ def _float_or_inf(x) -> float:
     try:
         return float(x)
     except OverflowError:
-        return math.copysign(math.inf, x)
+        return math.inf if x > 0 else -math.inf
 
 
 def real_array(name: str, value: object, *, finite: bool = False) -> np.ndarray:
