@@ -294,3 +294,26 @@ def test_the_batched_chain_rejects_and_counts_them_per_arm_like_nan(backend):
         [[[0.9, 1.0]], [["0.9", 1.0]], [[True, 1.0]], [[0.9, 1j]]], dtype=object))
     np.testing.assert_array_equal(chain.counters["invalid_length"], [0, 1, 1, 1])
     np.testing.assert_array_equal(chain.counters["accepted"], [5, 0, 0, 0])
+
+
+@pytest.mark.parametrize("backend", BACKEND_PARAMS)
+@pytest.mark.parametrize("bad", ["60", True, b"60", None, 60 + 0j], ids=repr)
+def test_an_intended_angle_that_is_not_a_number_raises_at_every_entry(backend, bad):
+    """The switch is a setting, not a sample: it raises. The C chains took "60" as 60 deg,
+    the numpy batch took it as NaN (the measured motion), ``run_trace`` raised a bare
+    TypeError."""
+    config = ChainConfig(backend=backend)
+    chain = make_chain(config)
+    chain.reset(40.0, 0.0)
+    if bad is not None:  # None is the switch's "measured motion"
+        with pytest.raises(ValueError, match="angle_deg"):
+            chain.set_intended_angle(bad)
+    t = np.arange(1, 4) * 0.002
+    with pytest.raises(NumberError, match="intended_angle_deg"):
+        chain.run_trace("push_angle", t, np.full(3, 40.0), [60.0, bad, 60.0])
+    assert chain.counters["accepted"] == 0
+    batch = make_batched_chain(3, config)
+    batch.reset(np.full(3, 40.0), 0.0)
+    with pytest.raises(NumberError, match="angle_deg"):
+        batch.set_intended_angle(np.array([60.0, bad, math.nan], dtype=object))
+    batch.set_intended_angle(np.array([60.0, math.nan, 70]))  # numbers and NaN still do

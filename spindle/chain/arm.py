@@ -65,7 +65,7 @@ from dataclasses import fields
 
 import numpy as np
 
-from spindle import core
+from spindle import core, number_rule
 from spindle.chain.conditioning import natural_rad_s, tracking_step
 from spindle.chain.config import (
     COUNTERS,
@@ -258,6 +258,8 @@ class ArmChain:
         """
         kind = push.removeprefix("push_")
         t, x = block_inputs(kind, t_s, signal, (2,) if kind == "lengths" else ())
+        if intended_angle_deg is not None:  # a setting, not a sample: the rule raises
+            intended_angle_deg = number_rule.real_array("intended_angle_deg", intended_angle_deg)
         if intended_angle_deg is not None and np.shape(intended_angle_deg) != t.shape:
             raise ValueError(f"intended_angle_deg has shape {np.shape(intended_angle_deg)}, "
                              f"expected {t.shape}")
