@@ -317,3 +317,17 @@ def test_an_intended_angle_that_is_not_a_number_raises_at_every_entry(backend, b
     with pytest.raises(NumberError, match="angle_deg"):
         batch.set_intended_angle(np.array([60.0, bad, math.nan], dtype=object))
     batch.set_intended_angle(np.array([60.0, math.nan, 70]))  # numbers and NaN still do
+
+
+def test_the_wrappers_bank_takes_its_step_by_the_rule():
+    from proprio_env.wrappers.bank import SpindleBank
+
+    def bank(**kwargs):
+        return SpindleBank(2, np.array([0.8, 0.9]), np.array([1.1, 1.2]), **kwargs)
+
+    assert type(bank(step_s=np.float32(5e-4)).step_s) is float
+    assert bank(step_s=np.float32(5e-4)).step_s == float(np.float32(5e-4))
+    for field, value in (("step_s", "0.001"), ("step_s", True), ("max_speed_L0_s", "8"),
+                         ("max_speed_L0_s", 8 + 0j)):
+        with pytest.raises(NumberError, match=rf"^{field}="):
+            bank(**{field: value})
