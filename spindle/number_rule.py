@@ -34,6 +34,10 @@ __all__ = ["NumberError", "check_fields", "is_real_number", "positive_int", "rea
 
 _REAL_DTYPE_KINDS = "iuf"
 _NOT_NUMBERS = (bool, np.bool_, str, bytes, bytearray, complex, np.complexfloating)
+_PLAIN_REALS = frozenset({float, int, np.float64, np.float32, np.float16, np.int64, np.int32,
+                          np.int16, np.int8, np.uint64, np.uint32, np.uint16, np.uint8})
+"""The common real types, checked by one set lookup: the chain's pushes take the rule per
+sample, and ``isinstance`` against the ``numbers.Real`` ABC costs several times more."""
 
 
 class NumberError(TypeError, ValueError):
@@ -45,6 +49,8 @@ class NumberError(TypeError, ValueError):
 def is_real_number(value: object) -> bool:
     """Whether ``value`` is one real number of an accepted kind (it may still be non-finite
     or beyond float's range)."""
+    if type(value) in _PLAIN_REALS:
+        return True
     if isinstance(value, _NOT_NUMBERS):
         return False
     if isinstance(value, numbers.Real):
@@ -119,6 +125,11 @@ def _elements_are_real(items: np.ndarray) -> bool:
 def _as_real_array(value: object) -> np.ndarray | None:
     """``value`` as an array of an integer or floating dtype (Python ints beyond float's
     range kept as objects), or None if it holds anything else or is ragged."""
+    if type(value) in (list, tuple) and {type(x) for x in value} <= _PLAIN_REALS:
+        try:  # a flat list of plain numbers, the common case, without an object array
+            return np.asarray(value, dtype=np.float64)
+        except OverflowError:  # Python ints beyond float's range: element by element
+            pass
     if isinstance(value, np.ndarray):
         if value.dtype.kind in _REAL_DTYPE_KINDS:
             return value
@@ -163,6 +174,10 @@ def _first_stranger(value: object) -> str:
 
 
 def _to_float64(items: np.ndarray) -> np.ndarray:
+    if items.dtype == np.float64:
+        return items
+    if items.dtype.kind in "iu" or (items.dtype.kind == "f" and items.dtype.itemsize <= 8):
+        return items.astype(np.float64)
     with np.errstate(over="ignore"):  # float128 beyond float64 becomes inf
         try:
             return np.asarray(items, dtype=np.float64)
@@ -197,6 +212,8 @@ def sample_number(value: object) -> float:
     """``value`` as a float; NaN if it is not one real number (a bool, a string, complex,
     an integer beyond float's range, None...), so that the rule for a non-finite sample
     applies."""
+    if type(value) is float:
+        return value
     if not is_real_number(value):
         return math.nan
     try:
@@ -210,17 +227,14 @@ def sample_array(value: object) -> np.ndarray:
     number (all of them if the array is of a bool, string, bytes or complex dtype; one NaN
     if it is ragged)."""
     items = _as_real_array(value)
-    if items is not None:
-        if items.dtype.kind != "O":
-            with np.errstate(over="ignore"):
-                return np.asarray(items, dtype=np.float64)
-        return np.vectorize(sample_number, otypes=[float])(items) if items.size else \
-            np.zeros(items.shape)
-    try:
-        items = np.asarray(value, dtype=object)
-    except ValueError:  # ragged
-        return np.full(1, math.nan)
-    if items.ndim == 0 or items.dtype.kind != "O":
-        return np.full(items.shape, math.nan)
+    if items is not None and items.dtype.kind != "O":
+        return _to_float64(items)
+    if items is None:
+        try:
+            items = np.asarray(value, dtype=object)
+        except ValueError:  # ragged
+            return np.full(1, math.nan)
+        if items.ndim == 0 or items.dtype.kind != "O":
+            return np.full(items.shape, math.nan)
     return np.vectorize(sample_number, otypes=[float])(items) if items.size else \
         np.zeros(items.shape)
