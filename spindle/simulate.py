@@ -12,7 +12,6 @@ the results do not depend on the chunk size (bit for bit).
 
 from __future__ import annotations
 
-import operator
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -21,7 +20,7 @@ import numpy as np
 from spindle import core
 from spindle.fibre_constants import step_constants
 from spindle.methods import Method, get_method
-from spindle.number_rule import real_array, real_scalar
+from spindle.number_rule import positive_int, real_array, real_scalar
 from spindle.params import CAT, SpindleParams
 from spindle.scalar import afferents_one, step_floats
 from spindle.substeps import substep_lengths, substeps
@@ -185,9 +184,7 @@ def chunk_bounds(shape: tuple[int, int], k: int, chunk_samples: int | None):
     if chunk_samples is None:
         size = max(1, CHUNK_ELEMENTS // (k * max(shape[1], 1)))
     else:
-        size = operator.index(chunk_samples)
-        if size < 1:
-            raise ValueError(f"chunk_samples={chunk_samples!r} must be >= 1")
+        size = positive_int("chunk_samples", chunk_samples)
     return [(i0, min(shape[0], i0 + size)) for i0 in range(1, shape[0], size)]
 
 

@@ -95,12 +95,13 @@ L = 1.0 + 0.01 * np.sin(np.arange(20) / 3.0)
     ("dt", 1e-3 + 0j), ("dt", None), ("step", "0.001"), ("step", True),
     ("length", L.astype(str)), ("length", L.astype(complex)), ("length", [*L[:-1], True]),
     ("gamma_dyn", "50"), ("gamma_stat", np.full(L.shape, True)), ("velocity", L.astype(str)),
-    ("acceleration", L + 0j),
+    ("acceleration", L + 0j), ("chunk_samples", True), ("chunk_samples", "5"),
+    ("chunk_samples", 5.0),
 ], ids=lambda x: x if isinstance(x, str) and len(x) < 20 else type(x).__name__)
 def test_simulate_refuses_values_that_are_not_numbers(backend, argument, value):
     kwargs = {"length": L, "dt": 5e-3, "velocity": np.zeros_like(L)}
     kwargs[argument] = value
-    pattern = rf"^{argument}\b.* must (be a real number|hold real numbers only)"
+    pattern = rf"^{argument}\b.* must (be a real number|hold real numbers only|be an integer)"
     with pytest.raises(NumberError, match=pattern):
         spindle.simulate(backend=backend, **kwargs)
 
