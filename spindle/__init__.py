@@ -117,7 +117,9 @@ def simulate(
             length changes faster than :data:`spindle.core.MAX_SPEED_L0_S`, negative drive,
             ``dt`` or ``step`` <= 0 or above the method's limit, more than
             :data:`spindle.simulate.MAX_SUBSTEPS` internal steps per sample interval, shapes
-            that do not match.
+            that do not match; :class:`spindle.number_rule.NumberError` (a ValueError and a
+            TypeError) for a bool, string, bytes, complex or None where a number belongs
+            (``dt=True``, string or complex lengths).
     """
     if resolve_backend(backend) == "c":
         # imported here so that numpy-only use never loads ctypes or the C build

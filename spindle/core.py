@@ -53,6 +53,7 @@ from spindle.fibre_constants import (
     step_constants,
 )
 from spindle.methods import Method, get_method
+from spindle.number_rule import real_array, real_scalar
 from spindle.params import CAT, SpindleParams
 from spindle.scalar import SMALL_N, advance_small, afferents_one, as_floats
 
@@ -132,7 +133,7 @@ def _fibre_major(buffer_3n: np.ndarray) -> np.ndarray:
 
 
 def _as_spindle_vector(name: str, value: object, n: int | None = None) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
+    arr = real_array(name, value)
     if arr.ndim > 1:
         raise ValueError(f"{name} must be a scalar or a 1-D array over spindles, got shape "
                          f"{arr.shape}")
@@ -180,14 +181,15 @@ def check_speed(length_change_L0: np.ndarray, dt_s: float) -> None:
             )
 
 
-def check_step(step_s: float, method: Method) -> None:
-    """Refuse a non-positive step or one beyond the method's limit."""
-    if not (np.isfinite(step_s) and step_s > 0):
-        raise ValueError(f"step={step_s!r} s must be finite and > 0")
-    if step_s > method.max_step_s * (1 + 1e-9):
+def check_step(step_s: float, method: Method, name: str = "step") -> float:
+    """``step_s`` as a Python float (the rule of :mod:`spindle.number_rule`); refuse a non-positive
+    step or one beyond the method's limit."""
+    h = real_scalar(name, step_s, low=0.0, low_open=True)
+    if h > method.max_step_s * (1 + 1e-9):
         raise ValueError(
-            f"step={step_s!r} s exceeds the {method.name} limit of {method.max_step_s!r} s"
+            f"{name}={step_s!r} s exceeds the {method.name} limit of {method.max_step_s!r} s"
         )
+    return h
 
 
 
@@ -238,7 +240,9 @@ def equilibrium_state(
     T = (Gamma + KPR*(L - LSR0 - LPR0)) / (1 + KPR/KSR). The number of spindles n is the
     broadcast size of the inputs (scalars or 1-D arrays).
     """
-    arrays = [np.asarray(x, dtype=float) for x in (length_L0, gamma_dyn_pps, gamma_stat_pps)]
+    arrays = [real_array(name, x) for name, x in (
+        ("length_L0", length_L0), ("gamma_dyn_pps", gamma_dyn_pps),
+        ("gamma_stat_pps", gamma_stat_pps))]
     try:
         if any(a.ndim > 1 for a in arrays):
             raise ValueError
@@ -328,7 +332,7 @@ def step(
     holds those at its start). Bad inputs raise ``ValueError`` and leave ``state`` unchanged.
     """
     m = get_method(method)
-    check_step(dt_s, m)
+    dt_s = check_step(dt_s, m, "dt_s")
     n = state.n
     L, gd, gs = (
         _as_spindle_vector(name, x, n)

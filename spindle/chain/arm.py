@@ -49,8 +49,9 @@ changes no state and the previous output is returned again with ``accepted=False
 - ``angle_clamped``: an angle outside the length model's range (0-130 deg) is clamped to it,
   the angle given to :meth:`ArmChain.reset` (so :func:`run_chain`'s first sample) included.
 
-Values that are not one real number (complex numbers, integers too large for a float,
-strings, ``None``) count as non-finite: a bad sample above, or ``ValueError`` from
+Values that are not one real number (:mod:`spindle.number_rule`: complex numbers, integers too
+large for a float, strings, bytes, bools, ``None``) count as non-finite: a bad sample above, or
+``ValueError`` from
 :meth:`ArmChain.reset`. The spindles' sub-step lengths (the Hermite curve across each
 interval) are kept within the spindle's range (0.5-1.5 L0), within ``max_speed_L0_s`` of the
 previous sub-step and able to reach the new length at that speed, so a bridge never leaves
@@ -64,7 +65,7 @@ import math
 
 import numpy as np
 
-from spindle import core
+from spindle import core, number_rule
 from spindle.chain.batch import BatchedArmChain
 from spindle.chain.config import COUNTERS, ArmSample, ChainConfig, real_number
 from spindle.chain.length_model import LengthFits
@@ -202,6 +203,8 @@ class ArmChain:
         """
         kind = push.removeprefix("push_")
         t, x = block_inputs(kind, t_s, signal, (2,) if kind == "lengths" else ())
+        if intended_angle_deg is not None:  # a setting, not a sample: the rule raises
+            intended_angle_deg = number_rule.real_array("intended_angle_deg", intended_angle_deg)
         if intended_angle_deg is not None and np.shape(intended_angle_deg) != t.shape:
             raise ValueError(f"intended_angle_deg has shape {np.shape(intended_angle_deg)}, "
                              f"expected {t.shape}")

@@ -44,6 +44,7 @@ from spindle import core
 from spindle.backends import DEFAULT_BACKEND, resolve_backend
 from spindle.chain.fusimotor import SEED_PAPER, Fusimotor, FusimotorParams
 from spindle.methods import get_method
+from spindle.number_rule import real_scalar
 from spindle.params import HUMAN, SpindleParams
 from spindle.substeps import slew_limited, substep_lengths, substeps
 
@@ -120,12 +121,11 @@ class SpindleBank:
         self.params = params
         self.fusimotor = ConstantFusimotor() if fusimotor is None else fusimotor
         self._method = get_method(method)
-        self.step_s = self._method.default_step_s if step_s is None else float(step_s)
-        core.check_step(self.step_s, self._method)
-        limit = core.MAX_SPEED_L0_S
-        if not (np.isfinite(max_speed_L0_s) and 0 < max_speed_L0_s <= limit):
-            raise ValueError(f"max_speed_L0_s={max_speed_L0_s!r} must lie in (0, {limit}] L0/s")
-        self.max_speed_L0_s = float(max_speed_L0_s)
+        # spindle.number_rule: a Python float, never "0.001", True or a float32 kept as such
+        self.step_s = core.check_step(self._method.default_step_s if step_s is None else step_s,
+                                      self._method, "step_s")
+        self.max_speed_L0_s = real_scalar("max_speed_L0_s", max_speed_L0_s, low=0.0,
+                                          low_open=True, high=core.MAX_SPEED_L0_S)
         self._columns = core.columns(params)
         shape = (self.n_rows, self.n_muscles)
         if isinstance(self.fusimotor, TemplateFusimotor):

@@ -30,7 +30,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from spindle import core
+from spindle import core, number_rule
 from spindle.chain.conditioning import natural_rad_s, tracking_steps
 from spindle.chain.config import COUNTERS, MUSCLES, ArmSample, ChainConfig, real_array
 from spindle.chain.fusimotor import Fusimotor
@@ -225,7 +225,8 @@ class BatchedArmChain:
             self._intended = np.full((n, 2), math.nan)
             self._following = True
             return
-        angle = self._per_arm("angle_deg", angle_deg, (n,), np.arange(n))
+        angle = self._per_arm("angle_deg", number_rule.real_array("angle_deg", angle_deg), (n,),
+                              np.arange(n))
         if np.isinf(angle).any():
             i = int(np.argmax(np.isinf(angle)))
             raise ValueError(f"angle_deg of arm {i} is {angle[i]!r}; it must be a finite real "

@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from spindle.number_rule import real_scalar
+
 
 def natural_rad_s(natural_hz: float) -> float:
     """Filter natural frequency w (rad/s) from ``natural_hz``, checked."""
-    if not (np.isfinite(natural_hz) and natural_hz > 0):
-        raise ValueError(f"natural_hz={natural_hz!r} must be finite and > 0")
-    return 2.0 * np.pi * float(natural_hz)
+    return 2.0 * np.pi * real_scalar("natural_hz", natural_hz, low=0.0, low_open=True)
 
 
 def tracking_step(

@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from spindle.number_rule import check_fields
+
 
 @dataclass(frozen=True)
 class FusimotorParams:
@@ -65,20 +67,12 @@ class FusimotorParams:
     predictor_ki_1_s2: float = (2.0 * math.pi * 2.0) ** 2
 
     def __post_init__(self) -> None:
-        for name in ("gamma_static_min_pps", "gamma_dynamic_pps", "delay_s",
-                     "shortening_threshold_L0", "predictor_kp_1_s", "predictor_ki_1_s2"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name}={value!r} must be finite and >= 0")
-        if not (np.isfinite(self.gamma_static_max_pps)
-                and self.gamma_static_max_pps >= self.gamma_static_min_pps):
-            raise ValueError(
-                f"gamma_static_max_pps={self.gamma_static_max_pps!r} must be finite and >= "
-                f"gamma_static_min_pps={self.gamma_static_min_pps!r}"
-            )
-        if not (np.isfinite(self.predictor_rate_hz) and self.predictor_rate_hz > 0):
-            raise ValueError(
-                f"predictor_rate_hz={self.predictor_rate_hz!r} must be finite and > 0")
+        check_fields(self, ("gamma_static_min_pps", "gamma_dynamic_pps", "delay_s",
+                            "shortening_threshold_L0", "predictor_kp_1_s",
+                            "predictor_ki_1_s2"), low=0.0)
+        check_fields(self, ("gamma_static_max_pps",), low=self.gamma_static_min_pps,
+                     limit_note=f" (gamma_static_min_pps={self.gamma_static_min_pps!r})")
+        check_fields(self, ("predictor_rate_hz",), low=0.0, low_open=True)
         # The discrete loop (held velocity, integral updated with the new error) has the
         # characteristic polynomial z^2 - (2 - a - b) z + (1 - a), a = kp dt, b = ki dt^2;
         # by Jury's test it is asymptotically stable iff a > 0, b > 0, a < 2 and 2a + b < 4.

@@ -23,6 +23,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from spindle.number_rule import NumberError, check_fields, positive_int
+
 INVALID_READING = -1
 """The driver's error code for a dropped reading (what the simulated encoder returns too)."""
 
@@ -52,18 +54,10 @@ class EncoderParams:
     invalid_rate: float = 1e-3
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.max_count, int) and self.max_count >= 1):
-            raise ValueError(f"max_count={self.max_count!r} must be an integer >= 1")
-        for name, low in (("full_scale_deg", 0.0), ("sample_rate_hz", 0.0)):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > low):
-                raise ValueError(f"{name}={value!r} must be finite and > {low}")
-        for name in ("jitter_s", "noise_counts"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name}={value!r} must be finite and >= 0")
-        if not 0.0 <= self.invalid_rate <= 1.0:
-            raise ValueError(f"invalid_rate={self.invalid_rate!r} must lie in [0, 1]")
+        object.__setattr__(self, "max_count", positive_int("max_count", self.max_count))
+        check_fields(self, ("full_scale_deg", "sample_rate_hz"), low=0.0, low_open=True)
+        check_fields(self, ("jitter_s", "noise_counts"), low=0.0)
+        check_fields(self, ("invalid_rate",), low=0.0, high=1.0)
 
     @property
     def deg_per_count(self) -> float:
@@ -103,12 +97,11 @@ class Calibration:
     deg_per_count: float = AX12.deg_per_count
 
     def __post_init__(self) -> None:
-        if self.sign not in (1, -1):
-            raise ValueError(f"sign={self.sign!r} must be +1 or -1")
-        if not (np.isfinite(self.deg_per_count) and self.deg_per_count > 0):
-            raise ValueError(f"deg_per_count={self.deg_per_count!r} must be finite and > 0")
-        if not np.isfinite(self.zero_count):
-            raise ValueError(f"zero_count={self.zero_count!r} must be finite")
+        if isinstance(self.sign, bool | np.bool_) or self.sign not in (1, -1):
+            raise NumberError(f"sign={self.sign!r} must be +1 or -1")
+        object.__setattr__(self, "sign", int(self.sign))
+        check_fields(self, ("deg_per_count",), low=0.0, low_open=True)
+        check_fields(self, ("zero_count",))
 
     def angle_deg(self, counts: np.ndarray | float) -> np.ndarray:
         """Elbow angle (deg) of encoder reading(s) ``counts``."""

@@ -19,7 +19,7 @@ from functools import cache
 
 import numpy as np
 
-from spindle import core
+from spindle import core, number_rule
 from spindle.chain.conditioning import natural_rad_s
 from spindle.chain.config import (
     COUNTERS,
@@ -448,7 +448,9 @@ class CArmChain:
         x = np.ascontiguousarray(x, dtype=self._np_real)
         intended = None
         if intended_angle_deg is not None:
-            intended = np.ascontiguousarray(intended_angle_deg, dtype=self._np_real)
+            intended = np.ascontiguousarray(
+                number_rule.real_array("intended_angle_deg", intended_angle_deg),
+                dtype=self._np_real)
             if intended.shape != t.shape:
                 raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected "
                                  f"{t.shape}")
@@ -745,12 +747,8 @@ class CBatchedArmChain:
         follow their measured motion (see :meth:`ArmChain.set_intended_angle`)."""
         angle = None
         if angle_deg is not None:
-            if np.iscomplexobj(angle_deg):
-                raise ValueError("angle_deg must be real intended angles (deg)")
-            try:
-                angle = np.ascontiguousarray(angle_deg, dtype=self._np_real)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"angle_deg must be real intended angles (deg): {exc}") from None
+            angle = np.ascontiguousarray(number_rule.real_array("angle_deg", angle_deg),
+                                         dtype=self._np_real)
             _check_shape("angle_deg", angle, (self.n_arms,))
         status = self._lib.ps_chain_batch_set_intended_angle(
             self._addr[0], self.n_arms, None if angle is None else _address(angle),
