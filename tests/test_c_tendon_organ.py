@@ -49,6 +49,7 @@ def test_c_streaming_with_changing_steps_equals_numpy():
     for row, dt in zip(f[1:], dts[1:], strict=True):
         np.testing.assert_allclose(b.step(row, dt), a.step(row, dt), rtol=0, atol=1e-12)
     z, force, r = b.state_arrays()
+    np.testing.assert_allclose(r, a.state.r_pps, rtol=0, atol=1e-12)
     np.testing.assert_allclose(z, a.state.z, rtol=0, atol=1e-11)
     np.testing.assert_array_equal(force, a.state.force_N)
 

@@ -202,7 +202,7 @@ def fixed_rates(force_N: np.ndarray, dt_s: float, force_scale_N: float,
     first sample: forces rounded to Q8, 1/G2 to Q24, rates read from Q16."""
     lib, qf, s = library(), fixed_plan(params, dt_s), PsGtoFx()
     q8 = np.round(np.asarray(force_N, dtype=np.float64) * FX_FORCE).astype(np.int64)
-    inv = int(round(FX_INV_SCALE / float(force_scale_N)))
+    inv = round(FX_INV_SCALE / float(force_scale_N))
     out = np.empty(q8.shape[0])
     code = lib.ps_gto_fx_init(ctypes.byref(s), ctypes.byref(qf), int(q8[0]), inv)
     if code != Status.PS_OK:
