@@ -52,17 +52,30 @@ from functools import lru_cache
 import numpy as np
 
 from spindle.backends import DEFAULT_BACKEND, resolve_backend
-from spindle.tendon_organ_params import HUMAN, MAX_FORCE_N, TendonOrganParams
-
-MAX_STEP_S = 0.1
-"""Longest step accepted (s). The step is exact and stable for any h; the limit only refuses
-a time in the wrong unit (1 ms passed as 1). Accuracy within 0.1 pps RMS is measured up to
-20 ms (``tests/test_tendon_organ.py``)."""
+from spindle.tendon_organ_params import (
+    HUMAN,
+    MAX_FORCE_N,
+    MAX_STEP_S,
+    TendonOrganParams,
+    check_step,
+)
 
 __all__ = [
-    "MAX_FORCE_N", "MAX_STEP_S", "TendonOrganPlan", "TendonOrganState", "TendonOrgans",
-    "count_negative", "equilibrium_state", "log_stage", "make_tendon_organs", "plan",
-    "rate_pps", "simulate", "state_space", "step",
+    "MAX_FORCE_N",
+    "MAX_STEP_S",
+    "TendonOrganPlan",
+    "TendonOrganState",
+    "TendonOrgans",
+    "check_step",
+    "count_negative",
+    "equilibrium_state",
+    "log_stage",
+    "make_tendon_organs",
+    "plan",
+    "rate_pps",
+    "simulate",
+    "state_space",
+    "step",
 ]
 
 
@@ -112,17 +125,6 @@ class TendonOrganPlan:
     g0: np.ndarray
     g1: np.ndarray
     c: np.ndarray
-
-
-def check_step(dt_s: object) -> float:
-    """``dt_s`` as a float, or ValueError naming it and the limit."""
-    try:
-        h = float(dt_s)
-    except (TypeError, ValueError):
-        raise TypeError(f"dt_s={dt_s!r} must be a number of seconds") from None
-    if not (np.isfinite(h) and 0.0 < h <= MAX_STEP_S):
-        raise ValueError(f"dt_s={dt_s!r} must be finite and in (0, {MAX_STEP_S}] s")
-    return h
 
 
 def plan(params: TendonOrganParams = HUMAN, dt_s: float = 1e-3) -> TendonOrganPlan:

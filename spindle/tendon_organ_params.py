@@ -45,6 +45,23 @@ MAX_FORCE_N = 1.0e5
 finite value is an input error (a unit slip, a diverged simulation), refused with ValueError
 rather than turned into a rate."""
 
+MAX_STEP_S = 0.1
+"""Longest step accepted (s). The step is exact and stable for any h; the limit only refuses
+a time in the wrong unit (1 ms passed as 1). Accuracy within 0.1 pps RMS is measured up to
+10 ms (``tests/test_tendon_organ.py``; 0.13 pps at 20 ms)."""
+
+
+def check_step(dt_s: object) -> float:
+    """``dt_s`` as a float, or ValueError (TypeError for a non-number) naming it and the
+    limit."""
+    try:
+        h = float(dt_s)
+    except (TypeError, ValueError):
+        raise TypeError(f"dt_s={dt_s!r} must be a number of seconds") from None
+    if not (np.isfinite(h) and 0.0 < h <= MAX_STEP_S):
+        raise ValueError(f"dt_s={dt_s!r} must be finite and in (0, {MAX_STEP_S}] s")
+    return h
+
 
 @dataclass(frozen=True)
 class TendonOrganParams:

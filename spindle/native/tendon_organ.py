@@ -15,8 +15,7 @@ import numpy as np
 
 from spindle.native import build
 from spindle.native.abi import Status, status_name
-from spindle.tendon_organ import check_step
-from spindle.tendon_organ_params import HUMAN, MAX_FORCE_N, TendonOrganParams
+from spindle.tendon_organ_params import HUMAN, MAX_FORCE_N, TendonOrganParams, check_step
 
 FX_FORCE = 256
 """``PS_GTO_FX_FORCE_ONE``: 1 N in Q8."""
