@@ -145,13 +145,26 @@ ps_real ps_gto_rate(const ps_gto *s, const ps_gto_plan *q)
     return y > 0 ? y : (ps_real)0;
 }
 
+/* ln(1 + q), q >= 0: three terms of the series below 1e-3 (spindle.tendon_organ.SERIES_Q) */
+static ps_real gto_curvature_log(ps_real q)
+{
+    if (q < (ps_real)1e-3)
+        return q * ((ps_real)1 - q * ((ps_real)0.5 - q * (ps_real)(1.0 / 3.0)));
+#ifdef PS_FLOAT
+    return log1pf(q);
+#else
+    return log1p(q);
+#endif
+}
+
 /* the step on checked inputs */
 static void gto_advance(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps_real scale)
 {
     const ps_real f1 = rectified(force_N);
     const ps_real r0 = s->r_pps, r1 = log_stage(q, f1, scale);
-    const ps_real r_mid = log_stage(q, (ps_real)0.5 * (s->force_N + f1), scale);
-    const ps_real alpha = r0 + (ps_real)(2.0 / 3.0) * (r_mid - (ps_real)0.5 * (r0 + r1));
+    const ps_real df = f1 - s->force_N;
+    const ps_real alpha = r0 + q->gain_pps / (ps_real)3 * gto_curvature_log(
+        df * df / ((ps_real)4 * (scale + s->force_N) * (scale + f1)));
     const ps_real beta = r1 - r0;
     ps_real z[3];
     int i;
