@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from proprio_env.experiments.gto import CASES, rise
 from spindle import tendon_organ as gto
 from spindle.tendon_organ_params import (
     ARM26_MAX_ISOMETRIC_FORCE_N,
@@ -27,19 +28,9 @@ from spindle.tendon_organ_reference import reference_rates, step_response
 OSIM = Path(__file__).resolve().parents[2] / "shared" / "reference" / "opensim" / "arm26.osim"
 
 
-def rise(t0: float, rise_s: float, f0: float, f1: float):
-    """A force step from f0 to f1 N rising linearly over rise_s from t0 (the shape a
-    stimulator or a load cell delivers; a rise shorter than the sample interval is not
-    resolvable by any sampled method)."""
-    return lambda t: f0 + (f1 - f0) * min(max((t - t0) / rise_s, 0.0), 1.0)
-
-
-CASES = {
-    "step up": rise(0.5, 0.02, 0.0, 10.0),
-    "step down": rise(0.5, 0.02, 10.0, 1.0),
-    "ramp": rise(0.3, 1.0, 0.0, 10.0),
-    "sinusoid 2 Hz": lambda t: 5.0 + 4.0 * np.sin(2 * np.pi * 2.0 * t),
-}
+SINE = "sinusoid 5 +- 4 N, 2 Hz"
+"""The experiment's force cases (steps with a 20 ms rise, a ramp, a sinusoid) are the
+tests' inputs."""
 
 
 @cache
@@ -72,9 +63,9 @@ def test_step_within_0p1_pps_rms_of_the_continuous_system(case, h):
 def test_step_at_20_ms_is_stable_and_close():
     """At the longest step the issue names (20 ms), measured: sinusoid 0.133 pps RMS, the
     20 ms rise 0.11 (the force is no longer a line between samples)."""
-    t_ref, ref = reference_on_1ms_grid("sinusoid 2 Hz")
+    t_ref, ref = reference_on_1ms_grid(SINE)
     t = t_ref[::20]
-    f = np.array([CASES["sinusoid 2 Hz"](x) for x in t])
+    f = np.array([CASES[SINE](x) for x in t])
     ib = gto.simulate(f, 0.02, CAT.force_scale_N, CAT, backend="numpy")
     assert rms(ib, ref[::20]) < 0.15
 
