@@ -530,7 +530,7 @@ int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigne
  *     z = (x, w1, w2) stepped exactly: z1 = phi z0 + g0 alpha + g1 beta, y = c z,
  *     Ib = max(0, y), with beta = r1 - r0, alpha = r0 + (2/3)(r_mid - (r0 + r1)/2) (the
  *     force a line over the step, its log's mean and first moment by Simpson's rule),
- *     computed as alpha = r0 + (G1/3) ln(1 + (F1 - F0)^2 / (4 (G2 + F0)(G2 + F1))).
+ *     computed as alpha = r0 + (2 G1/3) ln cosh((r1 - r0) / (2 G1)).
  * ====================================================================================== */
 
 #define PS_GTO_MAX_FORCE_N 1.0e5 /* larger finite forces: PS_ERR_FORCE_RANGE */
