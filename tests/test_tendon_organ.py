@@ -225,3 +225,16 @@ def test_streaming_equals_simulate_and_vectorises_over_muscles():
     organs = gto.TendonOrgans(g2, HUMAN, 1e-3, force_N=f[0])
     rows = [organs.rate_pps()] + [organs.step(row) for row in f[1:]]
     np.testing.assert_array_equal(np.array(rows), batch)
+
+
+@pytest.mark.slow
+def test_experiment_writes_its_figures_and_numbers(tmp_path):
+    from proprio_env.experiments import gto as experiment
+
+    numbers = experiment.run(tmp_path, quick=True)
+    for name in ("ramp_hold", "static", "accuracy", "implementations"):
+        assert (tmp_path / f"gto_{name}.png").stat().st_size > 1000
+    assert max(v for row in numbers.accuracy_pps.values() for v in row[:4]) < 0.1
+    assert numbers.opensim_over_ours == pytest.approx(40.0, rel=1e-3)
+    assert numbers.overshoot_ratio > 1.3
+    assert "pps/N" in numbers.summary_md()
