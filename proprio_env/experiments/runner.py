@@ -20,6 +20,7 @@ from typing import Protocol
 from proprio_env.experiments import (
     demo,
     ecrb,
+    gto,
     human_gains,
     length_fits,
     obstruction,
@@ -69,6 +70,7 @@ def validation_steps(jobs: int = 1) -> tuple[Step, ...]:
              partial(spindle_accuracy.run, jobs=jobs)),
         Step("length_fits", "Length fits (the paper's Fig. 5)", length_fits.run),
         Step("demo", "Chain demo (the paper's Fig. 8)", demo.run),
+        Step("gto", "Golgi tendon organ (Ib): Lin & Crago 2002, the exact step", gto.run),
     )
 
 

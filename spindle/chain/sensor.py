@@ -198,3 +198,77 @@ class MedianFilter:
 def _check_window(window: int) -> None:
     if not (isinstance(window, int | np.integer) and window >= 1 and window % 2 == 1):
         raise ValueError(f"median window={window!r} must be an odd integer >= 1")
+
+
+# -- the servo's load reading (appended: the force sense, issue 24) ---------------------------
+# The AX-12 reports its present load (control table address 40-41) as an 11-bit word: bits 0-9
+# the magnitude, 0..1023 as a fraction of the maximum torque, bit 10 the direction (0: CCW,
+# 1: CW). It is an estimate from the motor current, not a torque sensor.
+
+LOAD_MAGNITUDE_MAX = 1023
+"""Largest load magnitude (bits 0-9): 1023 = the maximum torque."""
+LOAD_DIRECTION_BIT = 1 << 10
+"""Bit 10 of the load word: set for a clockwise load."""
+LOAD_MAX_WORD = LOAD_DIRECTION_BIT | LOAD_MAGNITUDE_MAX
+"""Largest valid load word (2047): a CW load at the maximum torque."""
+
+
+@dataclass(frozen=True)
+class LoadParams:
+    """The servo's load reading (defaults: AX-12A).
+
+    Attributes:
+        max_torque_Nm: the torque a magnitude of 1023 stands for (N m): the AX-12A's stall
+            torque at 12 V, 1.5 N m (ROBOTIS AX-12A specification), with the torque limit
+            register at 1023.
+        noise_counts: standard deviation of the Gaussian noise on the magnitude before
+            rounding (counts; the current-based estimate is coarse).
+        invalid_rate: probability that a reading is invalid (half dropouts,
+            :data:`INVALID_READING`, half corrupted 16-bit words), as for the angle.
+    """
+
+    max_torque_Nm: float = 1.5
+    noise_counts: float = 3.0
+    invalid_rate: float = 1e-3
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.max_torque_Nm) and self.max_torque_Nm > 0):
+            raise ValueError(f"max_torque_Nm={self.max_torque_Nm!r} must be finite and > 0")
+        if not (np.isfinite(self.noise_counts) and self.noise_counts >= 0):
+            raise ValueError(f"noise_counts={self.noise_counts!r} must be finite and >= 0")
+        if not 0.0 <= self.invalid_rate <= 1.0:
+            raise ValueError(f"invalid_rate={self.invalid_rate!r} must lie in [0, 1]")
+
+    @property
+    def Nm_per_count(self) -> float:
+        """Resolution of the reading (N m per count)."""
+        return self.max_torque_Nm / LOAD_MAGNITUDE_MAX
+
+
+AX12_LOAD = LoadParams()
+"""The seed paper's servo's load reading (AX-12A)."""
+
+
+def valid_load_words(words: np.ndarray) -> np.ndarray:
+    """Elementwise validity of load words: integers in 0..:data:`LOAD_MAX_WORD` (a dropout,
+    a fraction, NaN or a word with bits above 10 is invalid)."""
+    w = np.asarray(words, dtype=np.float64)
+    return np.isfinite(w) & (w == np.floor(w)) & (w >= 0) & (w <= LOAD_MAX_WORD)
+
+
+def load_torque_Nm(words: np.ndarray, params: LoadParams = AX12_LOAD,
+                   sign: int = 1) -> np.ndarray:
+    """Joint torque (N m, flexion positive) of valid load words: the magnitude's fraction of
+    ``max_torque_Nm``, positive for a CCW load; ``sign`` is the mounting's (the
+    :class:`Calibration` sign: +1 when counts, i.e. CCW, grow with flexion). Invalid words
+    raise ValueError naming the first (the chain's rule decides what replaces them)."""
+    w = np.asarray(words, dtype=np.float64)
+    ok = valid_load_words(w)
+    if not np.all(ok):
+        raise ValueError(f"load word {w[~ok].ravel()[0]!r} is invalid (valid: integers "
+                         f"0..{LOAD_MAX_WORD})")
+    if sign not in (1, -1):
+        raise ValueError(f"sign={sign!r} must be +1 or -1")
+    wi = w.astype(np.int64)
+    direction = np.where(wi & LOAD_DIRECTION_BIT, -1.0, 1.0)
+    return sign * direction * (wi & LOAD_MAGNITUDE_MAX) * params.Nm_per_count

@@ -38,6 +38,7 @@ class Status(enum.IntEnum):
     PS_ERR_NOT_RESET = 11
     PS_ERR_INTERVAL = 12
     PS_ERR_ARGUMENT = 13
+    PS_ERR_FORCE_RANGE = 14
 
 
 def status_name(code: int) -> str:

@@ -7,7 +7,8 @@
  *
  * Sections: (1) common types and status codes, (2) the Mileusnic 2006 spindle
  * (spindle.c), (3) the on-prosthesis chain: median filter, f(x), fitted lengths, tracking
- * low-pass, fusimotor, one arm (chain.c).
+ * low-pass, fusimotor, one arm (chain.c), (4) the Lin & Crago 2002 Golgi tendon organ
+ * (tendon_organ.c).
  */
 #ifndef PROPRIO_H
 #define PROPRIO_H
@@ -44,9 +45,10 @@ enum ps_status {
     PS_ERR_INTERVAL = 12,     /* an interval needing more than PS_CHAIN_MAX_UPDATES spindle
                                  sub-steps or predictor updates: a guard, not reached with a
                                  config ps_chain_init accepted (longer intervals restart) */
-    PS_ERR_ARGUMENT = 13      /* a count or index argument out of range (batch calls: a
+    PS_ERR_ARGUMENT = 13,     /* a count or index argument out of range (batch calls: a
                                  negative n_arms or k, n_samples[i] outside 0..k, an arm
                                  index outside 0..n_arms-1) */
+    PS_ERR_FORCE_RANGE = 14   /* a tendon force above PS_GTO_MAX_FORCE_N (tendon organ) */
 };
 
 #define PS_LENGTH_MIN_L0 0.5
@@ -521,6 +523,105 @@ int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigne
 #endif /* PS_NO_BATCH */
 
 /* ---- end of chain section ---- */
+
+/* ======================================================================================
+ * (4) Golgi tendon organ (tendon_organ.c) -- same model, state and order of operations as
+ *     spindle/tendon_organ.py: r = G1 ln(F+/G2 + 1), a low-pass, H(s); the linear part as
+ *     z = (x, w1, w2) stepped exactly: z1 = phi z0 + g0 alpha + g1 beta, y = c z,
+ *     Ib = max(0, y), with beta = r1 - r0, alpha = r0 + (2/3)(r_mid - (r0 + r1)/2) (the
+ *     force a line over the step, its log's mean and first moment by Simpson's rule),
+ *     computed as alpha = r0 + (2 G1/3) ln cosh((r1 - r0) / (2 G1)).
+ * ====================================================================================== */
+
+#define PS_GTO_MAX_FORCE_N 1.0e5 /* larger finite forces: PS_ERR_FORCE_RANGE */
+#define PS_GTO_MAX_STEP_S 0.1    /* longest step (s): PS_ERR_STEP above */
+
+/* Constants of spindle.tendon_organ_params.TendonOrganParams (G2 is per muscle, passed to
+ * each call). num = (b2, b1, b0), den = (a1, a0) of H(s). */
+typedef struct ps_gto_params {
+    ps_real gain_pps, tau_lowpass_s;
+    ps_real num[3], den[2];
+} ps_gto_params;
+
+/* The step's constants for one (params, h), computed by ps_gto_plan_init in double (a
+ * matrix exponential: a 20-term Taylor series after scaling to 1-norm <= 1/2, then
+ * squarings, as spindle.tendon_organ.expm_taylor). Read-only after init. */
+typedef struct ps_gto_plan {
+    ps_real phi[3][3], g0[3], g1[3], c[3];
+    ps_real gain_pps, inv_a0, h;
+} ps_gto_plan;
+
+/* State of one tendon organ: z = (x, w1, w2) (pps, pps s^2, pps s: the numpy state's z),
+ * the rectified force (N) and the log stage (pps) at the state's time. */
+typedef struct ps_gto {
+    ps_real z[3], force_N, r_pps;
+} ps_gto;
+
+/* PS_ERR_NULL; PS_ERR_CONFIG (a constant not finite, gain or tau <= 0, a1 <= 0, a0 <= 0,
+ * b0 <= 0); PS_ERR_STEP (h not finite or outside (0, PS_GTO_MAX_STEP_S]). q untouched on
+ * failure. */
+int ps_gto_plan_init(ps_gto_plan *q, const ps_gto_params *p, ps_real h);
+
+/* At rest at force_N (negative: 0) with force scale G2 = force_scale_N (N): x = r,
+ * w1 = r / a0, w2 = 0. PS_ERR_NULL, PS_ERR_NONFINITE, PS_ERR_FORCE_RANGE, PS_ERR_CONFIG
+ * (force_scale_N not finite and > 0); s untouched on failure. */
+int ps_gto_init(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps_real force_scale_N);
+
+/* One step of q->h to force_N at the step's end; Ib (pps) to *ib if not NULL. Errors as
+ * ps_gto_init; s and *ib untouched on failure. */
+int ps_gto_step(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps_real force_scale_N,
+                ps_real *ib);
+
+/* Ib (pps) of a state: max(0, c z); 0 for a NULL argument. */
+ps_real ps_gto_rate(const ps_gto *s, const ps_gto_plan *q);
+
+/* `steps` steps of n tendon organs: force_N is steps x n (row-major: step k's forces at
+ * force_N + k n), force_scale_N n, ib steps x n (NULL: not written). Every input is checked
+ * before any state changes: on failure nothing is written, *failed (if not NULL) is the
+ * flat index of the first bad force. PS_ERR_ARGUMENT (n < 0 or steps < 0), PS_ERR_NULL, and
+ * the errors of ps_gto_step. */
+int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
+                     const ps_real *force_N, const ps_real *force_scale_N, ps_real *ib,
+                     long *failed);
+
+/* ---- fixed-point step (no FPU) ----------------------------------------------------------
+ * The same step in int32 with int64 products (on a Cortex-M0+ the compiler's 64-bit multiply
+ * helper). Formats: force Q8 N (PS_GTO_FX_FORCE_ONE), 1/G2 Q24 per N, rates and the state
+ * Q16 pps (PS_GTO_FX_RATE_ONE), plan coefficients Q30. The log: log2 by its integer part and
+ * 24 squarings of the mantissa, times ln 2. F/G2 saturates at PS_GTO_FX_MAX_RATIO (so
+ * r <= G1 ln 32768). ps_gto_plan_fx_init bounds every state from the plan (real poles:
+ * w1 <= r / a0, w2 <= 2 r / |p1 - p2| for an input line within 4/3 of the largest r) and
+ * refuses (PS_ERR_CONFIG) plans whose bounds or coefficients leave their Q ranges. */
+#define PS_GTO_FX_FORCE_ONE 256L    /* 1 N in Q8 */
+#define PS_GTO_FX_RATE_ONE 65536L   /* 1 pps in Q16 */
+#define PS_GTO_FX_INV_SCALE_ONE 16777216L /* 1 / N in Q24 */
+#define PS_GTO_FX_COEF_ONE 1073741824L    /* 1.0 in Q30 */
+#define PS_GTO_FX_MAX_RATIO 32767
+
+typedef struct ps_gto_plan_fx {
+    int32_t phi[3][3], g0[3], g1[3], c[3]; /* Q30 */
+    int32_t gain;                          /* G1, Q16 pps */
+    int32_t inv_a0;                        /* 1 / a0, Q24 */
+} ps_gto_plan_fx;
+
+typedef struct ps_gto_fx {
+    int32_t z[3];   /* Q16 */
+    int32_t force;  /* Q8 N, rectified */
+    int32_t r;      /* Q16 pps */
+} ps_gto_fx;
+
+/* From a double plan (on the host or at start-up). PS_ERR_NULL, PS_ERR_CONFIG. */
+int ps_gto_plan_fx_init(ps_gto_plan_fx *qf, const ps_gto_plan *q);
+
+/* At rest at force (Q8 N; negative: 0) with inv_scale = 1/G2 (Q24 / N, > 0). PS_ERR_NULL,
+ * PS_ERR_FORCE_RANGE, PS_ERR_CONFIG (inv_scale <= 0); s untouched on failure. */
+int ps_gto_fx_init(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t inv_scale);
+
+/* One step to force (Q8 N); Ib (Q16 pps) to *ib if not NULL. Errors as ps_gto_fx_init. */
+int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t inv_scale,
+                   int32_t *ib);
+
+/* ---- end of tendon organ section ---- */
 
 #ifdef __cplusplus
 }
