@@ -12,12 +12,12 @@ import pytest
 
 pytest.importorskip("dynamixel_sdk")
 
-from proprio_env.runtime import protocol as p  # noqa: E402
-from proprio_env.runtime.cli import start_virtual_servo  # noqa: E402
-from proprio_env.runtime.loop import Runtime  # noqa: E402
-from proprio_env.runtime.sinks import CsvLog  # noqa: E402
-from proprio_env.runtime.sources import DynamixelSource  # noqa: E402
-from spindle.chain import MUSCLES, ChainConfig, run_chain  # noqa: E402
+from proprio_env.runtime import protocol as p
+from proprio_env.runtime.cli import start_virtual_servo
+from proprio_env.runtime.loop import Runtime
+from proprio_env.runtime.sinks import CsvLog
+from proprio_env.runtime.sources import DynamixelSource
+from spindle.chain import MUSCLES, ChainConfig, run_chain
 
 READ = ("accepted", "rejected", "before_start")
 
@@ -65,8 +65,8 @@ def assert_no_reading_missing(log, servo):
     reading is in the log, in order, with its words; a dropped reply is a timeout, a bad
     checksum a corrupt row; the read the servo was unplugged on failed. A reply later than the
     timeout (the machine is loaded) is a timeout row too, and its late reply is dropped as
-    stale by the next read (``stale_replies``), never logged as that read's. Returns how often each (log status,
-    servo fault) pair came."""
+    stale by the next read (``stale_replies``), never logged as that read's. Returns how
+    often each (log status, servo fault) pair came."""
     from collections import Counter
 
     pairs, j = Counter(), 0
@@ -116,7 +116,7 @@ def test_outputs_equal_the_offline_chain_on_the_logged_readings(tmp_path, backen
 
 def test_every_fault_is_survived_counted_and_logged(tmp_path):
     faults = ("checksum@200x3", "drop@400", "range@600x2", "unplug@800:0.3", "drop@1100x2")
-    runtime, summary, log, servo = run_against_servo(tmp_path, 4.0, faults)
+    _, summary, log, servo = run_against_servo(tmp_path, 4.0, faults)
     c, chain = summary["counters"], summary["chain_counters"]
     pairs = assert_no_reading_missing(log, servo)
     assert c["corrupt"] == pairs["corrupt", "checksum"] == 3  # corrupt replies, not readings

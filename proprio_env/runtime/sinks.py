@@ -199,7 +199,8 @@ class CsvLog:
     """
 
     HEAD = ("index", "t_s", "status", "counts", "speed_raw", "load_raw", "load_fraction",
-            "servo_error", "stale_replies", "skipped_before", "deadline_missed", "read_s", "latency_s", "n_events")
+            "servo_error", "stale_replies", "skipped_before", "deadline_missed", "read_s",
+            "latency_s", "n_events")
 
     def __init__(self, path: str | Path, flush_every: int = 500) -> None:
         self.path = Path(path)
@@ -228,7 +229,8 @@ class CsvLog:
         head = [row.index, repr(row.t_s), row.status,
                 r.counts if read else "", r.speed_raw if read else "",
                 r.load_raw if read else "", repr(r.load_fraction) if read else "",
-                r.servo_error, r.stale_replies, row.skipped_before, int(row.deadline_missed), repr(row.read_s),
+                r.servo_error, r.stale_replies, row.skipped_before, int(row.deadline_missed),
+                repr(row.read_s),
                 "" if row.latency_s != row.latency_s else repr(row.latency_s),
                 0 if row.events is None else len(row.events)]
         if row.chain is None:

@@ -125,11 +125,11 @@ class DynamixelSource:
         latency_ms = self.latency_timer_ms
 
         class Port(self._sdk.PortHandler):
-            def setPacketTimeout(self, packet_length):  # noqa: N802 (the SDK's name)
+            def setPacketTimeout(self, packet_length):
                 self.packet_start_time = self.getCurrentTime()
                 self.packet_timeout = self.tx_time_per_byte * packet_length + 2 * latency_ms + 2
 
-            def readPort(self, length):  # noqa: N802
+            def readPort(self, length):
                 if self.ser.in_waiting == 0:
                     left_s = (self.packet_timeout - self.getTimeSinceStart()) * 1e-3
                     if left_s > 0:

@@ -9,8 +9,8 @@ from typing import TextIO
 import numpy as np
 
 COUNTERS = ("readings", "accepted", "rejected", "before_start", "timeout", "corrupt",
-            "unplugged", "reconnects", "stale_replies", "servo_errors", "deadline_misses", "skipped_ticks",
-            "events")
+            "unplugged", "reconnects", "stale_replies", "servo_errors", "deadline_misses",
+            "skipped_ticks", "events")
 """The runtime's counters: readings attempted, and what became of them; ``deadline_misses``
 counts samples published after their deadline (the next sample's scheduled time) plus the
 ticks skipped when the loop fell a whole period behind (``skipped_ticks``)."""
