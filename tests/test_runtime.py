@@ -115,8 +115,8 @@ def test_outputs_equal_the_offline_chain_on_the_logged_readings(tmp_path, backen
 
 
 def test_every_fault_is_survived_counted_and_logged(tmp_path):
-    faults = ("checksum@200x3", "drop@400", "range@600x2", "unplug@800:0.3", "drop@1100x2")
-    _, summary, log, servo = run_against_servo(tmp_path, 4.0, faults)
+    faults = ("checksum@100x3", "drop@200", "range@300x2", "unplug@400:0.3", "drop@600x2")
+    _, summary, log, servo = run_against_servo(tmp_path, 3.0, faults)
     c, chain = summary["counters"], summary["chain_counters"]
     pairs = assert_no_reading_missing(log, servo)
     assert c["corrupt"] == pairs["corrupt", "checksum"] == 3  # corrupt replies, not readings
@@ -133,8 +133,9 @@ def test_every_fault_is_survived_counted_and_logged(tmp_path):
     # 0.3 s unplugged > max_bridge_s (50 ms): the chain restarted at rest; the 3-sample
     # checksum run (6 ms) and the drops were bridged or are plain gaps
     assert chain["restarts"] >= 1 and chain["gaps"] >= 1
-    after = [r for r in log[-200:] if r["status"] == "accepted"]
-    assert len(after) > 150  # running normally again at the end
+    assert int(servo[-1]["read"]) > 650  # every fault came
+    after = [r for r in log[-100:] if r["status"] == "accepted"]
+    assert len(after) > 75  # running normally again at the end
     assert_equals_offline_chain(log, "c")
 
 
@@ -151,7 +152,7 @@ def test_a_replayed_log_gives_the_same_outputs(tmp_path):
     """A replay of the log feeds the same readings with their times: the same outputs."""
     from proprio_env.runtime.sources import ReplaySource
 
-    _, _, log, _ = run_against_servo(tmp_path, 1.5, ("drop@100",))
+    _, _, log, _ = run_against_servo(tmp_path, 1.0, ("drop@100",))
     out = tmp_path / "replay"
     out.mkdir()
     runtime = Runtime(ReplaySource(tmp_path / "log.csv"), rate_hz=5000,
