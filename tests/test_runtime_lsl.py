@@ -33,7 +33,8 @@ from proprio_env.runtime.sinks import CsvLog, LslSink
 from proprio_env.runtime.sources import DynamixelSource
 from spindle.chain import ChainConfig
 
-out, duration, stall_s, inlet_buffer_s = sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
+out, duration, stall_s = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+inlet_buffer_s = int(sys.argv[4])
 name = f"proprio-test-{os.getpid()}"
 
 
