@@ -179,3 +179,21 @@ def test_sigterm_flushes_and_closes_the_log(tmp_path):
         log = list(csv.DictReader(f))
     assert len(log) == summary["counters"]["readings"] > 100
     assert (tmp_path / "log_summary.json").is_file()
+
+
+def test_the_command_line_runs_a_simulated_elbow(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    proc = subprocess.run([sys.executable, "-m", "proprio_env.runtime.cli", "--source",
+                           "simulated", "--track", "scripted", "--duration", "0.5", "--no-lsl",
+                           "--quiet", "--backend", "c", "--log", str(tmp_path / "run.csv")],
+                          env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads((tmp_path / "run_summary.json").read_text())
+    assert summary["backend"] == "c" and summary["counters"]["readings"] > 100
+    assert "deadline misses" in proc.stderr
