@@ -27,7 +27,6 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
     from proprio_env.runtime.loop import Runtime
     from proprio_env.runtime.sinks import CsvLog, LslSink
     from proprio_env.runtime.sources import DynamixelSource
-    from spindle.chain import ChainConfig
 
     tag = f"{backend}-{rt_priority}"
     link = str(tmp / f"ax12-{tag}")
@@ -36,7 +35,7 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
     load_before = os.getloadavg()
     try:
         source = DynamixelSource(link, latency_timer_ms=args.latency_timer_ms)
-        runtime = Runtime(source, rate_hz=args.rate, config=ChainConfig(backend=backend),
+        runtime = Runtime(source, rate_hz=args.rate, backend=backend,
                           sinks=[LslSink(f"bench-{os.getpid()}-{tag}")],
                           log=CsvLog(tmp / f"log-{tag}.csv"), duration_s=args.duration,
                           rt_priority=rt_priority)

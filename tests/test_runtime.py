@@ -31,7 +31,7 @@ def run_against_servo(tmp_path, duration_s, faults=(), backend="auto", seed=3):
     try:
         # 2 ms latency timer: a 6.2 ms reply timeout, generous for a loaded machine
         source = DynamixelSource(link, latency_timer_ms=2.0, reconnect_s=0.05)
-        runtime = Runtime(source, config=ChainConfig(backend=backend),
+        runtime = Runtime(source, backend=backend,
                           log=CsvLog(tmp_path / "log.csv"), duration_s=duration_s)
         summary = runtime.run()
     finally:
@@ -156,7 +156,7 @@ def test_a_replayed_log_gives_the_same_outputs(tmp_path):
     out = tmp_path / "replay"
     out.mkdir()
     runtime = Runtime(ReplaySource(tmp_path / "log.csv"), rate_hz=5000,
-                      config=ChainConfig(backend="c"), log=CsvLog(out / "log.csv"))
+                      backend="c", log=CsvLog(out / "log.csv"))
     runtime.run()
     with open(out / "log.csv", newline="") as f:
         again = list(csv.DictReader(f))
@@ -171,7 +171,7 @@ def test_sigterm_flushes_and_closes_the_log(tmp_path):
 
     from proprio_env.runtime.sources import SimulatedElbowSource
 
-    runtime = Runtime(SimulatedElbowSource("scripted"), config=ChainConfig(backend="c"),
+    runtime = Runtime(SimulatedElbowSource("scripted"), backend="c",
                       log=CsvLog(tmp_path / "log.csv", flush_every=10**9))
     threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM)).start()
     summary = runtime.run()  # returns on SIGTERM instead of running forever
@@ -197,3 +197,60 @@ def test_the_command_line_runs_a_simulated_elbow(tmp_path):
     summary = json.loads((tmp_path / "run_summary.json").read_text())
     assert summary["backend"] == "c" and summary["counters"]["readings"] > 100
     assert "deadline misses" in proc.stderr
+
+
+class Doubler:
+    """A stage of the test: twice the BRA Ia rate, and the servo load."""
+
+    channel_labels = ("twice_BRA_ia", "load")
+    units = ("pps", "fraction")
+
+    def step(self, t_s, sample):
+        return np.array([2 * sample.chain.ia_pps[0], sample.reading.load_fraction])
+
+
+def test_stages_and_the_callback_see_every_published_sample(tmp_path):
+    from proprio_env.runtime.sinks import CallbackSink
+    from proprio_env.runtime.sources import SimulatedElbowSource
+    from proprio_env.runtime.stages import LoadStage, SpindleStage
+
+    rows = []
+    runtime = Runtime(SimulatedElbowSource("scripted"), backend="c",
+                      stages=[SpindleStage(), Doubler(), LoadStage()],
+                      sinks=[CallbackSink(rows.append)], log=CsvLog(tmp_path / "log.csv"),
+                      duration_s=0.5)
+    summary = runtime.run()
+    assert summary["channel_labels"][-3:] == ["twice_BRA_ia", "load", "servo_load"]
+    with open(tmp_path / "log.csv", newline="") as f:
+        log = [r for r in csv.DictReader(f) if r["status"] in ("accepted", "rejected")]
+    assert [r.index for r in rows] == [int(r["index"]) for r in log] and len(rows) > 50
+    for row, logged in zip(rows, log, strict=True):
+        assert row.values[0] == row.index
+        assert row.values[-3] == 2 * float(logged["BRA_ia_pps"])
+        assert row.values[-2] == row.values[-1] == float(logged["load_fraction"])
+
+
+def test_bad_stages_and_settings_are_refused_before_anything_runs():
+    from proprio_env.runtime.sources import SimulatedElbowSource
+    from proprio_env.runtime.stages import SpindleStage
+
+    source = SimulatedElbowSource("scripted")
+    with pytest.raises(TypeError, match="is not a stage"):
+        Runtime(source, stages=[object()])
+    with pytest.raises(ValueError, match="channel labels repeat"):
+        Runtime(source, stages=[SpindleStage(), SpindleStage()])
+    with pytest.raises(ValueError, match="rate_hz=0"):
+        Runtime(source, rate_hz=0)
+    with pytest.raises(ValueError, match="rt_priority=100"):
+        Runtime(source, rt_priority=100)
+
+    class NoTime:
+        event_fields = ("channel",)
+
+        def step(self, t_s, rates):
+            return np.zeros(0)
+
+    with pytest.raises(ValueError, match="t_s among them"):
+        Runtime(source, pulse_encoder=NoTime())
+    with pytest.raises(ValueError, match="backend='gpu'"):
+        Runtime(source, backend="gpu")

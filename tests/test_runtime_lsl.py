@@ -60,7 +60,7 @@ class IaPulses:
 
 child = start_virtual_servo(out + "/ax12", "scripted", [], extra=("--return-delay", "0"))
 runtime = Runtime(DynamixelSource(out + "/ax12", latency_timer_ms=2.0),
-                  config=ChainConfig(backend="c"), pulse_encoder=IaPulses(),
+                  backend="c", pulse_encoder=IaPulses(),
                   sinks=[LslSink(name, name, wait_for_consumers_s=20)],
                   log=CsvLog(out + "/log.csv"), duration_s=duration)
 result = {}

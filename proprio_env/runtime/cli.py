@@ -92,7 +92,6 @@ def main(argv: list[str] | None = None) -> int:
     from proprio_env.runtime.sources import DynamixelSource, ReplaySource, SimulatedElbowSource
     from proprio_env.runtime.stages import SpindleStage
     from proprio_env.runtime.status import StatusLine
-    from spindle.chain import ChainConfig
 
     child = None
     if args.source == "virtual":
@@ -111,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         stages = [SpindleStage()] + [load_factory(s) for s in args.stage]
         encoder = load_factory(args.pulse_encoder) if args.pulse_encoder else None
         sinks = [] if args.no_lsl else [LslSink(args.lsl_name)]
-        runtime = Runtime(source, rate_hz=args.rate, config=ChainConfig(backend=args.backend),
+        runtime = Runtime(source, rate_hz=args.rate, backend=args.backend,
                           stages=stages, pulse_encoder=encoder, sinks=sinks,
                           log=CsvLog(args.log) if args.log else None,
                           status=None if args.quiet else StatusLine(),

@@ -26,6 +26,7 @@ import signal
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -38,6 +39,7 @@ from proprio_env.runtime.stages import (
     check_stage,
 )
 from proprio_env.runtime.status import COUNTERS, Latencies, StatusLine
+from spindle.backends import DEFAULT_BACKEND
 from spindle.chain import ChainConfig, make_chain
 from spindle.chain.sensor import is_valid_reading
 
@@ -51,8 +53,11 @@ class Runtime:
     Args:
         source: a source (:mod:`proprio_env.runtime.sources`).
         rate_hz: the sample rate (default 500 Hz, the AX-12 in the seed paper).
-        config: the chain's settings; default ``ChainConfig(backend="auto")`` (C where it
-            builds). ``self.backend`` is the resolved one.
+        backend: the chain's backend, ``"numpy" | "c" | "auto"`` (default: C where it
+            builds, through :func:`spindle.backends.resolve_backend`); ``self.backend`` is
+            the resolved one.
+        config: the chain's other settings (default ``ChainConfig()``; its ``backend`` field
+            is replaced by ``backend``).
         stages: the rate stream's stages (default ``[SpindleStage()]``).
         pulse_encoder: turns each sample's rates into pulse events (None: no pulse stream).
         sinks: live sinks (LSL, callback), timed for the latency.
@@ -66,7 +71,8 @@ class Runtime:
             ``None``: the normal scheduler. Refused by the system: ``PermissionError``.
     """
 
-    def __init__(self, source, *, rate_hz: float = 500.0, config: ChainConfig | None = None,
+    def __init__(self, source, *, rate_hz: float = 500.0, backend: str = DEFAULT_BACKEND,
+                 config: ChainConfig | None = None,
                  stages: Sequence[object] | None = None, pulse_encoder: object | None = None,
                  sinks: Sequence[object] = (), log: CsvLog | None = None,
                  status: StatusLine | None = None, duration_s: float | None = None,
@@ -89,7 +95,8 @@ class Runtime:
         if len(set(labels)) != len(labels):
             raise ValueError(f"channel labels repeat: {labels}")
         event_fields = () if pulse_encoder is None else check_pulse_encoder(pulse_encoder)
-        self.chain = make_chain(ChainConfig(backend="auto") if config is None else config)
+        config = ChainConfig() if config is None else config
+        self.chain = make_chain(replace(config, backend=backend))
         self.backend = self.chain.config.backend
         self.source, self.stages, self.pulse_encoder = source, stages, pulse_encoder
         self.rate_hz, self.period_s = float(rate_hz), 1.0 / float(rate_hz)
