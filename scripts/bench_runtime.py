@@ -44,8 +44,11 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
         child.terminate()
         child.wait(10)
     with open(tmp / f"log-{tag}.csv", newline="") as f:
-        read_s = np.array([float(r["read_s"]) for r in csv.DictReader(f)])
+        log = list(csv.DictReader(f))
+    read_s = np.array([float(r["read_s"]) for r in log])
     summary["read_ms"] = np.percentile(read_s * 1e3, [50, 99]).tolist()
+    summary["read_s"] = read_s
+    summary["latency_s"] = np.array([float(r["latency_s"]) for r in log if r["latency_s"]])
     summary["load_before"] = load_before
     summary["rt"] = rt_priority
     return summary
@@ -62,6 +65,7 @@ def main() -> int:
                     help="the virtual servo's return delay register (2 us units)")
     ap.add_argument("--latency-timer-ms", type=float, default=1.0)
     ap.add_argument("--track", default="elbow", choices=("scripted", "elbow"))
+    ap.add_argument("--figure", default=None, help="PNG of the latency and read-time tails")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
     from proprio_env.runtime.sinks import write_loopback_lsl_config
@@ -85,7 +89,39 @@ def main() -> int:
                  str(c["skipped_ticks"]), str(c["timeout"]), str(c["stale_replies"]),
                  f"{s['load_before'][0]:.2f} -> {s['load_average'][0]:.2f}")
         print("| " + " | ".join(cells) + " |")
+    if args.figure:
+        plot(rows, args, Path(args.figure))
     return 0
+
+
+def plot(rows: list[dict], args, path: Path) -> None:
+    """Survival curves (fraction of samples above a time) of the latency and the read time,
+    against the sample period."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for ax, key, title in zip(axes, ("latency_s", "read_s"),
+                              ("latency: reading's arrival -> outputs published",
+                               "read: request sent -> reply arrived"), strict=True):
+        for s in rows:
+            x = np.sort(s[key]) * 1e3
+            frac = 1.0 - np.arange(x.size) / x.size
+            ax.step(x, frac, where="post",
+                    label=f"{s['backend']}, SCHED_FIFO {'50' if s['rt'] else 'off'}")
+        ax.axvline(1e3 / args.rate, color="k", lw=0.8, ls="--", label="sample period")
+        ax.set(xscale="log", yscale="log", xlabel="ms", title=title)
+        ax.grid(True, which="both", lw=0.3)
+    axes[0].set_ylabel("fraction of samples above")
+    axes[0].legend(fontsize=8)
+    load = ", ".join(f"{s['load_average'][0]:.1f}" for s in rows)
+    fig.suptitle(f"runtime vs virtual AX-12, {args.rate:g} Hz, {args.duration:g} s each; "
+                 f"2-core machine, load average {load}", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
 
 
 if __name__ == "__main__":
