@@ -254,3 +254,22 @@ def test_bad_stages_and_settings_are_refused_before_anything_runs():
         Runtime(source, pulse_encoder=NoTime())
     with pytest.raises(ValueError, match="backend='gpu'"):
         Runtime(source, backend="gpu")
+
+
+def test_a_stage_that_returns_nan_stops_with_its_name_and_the_log_is_closed(tmp_path):
+    from proprio_env.runtime.sources import SimulatedElbowSource
+
+    class Broken:
+        channel_labels, units = ("x",), ("1",)
+
+        def step(self, t_s, sample):
+            return np.array([np.nan])
+
+    runtime = Runtime(SimulatedElbowSource("scripted"), backend="c", stages=[Broken()],
+                      log=CsvLog(tmp_path / "log.csv"), duration_s=1.0)
+    with pytest.raises(ValueError, match=r"Broken.*expected 1 finite values"):
+        runtime.run()
+    assert (tmp_path / "log_summary.json").is_file()
+    with open(tmp_path / "log.csv", newline="") as f:
+        log = list(csv.DictReader(f))
+    assert log[-1]["status"] == "error" and log[-1]["counts"] != ""  # the reading is kept

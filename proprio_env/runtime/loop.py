@@ -30,7 +30,15 @@ from dataclasses import replace
 
 import numpy as np
 
-from proprio_env.runtime.sinks import ACCEPTED, BEFORE_START, REJECTED, CsvLog, Layout, Row
+from proprio_env.runtime.sinks import (
+    ACCEPTED,
+    BEFORE_START,
+    ERROR,
+    REJECTED,
+    CsvLog,
+    Layout,
+    Row,
+)
 from proprio_env.runtime.sources import OK, Reading
 from proprio_env.runtime.stages import (
     RuntimeSample,
@@ -87,11 +95,12 @@ class Runtime:
             raise ValueError(f"rt_priority={rt_priority!r} must be an integer in 1..99")
         self.rt_priority = rt_priority
         stages = [SpindleStage()] if stages is None else list(stages)
-        labels, units = ["reading_index"], ["1"]
+        labels, units, self._widths = ["reading_index"], ["1"], []
         for stage in stages:
             lab, uni = check_stage(stage)
             labels += lab
             units += uni
+            self._widths.append(len(lab))
         if len(set(labels)) != len(labels):
             raise ValueError(f"channel labels repeat: {labels}")
         event_fields = () if pulse_encoder is None else check_pulse_encoder(pulse_encoder)
@@ -167,7 +176,12 @@ class Runtime:
             except StopIteration:
                 break
             arrival = time.perf_counter()
-            row = self._process(k, reading, arrival, due + period)
+            try:
+                row = self._process(k, reading, arrival, due + period)
+            except Exception:  # a stage or sink failed: the reading still goes in the log
+                if self.log is not None:
+                    self.log.write(Row(k, arrival - t0, arrival, ERROR, reading))
+                raise
             row.skipped_before, row.read_s = skipped, arrival - asked
             if self.log is not None:
                 self.log.write(row)
@@ -203,15 +217,17 @@ class Runtime:
         values = np.empty(len(self.layout.channel_labels))
         values[0] = index
         i = 1
-        for stage in self.stages:
-            v = stage.step(t_s, sample)
-            values[i:i + len(v)] = v
-            i += len(v)
+        for stage, n in zip(self.stages, self._widths, strict=True):
+            v = np.asarray(stage.step(t_s, sample), dtype=float)
+            if v.shape != (n,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"stage {stage!r} returned {v!r} at t_s={t_s!r}: expected "
+                                 f"{n} finite values")
+            values[i:i + n] = v
+            i += n
         row.chain, row.values = out, values
         if self.pulse_encoder is not None:
-            row.events = self.pulse_encoder.step(t_s, values[1:])
+            row.events = self._events(t_s, values[1:])
             c["events"] += len(row.events)
-        row.t_lsl_s = arrival + self._lsl_offset()
         for sink in self.sinks:
             sink.publish(row)
         done = time.perf_counter()
@@ -220,6 +236,15 @@ class Runtime:
         row.deadline_missed = done > deadline
         c["deadline_misses"] += int(row.deadline_missed)
         return row
+
+    def _events(self, t_s: float, rates: np.ndarray) -> np.ndarray:
+        events = self.pulse_encoder.step(t_s, rates)
+        names = getattr(getattr(events, "dtype", None), "names", None) or ()
+        if getattr(events, "ndim", 0) != 1 or not set(self.layout.event_fields) <= set(names):
+            raise ValueError(f"pulse encoder {self.pulse_encoder!r} returned {events!r} at "
+                             f"t_s={t_s!r}: expected a 1-D structured array with fields "
+                             f"{self.layout.event_fields}")
+        return events
 
     def _push(self, t_s: float, counts: int):
         """The chain's output for this reading, or None before its first valid reading."""
@@ -230,15 +255,6 @@ class Runtime:
             return None
         self._started = True
         return self.chain.reset(float(cfg.calibration.angle_deg(counts)), t_s)
-
-    def _lsl_offset(self) -> float:
-        offset = getattr(self, "_offset", None)
-        if offset is None:
-            offset = 0.0
-            for sink in self.sinks:
-                offset = getattr(sink, "_offset", offset)
-            self._offset = offset
-        return offset
 
     # -- start and end -------------------------------------------------------------------------
     def _install_signals(self):

@@ -24,6 +24,9 @@ from spindle.chain import MUSCLES, ArmSample
 
 ACCEPTED, REJECTED, BEFORE_START = "accepted", "rejected", "before_start"
 """Log statuses of a reading that was read (the others are the sources' failures)."""
+ERROR = "error"
+"""The log status of the reading during which a stage, the pulse encoder or a sink raised
+(the runtime then stops with that error, after logging the reading and closing)."""
 
 LOOPBACK_LSL_CONFIG = """\
 ; liblsl kept on this machine: IPv4 loopback only, machine-scope discovery, no other peer
@@ -65,11 +68,12 @@ class Layout:
 @dataclass
 class Row:
     """One reading attempt: ``chain`` and ``values`` are None when nothing was published
-    (a failed read, or before the chain's first valid reading)."""
+    (a failed read, or before the chain's first valid reading); ``arrival_s`` is when the
+    reading arrived, on ``time.perf_counter``'s clock."""
 
     index: int
     t_s: float
-    t_lsl_s: float
+    arrival_s: float
     status: str
     reading: Reading
     chain: ArmSample | None = None
@@ -129,6 +133,8 @@ class LslSink:
         for outlet in (self.rates, self.pulses):
             if outlet is not None and self.wait_for_consumers_s > 0:
                 outlet.wait_for_consumers(self.wait_for_consumers_s)
+        # LSL's clock and perf_counter are both the monotonic clock here; the offset maps
+        # one to the other wherever they differ
         self._offset = lsl.local_clock() - time.perf_counter()
 
     @staticmethod
@@ -147,9 +153,10 @@ class LslSink:
     def publish(self, row: Row) -> None:
         if row.values is None:
             return
-        self.rates.push_sample(row.values, row.t_lsl_s)
+        stamp = row.arrival_s + self._offset
+        self.rates.push_sample(row.values, stamp)
         if self.pulses is not None and row.events is not None and row.events.size:
-            shift = row.t_lsl_s - row.t_s
+            shift = stamp - row.t_s
             for event in row.events:
                 values = [float(event[f]) for f in self._fields]
                 self.pulses.push_sample(values, float(event["t_s"]) + shift)
