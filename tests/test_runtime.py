@@ -96,10 +96,10 @@ def test_outputs_equal_the_offline_chain_on_the_logged_readings(tmp_path, backen
     runtime, summary, log, servo = run_against_servo(tmp_path, 2.0, backend=backend)
     assert runtime.backend == backend
     c = summary["counters"]
-    # 1000 ticks in 2 s, each read or skipped (the last skip may overshoot the end by one).
+    # 1000 ticks in 2 s, each read or skipped.
     # How many are skipped is timing (scripts/bench_runtime.py): on this loaded 2-core
     # machine without real-time priority C read 740-1000, numpy 817 of 1250 in 2.5 s
-    assert c["readings"] + c["skipped_ticks"] in range(999, 1002)
+    assert c["readings"] + c["skipped_ticks"] == 1000
     assert c["readings"] > 300
     assert c["readings"] == len(log) == c["accepted"] + c["rejected"] + c["before_start"] + (
         c["timeout"] + c["corrupt"] + c["unplugged"])
@@ -181,6 +181,7 @@ def test_sigterm_flushes_and_closes_the_log(tmp_path):
     assert (tmp_path / "log_summary.json").is_file()
 
 
+@pytest.mark.slow
 def test_the_command_line_runs_a_simulated_elbow(tmp_path):
     import json
     import subprocess

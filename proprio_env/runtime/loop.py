@@ -191,6 +191,8 @@ class Runtime:
             k += 1
             late = time.perf_counter() - (t0 + k * period)
             skipped = int(late // period) if late > period else 0
+            while skipped and t0 + (k + skipped - 1) * period >= end:
+                skipped -= 1  # ticks past the end of the run are not misses
             k += skipped
             self.counters["skipped_ticks"] += skipped
             self.counters["deadline_misses"] += skipped

@@ -105,14 +105,17 @@ class LslSink:
     pushing never waits for a consumer. ``wait_for_consumers_s``: at open, wait up to that
     long for a consumer of every outlet (a recorder, an experiment) before the loop starts,
     so it misses no sample (an inlet receives what is pushed after it connected).
+    ``linger_s``: at close, how long connected consumers get to receive the last samples.
     """
 
     def __init__(self, name: str = "proprio", source_id: str = "proprio-elbow",
-                 buffer_s: int = 360, wait_for_consumers_s: float = 0.0) -> None:
+                 buffer_s: int = 360, wait_for_consumers_s: float = 0.0,
+                 linger_s: float = 0.5) -> None:
         if not (isinstance(buffer_s, int) and buffer_s >= 1):
             raise ValueError(f"buffer_s={buffer_s!r} must be an integer >= 1 (seconds)")
         self.name, self.source_id, self.buffer_s = name, source_id, buffer_s
         self.wait_for_consumers_s = float(wait_for_consumers_s)
+        self.linger_s = float(linger_s)
         self.rates = self.pulses = None
 
     def open(self, layout: Layout) -> None:
@@ -162,6 +165,10 @@ class LslSink:
                 self.pulses.push_sample(values, float(event["t_s"]) + shift)
 
     def close(self) -> None:
+        # liblsl sends from its own threads and an outlet released at once drops what it has
+        # not sent yet: with consumers connected, let them have the last samples first
+        if any(o is not None and o.have_consumers() for o in (self.rates, self.pulses)):
+            time.sleep(self.linger_s)
         self.rates = self.pulses = None  # the outlets close when released
 
 
