@@ -164,6 +164,21 @@ class SpindleBank:
         self.restarts = 0
         self.substeps_limited = 0
 
+    # -- copies and pickling: the C array travels as a plain-array state ----------------
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        if self._batch is not None:  # ctypes objects with pointers cannot be pickled
+            state["_state"], state["_batch"] = self._batch.state(), None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self.backend == "c":
+            from spindle.native.spindle import SpindleBatch
+
+            self._batch = SpindleBatch(self._state, self.params, self.step_s,
+                                       self._method.theta)
+
     @property
     def state(self) -> core.SpindleState:
         """The spindles' state (rows x muscles, row-major): numpy, the bank's own; C, a copy."""
