@@ -251,7 +251,9 @@ class SpindleBank:
         dt = float(first[moving][0]) if moving.any() else float(first[0])
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"knot interval {dt!r} s must be finite and > 0")
-        if moving.any() and np.abs(first[moving] - dt).max() > 1e-9 * max(dt, 1.0):
+        # (plus the resolution of the rows' clocks: an env's clock set far forward)
+        if moving.any() and np.abs(first[moving] - dt).max() > 1e-9 * max(dt, 1.0) + \
+                4 * np.spacing(np.abs(t[0][moving]).max()):
             raise ValueError(f"knot intervals differ between rows ({first[moving].tolist()} "
                              "s); every row must take knots at the same interval")
         L, clamped = self._clamp(raw)

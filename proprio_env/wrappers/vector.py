@@ -184,14 +184,16 @@ class SpindleAfferentsVector(VectorWrapper):
         (which ended this step) with the afferents at their final state; then their taps
         read the reset env again."""
         info = dict(info)
-        final_obs = np.array(info["final_obs"], dtype=object)
-        final_info = np.array(info["final_info"], dtype=object)
+        final_obs = info["final_obs"].copy()
+        final_info = dict(info.get("final_info", {}))
         for i in rows:
             final_obs[i] = add_afferents(final_obs[i], self.bank.ia_pps[i], self.bank.ii_pps[i],
                                          self.observation_mode, self.rate_scale_pps,
                                          getattr(self.single_observation_space, "dtype", None))
-            final_info[i] = {**final_info[i],
-                             **bank_info(self.bank, self._measured, self._source, row=int(i))}
+            # batched the way the vector env batches the sub-envs' infos (arrays, _key masks)
+            final_info = VectorEnv._add_info(
+                self, final_info, bank_info(self.bank, self._measured, self._source, row=int(i)),
+                int(i))
             self.taps[i].thaw()
         info["final_obs"], info["final_info"] = final_obs, final_info
         self._rest(rows, discard_records=True)
