@@ -16,9 +16,8 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 from proprio_env.model import MUSCLES, model_path
-from proprio_env.wrappers import SpindleAfferents, SpindleAfferentsVector
+from proprio_env.wrappers import SpindleAfferents, SpindleAfferentsVector, capture
 from proprio_env.wrappers import bank as bank_module
-from proprio_env.wrappers import capture
 from proprio_env.wrappers import trajectory as trajectory_module
 from proprio_env.wrappers.trajectory import MAX_TRAJECTORY_SUBSTEPS, afferents_from_trajectory
 from spindle import core
@@ -227,7 +226,7 @@ def test_max_interval_is_checked():
     for bad in (0.0, 1e-4, -1.0, np.nan, np.inf, True, "1.0", 1 + 0j, None):
         with pytest.raises(ValueError, match="max_interval_s"):
             SpindleAfferents(elbow_env(), max_interval_s=bad)
-    with pytest.raises(ValueError, match="shorter than the env step 0.02"):
+    with pytest.raises(ValueError, match=r"shorter than the env step 0\.02"):
         SpindleAfferents(elbow_env(), max_interval_s=0.01)
     with pytest.raises(ValueError, match="MAX_SUBSTEPS = 100000"):
         SpindleAfferents(elbow_env(), max_interval_s=101.0)
@@ -249,7 +248,7 @@ def test_a_trajectory_in_milliseconds_is_refused_before_any_work(monkeypatch):
         afferents_from_trajectory(model, q, np.arange(2000.0), max_substeps=1_000_000)
     with pytest.raises(ValueError, match=f"max_substeps = {MAX_TRAJECTORY_SUBSTEPS}"):
         afferents_from_trajectory(model, q, 10.0 * np.arange(2000))
-    with pytest.raises(ValueError, match="needs 1000000 spindle sub-steps .* MAX_SUBSTEPS"):
+    with pytest.raises(ValueError, match=r"needs 1000000 spindle sub-steps .* MAX_SUBSTEPS"):
         afferents_from_trajectory(model, q[:3], 1000.0 * np.arange(3))
     for bad in (0, -1, 2.5, True, "10"):
         with pytest.raises(ValueError, match="max_substeps"):
@@ -298,7 +297,7 @@ def test_same_step_autoreset_gives_the_final_step_afferents(lag, backend):
     a = actions(steps, n, seed=4)
     ends = 0
     for k in range(steps):
-        obs, _, term, trunc, info = vec.step(a[k])
+        obs, _, _, trunc, info = vec.step(a[k])
         for i, s in enumerate(singles):
             obs_s, _, _, trunc_s, info_s = s.step(a[k][i])
             assert trunc[i] == trunc_s
