@@ -100,10 +100,11 @@ def test_a_copy_mid_episode_continues_bit_for_bit_as_an_uncopied_wrapper(backend
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("how", ["deepcopy", "pickle"])
-def test_a_copied_vector_wrapper_continues_bit_for_bit(backend, how):
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_a_copied_vector_wrapper_continues_bit_for_bit(backend, how, mode):
     n, a = 3, actions(16, 3, seed=1)
-    reference, original = (SpindleAfferentsVector(
-        gym.vector.SyncVectorEnv([short_episodes] * n), backend=backend) for _ in range(2))
+    reference, original = (SpindleAfferentsVector(gym.vector.SyncVectorEnv(
+        [short_episodes] * n, autoreset_mode=mode), backend=backend) for _ in range(2))
     for env in (reference, original):
         env.reset(seed=2)
     for i in range(4):
@@ -114,6 +115,14 @@ def test_a_copied_vector_wrapper_continues_bit_for_bit(backend, how):
         want = reference.step(a[i])
         assert_same_step(from_clone[i - 4], want)
         assert_same_step(original.step(a[i]), want)
+        if "final_obs" in want[4]:
+            for x, y in zip(from_clone[i - 4][4]["final_obs"], want[4]["final_obs"],
+                            strict=True):
+                assert (x is None and y is None) or np.array_equal(x, y)
+    assert mode != AutoresetMode.SAME_STEP or all(
+        isinstance(e.__dict__["reset"], type(original._final_hooks[0])) and
+        e.__dict__["reset"].tap is tap for e, tap in zip(clone.env.envs, clone.taps,
+                                                         strict=True))
 
 
 # -- 28.4: bounded work ------------------------------------------------------------------
@@ -319,6 +328,43 @@ def test_same_step_autoreset_gives_the_final_step_afferents(lag, backend):
     assert ends == 2 * n
     vec.close()
     assert all("reset" not in e.__dict__ for e in vec.env.envs)
+
+
+class RaisesOnce(gym.Wrapper):
+    """Raises on its ``at``-th step, once (a sub-env failing inside the vector step)."""
+
+    def __init__(self, env, at: int) -> None:
+        super().__init__(env)
+        self.at, self.count = at, 0
+
+    def step(self, action):
+        self.count += 1
+        if self.count == self.at:
+            raise RuntimeError("a sub-env failed")
+        return self.env.step(action)
+
+
+def test_same_step_with_a_sub_env_failing_after_another_ended_leaves_no_frozen_state():
+    """Sub-env 0 ends (and is reset by the vector env) in the step where sub-env 1 raises:
+    the wrapper's row 0 rests at its reset state (the closed-form rest), nothing is left
+    frozen, and the next steps go on with every observation finite."""
+    vec = SpindleAfferentsVector(gym.vector.SyncVectorEnv(
+        [short_episodes, lambda: RaisesOnce(elbow_env(), 6)],
+        autoreset_mode=AutoresetMode.SAME_STEP))
+    vec.reset(seed=0)
+    a = actions(10, 2)
+    for k in range(5):
+        vec.step(a[k])
+    with pytest.raises(RuntimeError, match="a sub-env failed"):
+        vec.step(a[5])
+    assert all(tap.final is None for tap in vec.taps)
+    assert vec.env.envs[0].unwrapped.data.time == 0.0  # reset by the vector env
+    _, L, _ = vec.taps[0].now()
+    ia, _ = rest_rates(np.clip(L, *core.LENGTH_RANGE_L0))
+    np.testing.assert_allclose(vec.bank.ia_pps[0], ia, rtol=0, atol=1e-9)
+    for k in range(6, 10):
+        obs, *_ = vec.step(a[k])
+        assert np.all(np.isfinite(obs))
 
 
 # -- 28.6: wrappers stacked on one env ---------------------------------------------------

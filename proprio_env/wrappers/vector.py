@@ -133,6 +133,14 @@ class SpindleAfferentsVector(VectorWrapper):
             hook.armed = True
         try:
             obs, rewards, terminations, truncations, info = self.env.step(actions)
+        except BaseException:
+            # the vector env stepped some sub-envs and refused another: those it reset
+            # rest at their reset state, as the rest of this step is lost anyway
+            frozen = np.flatnonzero([tap.final is not None for tap in self.taps])
+            for i in frozen:
+                self.taps[i].thaw()
+            self._rest(frozen, discard_records=True)
+            raise
         finally:
             for hook in self._final_hooks:
                 hook.armed = False
@@ -246,18 +254,21 @@ class FinalStateOnReset:
 
     def __init__(self, env: Any, tap: EnvTap) -> None:
         self.env, self.tap, self.armed = env, tap, False
-        self.had_own = "reset" in env.__dict__
-        self.original = env.reset
+        # an instance attribute reset already there, else None: the class's is called (a
+        # bound method kept here would be unpickled as getattr(env, "reset"): this object)
+        self.own = env.__dict__.get("reset")
         env.reset = self
 
     def __call__(self, *args: Any, **kwargs: Any):
         if self.armed:
             self.tap.freeze()
-        return self.original(*args, **kwargs)
+        if self.own is not None:
+            return self.own(*args, **kwargs)
+        return type(self.env).reset(self.env, *args, **kwargs)
 
     def remove(self) -> None:
         if self.env.__dict__.get("reset") is self:
-            if self.had_own:
-                self.env.reset = self.original
+            if self.own is not None:
+                self.env.reset = self.own
             else:
                 del self.env.__dict__["reset"]
