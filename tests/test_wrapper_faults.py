@@ -8,6 +8,7 @@ state (``spindle.core.equilibrium_state``), or the counted work."""
 from __future__ import annotations
 
 import copy
+import functools
 import pickle
 
 import gymnasium as gym
@@ -16,7 +17,7 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 from proprio_env.model import MUSCLES, model_path
-from proprio_env.wrappers import SpindleAfferents, SpindleAfferentsVector, capture
+from proprio_env.wrappers import SpindleAfferents, SpindleAfferentsVector, capture, find_muscles
 from proprio_env.wrappers import bank as bank_module
 from proprio_env.wrappers import trajectory as trajectory_module
 from proprio_env.wrappers.trajectory import MAX_TRAJECTORY_SUBSTEPS, afferents_from_trajectory
@@ -28,8 +29,9 @@ pytest.importorskip("imageio", reason="gymnasium.envs.mujoco needs imageio")
 from proprio_env.wrappers.mjcf_env import MuscleModelEnv
 
 SERVO_OFF = 1 << 2  # actuator group 2: the elbow's position servo
-BACKENDS = ["numpy", pytest.param("c", marks=pytest.mark.skipif(
-    resolve_backend("auto") != "c", reason="no C compiler or cached C build"))]
+NEEDS_C = pytest.mark.skipif(resolve_backend("auto") != "c",
+                             reason="no C compiler or cached C build")
+BACKENDS = ["numpy", pytest.param("c", marks=NEEDS_C)]
 
 
 def elbow_env() -> MuscleModelEnv:
@@ -426,3 +428,57 @@ def elbow_env_replaced() -> MuscleModelEnv:
     env = elbow_env()
     env._step_mujoco_simulation = lambda ctrl, n: None
     return env
+
+
+# -- on myo-sim's models (the myo extra) -------------------------------------------------
+
+@functools.cache
+def myo_model(name: str):
+    """myo-sim's model, compiled once (the compiler's lengthrange pass takes seconds)."""
+    import mujoco
+
+    from proprio_env.wrappers.mjcf_env import myo_sim_model_path
+
+    return myo_sim_model_path(name), mujoco.MjModel.from_xml_path(str(myo_sim_model_path(name)))
+
+
+def myo_env(name: str) -> gym.Env:
+    path, model = myo_model(name)
+    return MuscleModelEnv(path, frame_skip=10, model=model)
+
+
+@pytest.mark.parametrize(("name", "backend"), [
+    pytest.param("elbow", "c", marks=NEEDS_C),
+    pytest.param("elbow", "numpy", marks=pytest.mark.slow),
+    pytest.param("legs_osl", "numpy", marks=pytest.mark.slow),
+    pytest.param("legs_osl", "c", marks=[pytest.mark.slow, NEEDS_C])])
+def test_myo_copy_of_stacked_wrappers_continues_bit_for_bit(name, backend):
+    """myo-sim's elbow (6 muscles; C by default, numpy slow) or legs with the OSL (54; slow:
+    building and pickling the envs takes seconds), two
+    wrappers stacked (half the muscles inside, the rest outside), pickled mid-episode: the
+    copy, the original and an uncopied pair of wrappers agree bit for bit, all on recorded
+    frames."""
+    pytest.importorskip("myo_sim", reason="myo-sim is not installed (the 'myo' extra)")
+
+    def stacked():
+        base = myo_env(name)
+        names = find_muscles(base.model).names  # every muscle, in id order
+        inner = SpindleAfferents(base, muscles=names[::2], backend=backend)
+        return SpindleAfferents(inner, muscles=names[1::2], backend=backend), inner
+
+    (reference, ref_inner), (original, inner) = stacked(), stacked()
+    a = np.random.default_rng(0).uniform(0, 1, (12, original.action_space.shape[0]))
+    for env in (reference, original):
+        env.reset(seed=1)
+    for k in range(4):
+        assert_same_step(reference.step(a[k]), original.step(a[k]))
+    clone = pickle.loads(pickle.dumps(original))
+    clone_inner = clone.env
+    for k in range(4, 12):
+        want = reference.step(a[k])
+        assert_same_step(clone.step(a[k]), want)
+        assert_same_step(original.step(a[k]), want)
+        for w in (clone_inner, inner):
+            np.testing.assert_array_equal(w.bank.ia_pps, ref_inner.bank.ia_pps)
+        assert clone.substep_source == clone_inner.substep_source == "frames"
+    assert want[4]["spindle_ia_pps"].max() > 5.0
