@@ -25,6 +25,12 @@ between, chosen per env (``substep_source``):
   the figure in ``docs/wrapper.md``.
 
 ``"auto"`` (default) takes ``"frames"`` where it can, else ``"hermite"``.
+
+One :class:`PhysicsHook` per env instance does the recording for every wrapper on that env
+(wrappers stacked with different muscles each get every physics step); a copy of the env
+re-binds it to the copy's data. An env step longer than ``max_interval_s``
+(:data:`MAX_INTERVAL_S`) restarts the wrappers' spindles (:func:`check_max_interval`), and
+each recorder keeps at most the records of one such interval.
 """
 
 from __future__ import annotations
@@ -143,16 +149,16 @@ class PhysicsHook:
     def _bind(self) -> None:
         self._length_view = self.data.actuator_length
         self._velocity_view = self.data.actuator_velocity
+        self._staging(16)
+
+    def _staging(self, rows: int) -> None:
         nu = self._length_view.size
-        self._times = np.empty(_CHUNK_FRAMES)
-        self._lengths = np.empty((_CHUNK_FRAMES, nu))
-        self._velocities = np.empty((_CHUNK_FRAMES, nu))
+        self._lengths, self._velocities = np.empty((rows, nu)), np.empty((rows, nu))
 
     def __getstate__(self) -> dict[str, Any]:
         # views of MjData arrays would be copied as frozen arrays: rebound on load instead
         return {k: v for k, v in self.__dict__.items()
-                if k not in ("_length_view", "_velocity_view", "_times", "_lengths",
-                             "_velocities")}
+                if k not in ("_length_view", "_velocity_view", "_lengths", "_velocities")}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
@@ -167,6 +173,8 @@ class PhysicsHook:
         model, data = self.model, self.data
         step = mujoco.mj_step
         length_now, velocity_now = self._length_view, self._velocity_view
+        if self._lengths.shape[0] < min(n_frames, _CHUNK_FRAMES):
+            self._staging(min(n_frames, _CHUNK_FRAMES))
         lengths, velocities = self._lengths, self._velocities
         timestep = float(model.opt.timestep)
         while n_frames > 0:
