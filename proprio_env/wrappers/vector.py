@@ -157,7 +157,7 @@ class SpindleAfferentsVector(VectorWrapper):
         self.bank.restarts += int(np.count_nonzero(restart))
         moving = ~reset & ~restart & (t_env > self.bank.t_s)
         if moving.any():
-            t, L, V, self._source = capture.step_knots(
+            t, L, V, self._source = step_knots(
                 self.taps, records, self.bank.t_s, self.bank.length_L0,
                 self.bank.velocity_L0_s, moving)
             self.bank.advance(t, L, V, hold=~moving)
