@@ -10,9 +10,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
-from proprio_env.wrappers import capture
 from proprio_env.wrappers.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
-from proprio_env.wrappers.capture import MAX_INTERVAL_S, EnvTap, check_max_interval
+from proprio_env.wrappers.capture import MAX_INTERVAL_S, EnvTap, check_max_interval, step_knots
 from proprio_env.wrappers.muscles import find_muscles, model_and_data
 from proprio_env.wrappers.single import (
     RATE_SCALE_PPS,
