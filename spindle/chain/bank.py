@@ -165,6 +165,21 @@ class SpindleBank:
         self.restarts = 0
         self.substeps_limited = 0
 
+    # -- copies and pickling: the C array travels as a plain-array state ----------------
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        if self._batch is not None:  # ctypes objects with pointers cannot be pickled
+            state["_state"], state["_batch"] = self._batch.state(), None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self.backend == "c":
+            from spindle.native.spindle import SpindleBatch
+
+            self._batch = SpindleBatch(self._state, self.params, self.step_s,
+                                       self._method.theta)
+
     @property
     def state(self) -> core.SpindleState:
         """The spindles' state (rows x muscles, row-major): numpy, the bank's own; C, a copy."""
@@ -236,7 +251,9 @@ class SpindleBank:
         dt = float(first[moving][0]) if moving.any() else float(first[0])
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"knot interval {dt!r} s must be finite and > 0")
-        if moving.any() and np.abs(first[moving] - dt).max() > 1e-9 * max(dt, 1.0):
+        # (plus the resolution of the rows' clocks: an env's clock set far forward)
+        if moving.any() and np.abs(first[moving] - dt).max() > 1e-9 * max(dt, 1.0) + \
+                4 * np.spacing(np.abs(t[0][moving]).max()):
             raise ValueError(f"knot intervals differ between rows ({first[moving].tolist()} "
                              "s); every row must take knots at the same interval")
         L, clamped = self._clamp(raw)
