@@ -100,23 +100,8 @@ def afferents_from_trajectory(
     Returns:
         :class:`TrajectoryAfferents`.
     """
-    q = np.asarray(qpos_t, dtype=float)
-    t = np.asarray(t_s, dtype=float)
-    if q.ndim != 2 or q.shape[1] != model.nq or t.shape != (q.shape[0],):
-        raise ValueError(f"qpos_t has shape {q.shape} and t_s {t.shape}; expected "
-                         f"(T, {model.nq}) and (T,)")
-    if t.size < 2:
-        raise ValueError(f"a trajectory needs at least 2 samples, got {t.size}")
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
-        raise ValueError("qpos_t and t_s must be finite")
+    q, t, qv = _checked_trajectory(model, qpos_t, t_s, qvel_t)
     dt = np.diff(t)
-    if not (dt.min() > 0 and dt.max() - dt.min() <= UNIFORM_TOLERANCE * dt.mean()):
-        raise ValueError(f"t_s must be increasing and uniform: sample intervals range over "
-                         f"[{dt.min()!r}, {dt.max()!r}] s")
-    if qvel_t is not None:
-        qv = np.asarray(qvel_t, dtype=float)
-        if qv.shape != (t.size, model.nv) or not np.all(np.isfinite(qv)):
-            raise ValueError(f"qvel_t has shape {qv.shape}; expected finite (T, {model.nv})")
     muscle_set = find_muscles(model, muscles)
     bank = SpindleBank(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
                        fusimotor, method, step_s, max_speed_L0_s, backend)
@@ -127,7 +112,7 @@ def afferents_from_trajectory(
     velocity_m_s = np.empty_like(length_m)
     for i in range(t.size):
         length_m[i], velocity_m_s[i] = kinematics.compute(
-            q[i], zero if qvel_t is None else qv[i])
+            q[i], zero if qv is None else qv[i])
     if qvel_t is None:
         velocity_m_s = np.gradient(length_m, t, axis=0)
     L = muscle_set.length_L0(length_m)
@@ -149,6 +134,31 @@ def afferents_from_trajectory(
     counters = {name: bank.counters[name][0].copy() for name in COUNTERS}
     return TrajectoryAfferents(t_s=t.copy(), muscle_names=muscle_set.names,
                                measured_length_L0=L, counters=counters, **out)
+
+
+def _checked_trajectory(model: mujoco.MjModel, qpos_t, t_s, qvel_t
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(qpos, times, qvel or None) as float arrays, shapes, finiteness and uniform times
+    checked."""
+    q = np.asarray(qpos_t, dtype=float)
+    t = np.asarray(t_s, dtype=float)
+    if q.ndim != 2 or q.shape[1] != model.nq or t.shape != (q.shape[0],):
+        raise ValueError(f"qpos_t has shape {q.shape} and t_s {t.shape}; expected "
+                         f"(T, {model.nq}) and (T,)")
+    if t.size < 2:
+        raise ValueError(f"a trajectory needs at least 2 samples, got {t.size}")
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
+        raise ValueError("qpos_t and t_s must be finite")
+    dt = np.diff(t)
+    if not (dt.min() > 0 and dt.max() - dt.min() <= UNIFORM_TOLERANCE * dt.mean()):
+        raise ValueError(f"t_s must be increasing and uniform: sample intervals range over "
+                         f"[{dt.min()!r}, {dt.max()!r}] s")
+    qv = None
+    if qvel_t is not None:
+        qv = np.asarray(qvel_t, dtype=float)
+        if qv.shape != (t.size, model.nv) or not np.all(np.isfinite(qv)):
+            raise ValueError(f"qvel_t has shape {qv.shape}; expected finite (T, {model.nv})")
+    return q, t, qv
 
 
 def _check_work(dt_s: np.ndarray, step_s: float, max_substeps: object) -> int:
