@@ -6,7 +6,8 @@ Draw ``index`` of channel ``channel`` under ``seed`` is a pure function of the t
 integers (no stream state): SplitMix64's finaliser (Steele, Lea & Flood 2014, OOPSLA "Fast
 splittable pseudorandom number generators") applied as a hash,
 ``bits = mix(mix(mix(seed) ^ channel) ^ index)``; the uniform is
-``((bits >> 11) + 0.5) * 2**-53`` in (0, 1), exact. The exponential draw ``-log(u)`` uses
+``((bits >> 12) + 0.5) * 2**-52`` in (0, 1), exact (52 bits and the half fit a
+double's 53). The exponential draw ``-log(u)`` uses
 :func:`log_unit` below (frexp, then 2 atanh(s) by a fixed Horner series) rather than libm's or
 numpy's log, whose last bits differ between libraries: +, -, *, / and frexp round the same in
 IEEE 754 doubles everywhere (the C build has no contraction into FMA).
@@ -42,9 +43,9 @@ def draw_bits(seed: int, channel: np.ndarray, index: np.ndarray) -> np.ndarray:
 
 
 def uniform(seed: int, channel: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Uniform draws in the open interval (0, 1), 53 bits each."""
-    bits = draw_bits(seed, channel, index) >> np.uint64(11)
-    return (bits.astype(np.float64) + 0.5) * 2.0 ** -53
+    """Uniform draws in the open interval (0, 1), 52 bits each."""
+    bits = draw_bits(seed, channel, index) >> np.uint64(12)
+    return (bits.astype(np.float64) + 0.5) * 2.0 ** -52
 
 
 def log_unit(u: np.ndarray) -> np.ndarray:
