@@ -213,3 +213,43 @@ class CStimulator:
         return dict(zip(COUNTERS, (int(v) for v in self.channel_counters.sum(axis=0)),
                         strict=True))
 
+
+def to_q16(rates_pps: object) -> np.ndarray:
+    """Rates (pps) as the fixed form's Q16 int32, rounded to nearest (finite rates only; the
+    fixed form's negative and clipped rules apply to the integers)."""
+    r = np.asarray(rates_pps, dtype=np.float64)
+    if not np.all(np.isfinite(r)):
+        raise ValueError("the fixed form takes finite rates (apply the non-finite rule first)")
+    q = np.floor(np.clip(r, -32767.0, 32767.0) * FX_RATE_ONE + 0.5)
+    return q.astype(np.int32)
+
+
+def fixed_run(config: StimConfig, rates_q16: np.ndarray, dt_us: np.ndarray,
+              t0_us: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The fixed-point encoder of ``config`` over a trace: row i of ``rates_q16`` (T,
+    channels) held for ``dt_us[i]`` µs, from rest at ``t0_us``. Returns (events as
+    :data:`PULSE_FX_DTYPE`, (channels, len(COUNTERS)) counters)."""
+    lib = fixed_library()
+    q = PsStimFxConfig()
+    _check(lib.ps_stim_fx_config_init(ctypes.byref(q), ctypes.byref(config_struct(config))),
+           "ps_stim_fx_config_init")
+    s = PsStimFxState()
+    _check(lib.ps_stim_fx_init(ctypes.byref(s), ctypes.byref(q), int(t0_us)), "ps_stim_fx_init")
+    rates = np.ascontiguousarray(rates_q16, dtype=np.int32)
+    dt = np.asarray(dt_us, dtype=np.int64)
+    per = 1.0 / config.params.dead_time_s if config.params.mode == "stochastic" else \
+        config.limits.max_rate_pps
+    room = int(np.floor(dt.max(initial=1) * 1e-6 * per) + 4) * config.n_channels
+    chunk = np.zeros(room, dtype=PULSE_FX_DTYPE)
+    got = ctypes.c_long()
+    out = []
+    for i in range(rates.shape[0]):
+        code = lib.ps_stim_fx_step(ctypes.byref(s), ctypes.byref(q),
+                                   rates[i].ctypes.data_as(ctypes.POINTER(i32)), int(dt[i]),
+                                   chunk.ctypes.data_as(ctypes.POINTER(PsPulseFx)), room,
+                                   ctypes.byref(got))
+        _check(code, f"ps_stim_fx_step (sample {i})")
+        out.append(chunk[: got.value].copy())
+    counts = np.array([[s.counts[k][j] for j in range(K)] for k in range(config.n_channels)],
+                      dtype=np.int64)
+    return (np.concatenate(out) if out else np.zeros(0, PULSE_FX_DTYPE)), counts

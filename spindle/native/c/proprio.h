@@ -639,7 +639,7 @@ int ps_stim_run(ps_stim_state *s, const ps_stim_config *c, long n, const double 
  * The same encoders in integers: rates in Q16 pps (PS_STIM_FX_RATE_ONE), intervals and
  * times in whole µs, the phase in units of PS_STIM_FX_PULSE = 10^6 * 2^16 per pulse
  * (rate_q16 * dt_us adds exactly), the stochastic thresholds from the same 64-bit draws
- * with an integer log (32-bit uniform). A pulse comes at the first whole µs at or after
+ * with an integer log. A pulse comes at the first whole µs at or after
  * the crossing and keeps the overshoot, so the integral is exact (no drift against the
  * double form: times agree to a microsecond, amplitudes to 1 µA). Rates are int32:
  * negative ones are 0 (rate_negative), no rate is non-finite. */
@@ -678,7 +678,7 @@ typedef struct ps_pulse_fx {
  * Q16, dead time and the total-rate spacing to whole µs (rounded up). The status of
  * ps_stim_config_check; q is untouched on failure. */
 int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c);
-/* -log(u) in Q30 of the uniform (2 (bits >> 32) + 1) / 2^33 (0 < u < 1). */
+/* -log(u) in Q30 of the double form's uniform u = (2 (bits >> 12) + 1) / 2^53. */
 int64_t ps_stim_fx_neg_log(uint64_t bits);
 int ps_stim_fx_init(ps_stim_fx_state *s, const ps_stim_fx_config *q, int64_t t0_us);
 /* ps_stim_step in integers: PS_ERR_NULL, PS_ERR_NOT_RESET, PS_ERR_STEP (dt_us outside

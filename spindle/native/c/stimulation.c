@@ -387,3 +387,297 @@ int ps_stim_run(ps_stim_state *s, const ps_stim_config *c, long n, const double 
         *n_events = total;
     return code;
 }
+
+/* ---- fixed point (the device build): the same steps in integers ---- */
+
+#define FX_ONE PS_STIM_FX_PULSE
+#define FX_Q24 ((int64_t)1 << 24)
+#define FX_LN2_Q30 744261118LL /* round(ln 2 * 2^30) */
+#define FX_LOG_TERMS 12
+#define FX_NO_PULSE (-((int64_t)1 << 60))
+
+static int32_t round_q16(double x) { return (int32_t)floor(x * 65536.0 + 0.5); }
+
+int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c)
+{
+    ps_stim_fx_config out;
+    int k, code;
+    if (q == NULL || c == NULL)
+        return PS_ERR_NULL;
+    code = ps_stim_config_check(c);
+    if (code != PS_OK)
+        return code;
+    /* Q16 rates in int32 (<= 32767 pps), whole pps/s and µs in int32 */
+    if (c->full_scale_pps > 32767.0 || c->full_scale_pps < 1.0 / 65536.0
+        || c->full_scale_change_pps_s < 1.0 || c->full_scale_change_pps_s > 2e9
+        || c->dead_time_s < 1e-6 || c->rate_level > 3e4 || c->rate_change > 3e4
+        || c->amp_level > 3e4 || c->amp_change > 3e4)
+        return PS_ERR_CONFIG;
+    out.n_channels = c->n_channels;
+    out.mode = c->mode;
+    out.gamma_shape = c->gamma_shape;
+    for (k = 0; k < PS_STIM_MAX_CHANNELS; ++k) {
+        const ps_stim_channel *ch = &c->channel[k];
+        int used = k < c->n_channels;
+        out.threshold_uA[k] = used ? ch->threshold_uA : 0;
+        out.max_uA[k] = used ? ch->max_uA : 0;
+        out.phase_us[k] = used ? ch->phase_us : 0;
+        out.gap_us[k] = used ? ch->gap_us : 0;
+        out.min_interval_us[k] = used ? 2 * ch->phase_us + ch->gap_us + c->min_interval_us : 0;
+    }
+    out.max_rate_q16 = round_q16(c->max_rate_pps);
+    out.carrier_q16 = round_q16(c->carrier_pps);
+    out.full_scale_q16 = round_q16(c->full_scale_pps);
+    out.full_scale_change_pps_s = (int32_t)floor(c->full_scale_change_pps_s + 0.5);
+    out.rate_level_q16 = round_q16(c->rate_level);
+    out.rate_change_q16 = round_q16(c->rate_change);
+    out.amp_level_q16 = round_q16(c->amp_level);
+    out.amp_change_q16 = round_q16(c->amp_change);
+    out.dead_us = (int32_t)floor(c->dead_time_s * 1e6 + 0.5);
+    out.min_total_us = c->max_total_rate_pps > 0.0
+        ? (int32_t)ceil(1e6 / c->max_total_rate_pps) : 0;
+    out.seed = c->seed;
+    if (c->mode == PS_STIM_MODE_STOCHASTIC
+        && (int64_t)out.max_rate_q16 * out.dead_us >= FX_ONE)
+        return PS_ERR_CONFIG;
+    *q = out;
+    return PS_OK;
+}
+
+int64_t ps_stim_fx_neg_log(uint64_t bits)
+{
+    /* u = m / 2^53 with m = 2 (bits >> 12) + 1 (the double form's uniform, exactly);
+     * -ln u = (53 - p) ln 2 - ln y with y = m / 2^p in [1, 2), p the top bit of m */
+    uint64_t m = 2u * (bits >> 12) + 1u, y, one = (uint64_t)1 << 32;
+    int p = 0, k;
+    int64_t s, s2, acc;
+    while ((m >> (p + 1)) != 0)
+        ++p;
+    y = p >= 32 ? m >> (p - 32) : m << (32 - p);         /* y in Q32 */
+    s = (int64_t)(((y - one) << 30) / (y + one));       /* (y-1)/(y+1) in Q30, <= 1/3 */
+    s2 = (s * s) >> 30;
+    acc = ((int64_t)1 << 30) / (2 * FX_LOG_TERMS - 1);
+    for (k = FX_LOG_TERMS - 2; k >= 0; --k)
+        acc = ((acc * s2) >> 30) + ((int64_t)1 << 30) / (2 * k + 1);
+    return (int64_t)(53 - p) * FX_LN2_Q30 - ((2 * s * acc) >> 30);
+}
+
+static int64_t fx_threshold(const ps_stim_fx_config *q, int k, uint64_t draw)
+{
+    uint64_t first = draw * (uint64_t)q->gamma_shape;
+    int64_t total = 0;
+    int32_t j;
+    for (j = 0; j < q->gamma_shape; ++j)
+        total += ps_stim_fx_neg_log(ps_stim_bits(q->seed, (uint64_t)k, first + (uint64_t)j));
+    /* Q30 -> pulses of FX_ONE = 2^22 * 15625: x * 15625 / 2^8, rounded */
+    return (total * 15625 + 128 * q->gamma_shape) / (256 * q->gamma_shape);
+}
+
+int ps_stim_fx_init(ps_stim_fx_state *s, const ps_stim_fx_config *q, int64_t t0_us)
+{
+    int k, j;
+    if (s == NULL || q == NULL)
+        return PS_ERR_NULL;
+    if (q->n_channels < 1 || q->n_channels > PS_STIM_MAX_CHANNELS || q->mode < 0
+        || q->mode > PS_STIM_MODE_BIOMIMETIC || q->gamma_shape < 1
+        || q->gamma_shape > PS_STIM_MAX_GAMMA_SHAPE)
+        return PS_ERR_CONFIG;
+    s->t_us = t0_us;
+    s->last_any_us = FX_NO_PULSE;
+    for (k = 0; k < PS_STIM_MAX_CHANNELS; ++k) {
+        int stochastic = q->mode == PS_STIM_MODE_STOCHASTIC && k < q->n_channels;
+        s->phase[k] = 0;
+        s->threshold[k] = stochastic ? fx_threshold(q, k, 0) : FX_ONE;
+        s->draws[k] = stochastic ? 1u : 0u;
+        s->resume_us[k] = t0_us;
+        s->last_pulse_us[k] = FX_NO_PULSE;
+        s->previous_q16[k] = -1;
+        for (j = 0; j < PS_STIM_COUNTERS; ++j)
+            s->counts[k][j] = 0;
+    }
+    s->ready = 1;
+    return PS_OK;
+}
+
+typedef struct drive_fx {
+    int64_t pulse_q16;
+    int32_t amplitude_uA, previous_q16;
+    int rule, amp_clipped;
+} drive_fx;
+
+static int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
+
+static drive_fx channel_drive_fx(const ps_stim_fx_config *q, int k, int32_t previous, int32_t r,
+                                 int32_t dt_us)
+{
+    drive_fx d;
+    int64_t level, change, drive, x;
+    int32_t thr = q->threshold_uA[k], top = q->max_uA[k];
+    d.rule = -1;
+    d.amp_clipped = 0;
+    if (r < 0) {
+        d.rule = PS_STIM_COUNT_RATE_NEGATIVE;
+        r = 0;
+    } else if (r > q->max_rate_q16) {
+        d.rule = PS_STIM_COUNT_RATE_CLIPPED;
+        r = q->max_rate_q16;
+    }
+    d.previous_q16 = r;
+    if (q->mode == PS_STIM_MODE_FREQUENCY || q->mode == PS_STIM_MODE_STOCHASTIC) {
+        d.pulse_q16 = r;
+        d.amplitude_uA = top;
+        return d;
+    }
+    /* drives as fractions in Q24 (Q16 would let the biomimetic rate drift by ~0.1 ms
+     * over seconds against the double form) */
+    level = min64(((int64_t)r << 24) / q->full_scale_q16, FX_Q24);
+    if (q->mode == PS_STIM_MODE_AMPLITUDE) {
+        d.pulse_q16 = r > 0 ? q->carrier_q16 : 0;
+        drive = ((int64_t)r << 24) / q->full_scale_q16;
+    } else {
+        int64_t diff = previous < 0 ? 0 : (int64_t)(r > previous ? r - previous : previous - r);
+        /* |dr| / dt / full scale: Q16 pps over µs, times 10^6 = 15625 * 2^6, into Q24 */
+        change = min64((diff * 15625 << 14) / ((int64_t)dt_us * q->full_scale_change_pps_s),
+                       FX_Q24);
+        x = min64(((int64_t)q->rate_level_q16 * level + (int64_t)q->rate_change_q16 * change)
+                  >> 16, FX_Q24);
+        d.pulse_q16 = ((int64_t)q->max_rate_q16 * x) >> 24;
+        drive = ((int64_t)q->amp_level_q16 * level + (int64_t)q->amp_change_q16 * change) >> 16;
+    }
+    d.amp_clipped = drive > FX_Q24 && d.pulse_q16 > 0;
+    d.amplitude_uA = thr + (int32_t)(((int64_t)(top - thr) * min64(drive, FX_Q24)
+                                      + (FX_Q24 >> 1)) >> 24);
+    return d;
+}
+
+typedef struct clock_fx {
+    int64_t phase, threshold, resume_us;
+    uint64_t draws;
+} clock_fx;
+
+static long channel_crossings_fx(const ps_stim_fx_config *q, int k, clock_fx *cl,
+                                 int64_t pulse_q16, int64_t t0, int64_t t1, ps_pulse_fx *out,
+                                 long room)
+{
+    int stochastic = q->mode == PS_STIM_MODE_STOCHASTIC;
+    int64_t dead = stochastic ? q->dead_us : 0, rate = pulse_q16, tau, need, offset, cross;
+    long n = 0;
+    if (stochastic && pulse_q16 > 0)  /* r / (1 - r dead), in the phase's units per µs */
+        rate = pulse_q16 * (FX_ONE >> 10) / ((FX_ONE - pulse_q16 * dead) >> 10);
+    if (rate <= 0)
+        return 0;
+    tau = t0 > cl->resume_us ? t0 : cl->resume_us;
+    while (tau < t1) {
+        need = cl->threshold - cl->phase;
+        offset = need <= 0 ? 0 : (need + rate - 1) / rate;
+        cross = tau + offset;
+        if (cross >= t1) {
+            cl->phase += rate * (t1 - tau);
+            break;
+        }
+        if (out != NULL && n < room)
+            out[n].time_us = cross;
+        ++n;
+        cl->phase = offset * rate - need; /* the overshoot: the integral stays exact */
+        if (stochastic) {
+            cl->threshold = fx_threshold(q, k, cl->draws);
+            cl->draws += 1;
+        }
+        tau = cross + dead;
+        cl->resume_us = tau;
+    }
+    return n;
+}
+
+static int before_fx(const ps_pulse_fx *a, const ps_pulse_fx *b)
+{
+    return a->time_us < b->time_us || (a->time_us == b->time_us && a->channel < b->channel);
+}
+
+static long admit_fx(ps_stim_fx_state *s, const ps_stim_fx_config *q, ps_pulse_fx *ev, long n)
+{
+    long i, j, kept = 0;
+    for (i = 1; i < n; ++i) {
+        ps_pulse_fx x = ev[i];
+        for (j = i; j > 0 && before_fx(&x, &ev[j - 1]); --j)
+            ev[j] = ev[j - 1];
+        ev[j] = x;
+    }
+    for (i = 0; i < n; ++i) {
+        int k = ev[i].channel;
+        int64_t t = ev[i].time_us;
+        if (t - s->last_pulse_us[k] < q->min_interval_us[k]) {
+            s->counts[k][PS_STIM_COUNT_DROPPED_INTERVAL] += 1;
+        } else if (t - s->last_any_us < q->min_total_us) {
+            s->counts[k][PS_STIM_COUNT_DROPPED_TOTAL_RATE] += 1;
+        } else {
+            s->last_pulse_us[k] = t;
+            s->last_any_us = t;
+            s->counts[k][PS_STIM_COUNT_PULSES] += 1;
+            ev[kept++] = ev[i];
+        }
+    }
+    return kept;
+}
+
+static clock_fx clock_of(const ps_stim_fx_state *s, int k)
+{
+    clock_fx cl;
+    cl.phase = s->phase[k];
+    cl.threshold = s->threshold[k];
+    cl.resume_us = s->resume_us[k];
+    cl.draws = s->draws[k];
+    return cl;
+}
+
+int ps_stim_fx_step(ps_stim_fx_state *s, const ps_stim_fx_config *q, const int32_t *rates_q16,
+                    int32_t dt_us, ps_pulse_fx *events, long capacity, long *n_events)
+{
+    int64_t t0, t1;
+    long n = 0, m, i;
+    int k;
+    if (n_events != NULL)
+        *n_events = 0;
+    if (s == NULL || q == NULL || rates_q16 == NULL || (events == NULL && capacity > 0))
+        return PS_ERR_NULL;
+    if (s->ready != 1)
+        return PS_ERR_NOT_RESET;
+    if (dt_us < 1 || dt_us > 1000000)
+        return PS_ERR_STEP;
+    t0 = s->t_us;
+    t1 = t0 + dt_us;
+    for (k = 0; k < q->n_channels; ++k) {  /* dry run: the pulses must fit */
+        drive_fx d = channel_drive_fx(q, k, s->previous_q16[k], rates_q16[k], dt_us);
+        clock_fx cl = clock_of(s, k);
+        n += channel_crossings_fx(q, k, &cl, d.pulse_q16, t0, t1, NULL, 0);
+    }
+    if (n > capacity)
+        return PS_ERR_BUFFER_FULL;
+    n = 0;
+    for (k = 0; k < q->n_channels; ++k) {
+        drive_fx d = channel_drive_fx(q, k, s->previous_q16[k], rates_q16[k], dt_us);
+        clock_fx cl = clock_of(s, k);
+        if (d.rule >= 0)
+            s->counts[k][d.rule] += 1;
+        s->counts[k][PS_STIM_COUNT_AMPLITUDE_CLIPPED] += (uint32_t)d.amp_clipped;
+        s->previous_q16[k] = d.previous_q16;
+        m = channel_crossings_fx(q, k, &cl, d.pulse_q16, t0, t1, events + n, capacity - n);
+        for (i = n; i < n + m; ++i) {
+            events[i].channel = k;
+            events[i].amplitude_uA = d.amplitude_uA;
+            events[i].cathodic_us = q->phase_us[k];
+            events[i].anodic_us = q->phase_us[k];
+            events[i].gap_us = q->gap_us[k];
+        }
+        n += m;
+        s->phase[k] = cl.phase;
+        s->threshold[k] = cl.threshold;
+        s->resume_us[k] = cl.resume_us;
+        s->draws[k] = cl.draws;
+    }
+    n = admit_fx(s, q, events, n);
+    s->t_us = t1;
+    if (n_events != NULL)
+        *n_events = n;
+    return PS_OK;
+}
