@@ -17,8 +17,8 @@ import numpy as np
 from spindle.native import abi, build
 from spindle.stimulation.config import MAX_CHANNELS, StimConfig
 from spindle.stimulation.encoder import COUNTERS
-from spindle.stimulation.events import PULSE_DTYPE, empty_events
-from spindle.stimulation.stimulator import checked_trace
+from spindle.stimulation.events import empty_events
+from spindle.stimulation.trace import checked_trace
 
 FX_RATE_ONE = 1 << 16
 """``PS_STIM_FX_RATE_ONE``: 1 pps in the fixed form's Q16."""

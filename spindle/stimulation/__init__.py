@@ -11,6 +11,7 @@ neural patterns"). Pieces, each usable alone:
 - :mod:`~spindle.stimulation.generator`: the counter-based random draws (same bits in C);
 - :mod:`~spindle.stimulation.encoder`: the numpy encoder (state, one step);
 - :mod:`~spindle.stimulation.stimulator`: :func:`make_stimulator` (numpy or C);
+- :mod:`~spindle.stimulation.trace`: a trace's checked input, :func:`intervals_from_times`;
 - :mod:`~spindle.stimulation.events`: :data:`PULSE_DTYPE`, CSV and npz;
 - :mod:`~spindle.stimulation.raster`: :func:`plot_raster` (matplotlib, imported lazily).
 """
@@ -23,6 +24,7 @@ from spindle.stimulation.channels import (
     ELBOW_SPINDLES,
     Channel,
     ChannelMap,
+    afferent_rates,
     channel_map,
 )
 from spindle.stimulation.config import MAX_CHANNELS, StimConfig
@@ -38,15 +40,13 @@ from spindle.stimulation.events import (
 from spindle.stimulation.modes import MODES, EncoderParams
 from spindle.stimulation.raster import plot_raster
 from spindle.stimulation.safety import StimulatorLimits, shannon_k
-from spindle.stimulation.stimulator import (
-    NumpyStimulator,
-    intervals_from_times,
-    make_stimulator,
-)
+from spindle.stimulation.stimulator import NumpyStimulator, make_stimulator
+from spindle.stimulation.trace import intervals_from_times
 
 __all__ = [
     "AFFERENTS", "COUNTERS", "ELBOW_ALL", "ELBOW_SPINDLES", "MAX_CHANNELS", "MODES",
     "PULSE_DTYPE", "Channel", "ChannelMap", "EncoderParams", "NumpyStimulator", "StimConfig",
-    "StimulatorLimits", "channel_map", "charges_pC", "intervals_from_times", "load_csv",
-    "load_npz", "make_stimulator", "plot_raster", "save_csv", "save_npz", "shannon_k",
+    "StimulatorLimits", "afferent_rates", "channel_map", "charges_pC", "intervals_from_times",
+    "load_csv", "load_npz", "make_stimulator", "plot_raster", "save_csv", "save_npz",
+    "shannon_k",
 ]

@@ -21,7 +21,10 @@ threshold 30 µA and maximum 150 µA (15 nC/phase; Shannon k = 0.65 on that area
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+
+import numpy as np
 
 AFFERENTS = ("ia", "ii", "ib")
 """Afferent kinds a channel may carry: spindle primary (Ia), secondary (II), tendon organ
@@ -128,9 +131,38 @@ class ChannelMap:
     def labels(self) -> tuple[str, ...]:
         return tuple(c.label for c in self.channels)
 
+    def gather(self, rates_pps: Mapping[tuple[str, str], object]) -> np.ndarray:
+        """The channels' rates from rates keyed by (muscle, afferent), stacked on a last axis
+        in channel order: scalars give (channels,), (T,) arrays give (T, channels). Pairs no
+        channel uses are ignored; a channel whose pair is missing is a KeyError naming it."""
+        missing = [c.label for c in self.channels if (c.muscle, c.afferent) not in rates_pps]
+        if missing:
+            raise KeyError(f"no rate given for channel(s) {missing}")
+        return np.stack([np.asarray(rates_pps[(c.muscle, c.afferent)], dtype=np.float64)
+                         for c in self.channels], axis=-1)
+
     def array(self, name: str) -> list:
         """One attribute of every channel, in index order."""
         return [getattr(c, name) for c in self.channels]
+
+
+def afferent_rates(muscles: tuple[str, ...] | list[str], **per_afferent: object
+                   ) -> dict[tuple[str, str], np.ndarray]:
+    """Rates keyed by (muscle, afferent) from per-afferent arrays whose last axis is
+    ``muscles`` (e.g. a chain trace's ``ia_pps`` (T, 2) with ``muscles=("BRA", "TRImed")``):
+    ``afferent_rates(MUSCLES, ia=trace.ia_pps, ii=trace.ii_pps)``; keywords are
+    :data:`AFFERENTS`."""
+    out: dict[tuple[str, str], np.ndarray] = {}
+    for afferent, values in per_afferent.items():
+        if afferent not in AFFERENTS:
+            raise ValueError(f"afferent={afferent!r} is not one of {AFFERENTS}")
+        values = np.asarray(values, dtype=np.float64)
+        if values.shape[-1:] != (len(muscles),):
+            raise ValueError(f"{afferent} has shape {values.shape}; its last axis must be the "
+                             f"{len(muscles)} muscles {tuple(muscles)}")
+        for k, muscle in enumerate(muscles):
+            out[(muscle, afferent)] = values[..., k]
+    return out
 
 
 def channel_map(pairs: list[tuple[str, str]] | tuple[tuple[str, str], ...],

@@ -74,13 +74,13 @@ class EncoderParams:
             ``max_rate_pps * dead_time_s < 1``).
         seed: the stochastic draws' seed (0 .. 2**64 - 1).
 
-    Defaults (assumed): full scale 200 pps (human Ia/II span 0-200 pps in the demo), 2000
+    Defaults (assumed): full scale 100 pps (the demo's human Ia peaks near 50 pps), 2000
     pps/s, carrier 100 pps, weights 0.5/0.5 (rate) and 1.0/0.5 (amplitude), Poisson, 2 ms
     dead time (a human afferent's absolute refractory period is ~1 ms), seed 0.
     """
 
     mode: str = "frequency"
-    full_scale_pps: float = 200.0
+    full_scale_pps: float = 100.0
     full_scale_change_pps_s: float = 2000.0
     carrier_pps: float = 100.0
     rate_level: float = 0.5
