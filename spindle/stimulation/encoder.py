@@ -174,7 +174,8 @@ def _crossings(config: StimConfig, state: EncoderState, pulse_pps: np.ndarray, t
     safe_rate = np.where(rate > 0, rate, 1.0)
     times, channels = [], []
     while active.any():
-        cross = np.maximum(tau + (state.threshold - state.phase) / safe_rate, tau)
+        with np.errstate(over="ignore"):  # a tiny rate's crossing is at +inf: never
+            cross = np.maximum(tau + (state.threshold - state.phase) / safe_rate, tau)
         fire = active & (cross < t1)
         idle = active & ~fire
         state.phase[idle] += rate[idle] * (t1 - tau[idle])

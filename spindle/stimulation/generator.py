@@ -29,17 +29,17 @@ ATANH_TERMS = 12
 
 def mix(x: np.ndarray) -> np.ndarray:
     """SplitMix64's step and finaliser on uint64 (wrapping arithmetic)."""
-    with np.errstate(over="ignore"):  # numpy warns on scalar wrap-around, which is wanted
-        z = np.asarray(x, dtype=np.uint64) + GOLDEN
-        z = (z ^ (z >> np.uint64(30))) * MIX1
-        z = (z ^ (z >> np.uint64(27))) * MIX2
+    z = np.asarray(x, dtype=np.uint64) + GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * MIX1
+    z = (z ^ (z >> np.uint64(27))) * MIX2
     return z ^ (z >> np.uint64(31))
 
 
 def draw_bits(seed: int, channel: np.ndarray, index: np.ndarray) -> np.ndarray:
     """64 random bits of draw ``index`` of ``channel`` (arrays broadcast)."""
-    key = mix(np.uint64(seed & MASK64)) ^ np.asarray(channel, dtype=np.uint64)
-    return mix(mix(key) ^ np.asarray(index, dtype=np.uint64))
+    with np.errstate(over="ignore"):  # numpy warns on a scalar's wrap-around, which is wanted
+        key = mix(np.uint64(seed & MASK64)) ^ np.asarray(channel, dtype=np.uint64)
+        return mix(mix(key) ^ np.asarray(index, dtype=np.uint64))
 
 
 def uniform(seed: int, channel: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -66,10 +66,12 @@ def log_unit(u: np.ndarray) -> np.ndarray:
 def gamma_threshold(seed: int, channel: np.ndarray, draw: np.ndarray,
                     shape: int) -> np.ndarray:
     """Draw number ``draw`` of a gamma(shape, 1/shape) variable (mean 1) per channel: the mean
-    of ``shape`` exponentials, draws ``draw * shape`` .. ``draw * shape + shape - 1``."""
-    channel = np.asarray(channel, dtype=np.uint64)
-    first = np.asarray(draw, dtype=np.uint64) * np.uint64(shape)
-    total = np.zeros(np.broadcast(channel, first).shape)
+    of ``shape`` exponentials, draws ``draw * shape`` .. ``draw * shape + shape - 1``, summed
+    in that order (as the C loop does)."""
+    channel = np.asarray(channel, dtype=np.uint64)[..., None]
+    first = np.asarray(draw, dtype=np.uint64)[..., None] * np.uint64(shape)
+    logs = log_unit(uniform(seed, channel, first + np.arange(shape, dtype=np.uint64)))
+    total = np.zeros(logs.shape[:-1])
     for j in range(shape):
-        total = total - log_unit(uniform(seed, channel, first + np.uint64(j)))
+        total = total - logs[..., j]
     return total / shape

@@ -24,7 +24,8 @@ def checked_trace(config: StimConfig, rates_pps: object,
     bad = ~(np.isfinite(dt) & (dt > 0) & (dt <= MAX_DT_S))
     if bad.any():
         i = int(np.argmax(bad))
-        raise ValueError(f"dt_s[{i}]={dt[i]!r} must be a finite number in (0, {MAX_DT_S:g}] s")
+        raise ValueError(f"dt_s[{i}]={float(dt[i])!r} must be a finite number in "
+                         f"(0, {MAX_DT_S:g}] s")
     return rates, dt
 
 
