@@ -506,6 +506,9 @@ typedef struct drive_fx {
 } drive_fx;
 
 static int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
+/* a / b and a / 2^k rounded to nearest, for a >= 0, b > 0 */
+static int64_t div_round(int64_t a, int64_t b) { return (a + b / 2) / b; }
+static int64_t shift_round(int64_t a, int k) { return (a + ((int64_t)1 << (k - 1))) >> k; }
 
 static drive_fx channel_drive_fx(const ps_stim_fx_config *q, int k, int32_t previous, int32_t r,
                                  int32_t dt_us)
@@ -528,21 +531,23 @@ static drive_fx channel_drive_fx(const ps_stim_fx_config *q, int k, int32_t prev
         d.amplitude_uA = top;
         return d;
     }
-    /* drives as fractions in Q24 (Q16 would let the biomimetic rate drift by ~0.1 ms
-     * over seconds against the double form) */
-    level = min64(((int64_t)r << 24) / q->full_scale_q16, FX_Q24);
+    /* drives as fractions in Q24, every quotient and shift rounded to nearest: Q16 or
+     * truncation would bias the biomimetic rate and let its pulses drift by tens of µs
+     * over seconds against the double form */
+    level = min64(div_round(((int64_t)r << 24), q->full_scale_q16), FX_Q24);
     if (q->mode == PS_STIM_MODE_AMPLITUDE) {
         d.pulse_q16 = r > 0 ? q->carrier_q16 : 0;
-        drive = ((int64_t)r << 24) / q->full_scale_q16;
+        drive = div_round(((int64_t)r << 24), q->full_scale_q16);
     } else {
         int64_t diff = previous < 0 ? 0 : (int64_t)(r > previous ? r - previous : previous - r);
         /* |dr| / dt / full scale: Q16 pps over µs, times 10^6 = 15625 * 2^6, into Q24 */
-        change = min64((diff * 15625 << 14) / ((int64_t)dt_us * q->full_scale_change_pps_s),
-                       FX_Q24);
-        x = min64(((int64_t)q->rate_level_q16 * level + (int64_t)q->rate_change_q16 * change)
-                  >> 16, FX_Q24);
-        d.pulse_q16 = ((int64_t)q->max_rate_q16 * x) >> 24;
-        drive = ((int64_t)q->amp_level_q16 * level + (int64_t)q->amp_change_q16 * change) >> 16;
+        change = min64(div_round(diff * 15625 << 14,
+                                 (int64_t)dt_us * q->full_scale_change_pps_s), FX_Q24);
+        x = min64(shift_round((int64_t)q->rate_level_q16 * level
+                              + (int64_t)q->rate_change_q16 * change, 16), FX_Q24);
+        d.pulse_q16 = shift_round((int64_t)q->max_rate_q16 * x, 24);
+        drive = shift_round((int64_t)q->amp_level_q16 * level
+                            + (int64_t)q->amp_change_q16 * change, 16);
     }
     d.amp_clipped = drive > FX_Q24 && d.pulse_q16 > 0;
     d.amplitude_uA = thr + (int32_t)(((int64_t)(top - thr) * min64(drive, FX_Q24)
