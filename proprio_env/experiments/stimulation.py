@@ -111,6 +111,9 @@ class StimulationNumbers:
             lines.append(f"{mode}: {({k: v for k, v in counts.items() if v})}")
         return "\n".join(lines)
 
+    def summary_md(self) -> str:
+        return "```\n" + self.report() + "\n```\n"
+
 
 def run(out_dir: Path, quick: bool = False, duration_s: float | None = None,
         seed: int = 0) -> StimulationNumbers:
