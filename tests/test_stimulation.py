@@ -116,6 +116,8 @@ def assert_within_limits(config: StimConfig, events: np.ndarray) -> None:
         assert np.all(mine["cathodic_us"] == c.phase_us) and np.all(mine["gap_us"] == c.gap_us)
         gaps = np.diff(mine["time_s"])
         assert np.all(gaps >= (c.duration_us + lim.min_interval_us) * 1e-6 * (1 - 1e-12))
+        if not MODES[config.params.mode].stochastic:  # the pulse rate never exceeds the max
+            assert np.all(gaps >= (1.0 / lim.max_rate_pps) * (1 - 1e-9))
         assert np.all(mine["amplitude_uA"].astype(np.int64) * c.phase_us
                       <= lim.max_charge_nC * 1e3)
     if lim.max_total_rate_pps is not None:
