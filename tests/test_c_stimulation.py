@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import ctypes
 import math
-import subprocess
 
 import numpy as np
 import pytest
+from c_layout import c_layout
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -81,17 +81,8 @@ def test_header_constants_status_and_layouts(tmp_path):
                 ("ps_stim_fx_state", cstim.PsStimFxState, "counts"),
                 ("ps_stim_fx_state", cstim.PsStimFxState, "ready"),
                 ("ps_pulse_fx", cstim.PsPulseFx, "anodic_us")]
-    lines = "".join(f'printf("%lu %lu\\n", (unsigned long)sizeof({c}), '
-                    f"(unsigned long)offsetof({c}, {f}));\n" for c, _, f in structs)
-    src = tmp_path / "layout.c"
-    src.write_text('#include <stdio.h>\n#include <stddef.h>\n#include "proprio.h"\n'
-                   f"int main(void) {{\n{lines}return 0;\n}}\n")
-    subprocess.run([*build.compiler_command(), *build.WARNING_FLAGS, "-I",
-                    str(build.SOURCE_DIR), str(src), "-o", str(tmp_path / "layout")], check=True)
-    out = subprocess.run([str(tmp_path / "layout")], capture_output=True, text=True,
-                         check=True).stdout.split()
     got = [(ctypes.sizeof(py), getattr(py, f).offset) for _, py, f in structs]
-    assert got == [(int(out[2 * k]), int(out[2 * k + 1])) for k in range(len(structs))]
+    assert got == c_layout([(c, f) for c, _, f in structs], tmp_path)
     assert PULSE_DTYPE.itemsize == ctypes.sizeof(cstim.PsPulse)
     assert cstim.PULSE_FX_DTYPE.itemsize == ctypes.sizeof(cstim.PsPulseFx)
 

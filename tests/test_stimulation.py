@@ -313,3 +313,44 @@ def test_events_round_trip_through_csv_and_npz(tmp_path):
     for name in ("channel", "amplitude_uA", "cathodic_us", "gap_us", "anodic_us"):
         assert np.array_equal(back[name], events[name])
     assert (tmp_path / "e.csv").read_text().splitlines()[0].endswith(",label")
+
+
+def test_plot_raster_draws_a_row_per_channel_with_its_rate():
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.arange(200) * 0.002
+    rates = np.stack([np.full(200, 50.0), np.linspace(0, 150, 200)], axis=1)
+    config = StimConfig(ChannelMap((Channel("BRA", "ia", 30, 150), Channel("BRA", "ii", 30, 150))),
+                        params=EncoderParams(mode="amplitude", full_scale_pps=150.0))
+    events = make_stimulator(config, "numpy").run(rates, 0.002)
+    fig, ax = plt.subplots()
+    from spindle.stimulation import plot_raster
+
+    plot_raster(ax, events, config.channels.labels, t, rates)
+    ticks = ax.collections
+    assert len(ticks) == 2 and len(ax.lines) == 2
+    assert [s.get_text() for s in ax.get_yticklabels()] == ["BRA ii", "BRA ia"]
+    # channel 0 (top row, y from 1): one tick per pulse; heights grow with amplitude
+    segs = ticks[0].get_segments()
+    assert len(segs) == np.sum(events["channel"] == 0)
+    heights = [s[1, 1] - s[0, 1] for s in ticks[1].get_segments()]
+    assert heights[-1] > heights[0]
+    plt.close(fig)
+
+
+@pytest.mark.slow
+def test_the_stimulation_experiment_writes_its_figure_and_events(tmp_path):
+    pytest.importorskip("matplotlib")
+    from proprio_env.experiments import stimulation
+
+    numbers = stimulation.run(tmp_path, duration_s=2.0)
+    for mode in MODES:
+        events, labels = load_npz(tmp_path / f"stimulation_{mode}.npz")
+        assert labels == ELBOW_SPINDLES.labels
+        assert np.array_equal(load_csv(tmp_path / f"stimulation_{mode}.csv")["channel"],
+                              events["channel"])
+    assert (tmp_path / "stimulation.png").stat().st_size > 10_000
+    for label, integral in numbers.integral.items():  # frequency coding: the integral's floor
+        assert abs(numbers.pulses["frequency"][label] - integral) <= 1.0
