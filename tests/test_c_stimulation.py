@@ -257,3 +257,26 @@ def test_fixed_point_equals_double_on_the_demo_motion(demo, mode):
     assert da[~near_edge].max(initial=0) <= 1
     assert np.array_equal(counts[:, 0], np.bincount(b["channel"], minlength=4))
     assert np.all(b["cathodic_us"] == b["anodic_us"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", sorted(MODES))
+def test_cortex_m0plus_firmware_gives_the_host_fixed_point_events(demo, mode, tmp_path):
+    """The firmware (firmware.c with FW_STIM, arm-none-eabi-gcc, emulated) on 0.5 s of the
+    demo motion: the same events as the host build of the fixed form, bit for bit."""
+    import shutil
+
+    if shutil.which("arm-none-eabi-gcc") is None:
+        pytest.skip("arm-none-eabi-gcc not installed (apt-get install gcc-arm-none-eabi)")
+    pytest.importorskip("unicorn")
+    from spindle.native.m0plus import stim
+
+    t_s, rates = demo
+    keep = t_s <= t_s[0] + 0.5
+    t_us = np.round((t_s[keep] - t_s[0]) * 1e6).astype(np.int64)
+    dt_us = np.append(np.diff(t_us), np.diff(t_us)[-1])
+    q = cstim.to_q16(rates[keep])
+    config = StimConfig(params=EncoderParams(mode=mode, seed=9))
+    measured = stim.emulate_stim(config, q, dt_us, tmp_path)
+    host, _ = cstim.fixed_run(config, q, dt_us)
+    assert host.size > 5 and np.array_equal(measured.events, host)
