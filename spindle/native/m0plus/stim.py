@@ -97,3 +97,24 @@ def emulate_stim(config: StimConfig, rates_q16: np.ndarray, dt_us: np.ndarray,
     return StimMeasured(np.concatenate(out) if out else np.zeros(0, cstim.PULSE_FX_DTYPE),
                         np.array(counts), emu.stack_used(), flash, ram,
                         [(name, n // max(calls, 1)) for name, n in emu.profile.most_common(8)])
+
+
+def spindle_instructions(config: StimConfig, build_dir: Path, steps: int = 200) -> np.ndarray:
+    """Instructions per ``fw_step_muscle`` call (the fixed-point spindle step of 1 ms, HUMAN)
+    in the same firmware, along a smooth stretch with constant drives (70 pps), for a side by
+    side comparison with the stimulator."""
+    emu = M0Plus(build_firmware(firmware_config(config, build_dir), Path(build_dir)))
+    t = np.arange(steps + 1) * 1e-3
+    L = 1.0 + 0.05 * np.sin(2 * np.pi * 1.5 * t)
+    emu.write_io([L[0], L[0]], [70.0, 70.0], [70.0, 70.0], fixed=True)
+    status, _ = emu.call("fw_init")
+    if status != 0:
+        raise RuntimeError(f"fw_init: status {status}")
+    counts = []
+    for j in range(1, steps + 1):
+        emu.write_io([L[j], L[j]], [70.0, 70.0], [70.0, 70.0], fixed=True)
+        status, n = emu.call("fw_step_muscle", 0)
+        if status != 0:
+            raise RuntimeError(f"fw_step_muscle: status {status}")
+        counts.append(n)
+    return np.array(counts)
