@@ -3,6 +3,8 @@
 The firmware is ``spindle.c`` with ``c/m0plus/firmware.c`` (two muscles, HUMAN constants in
 flash) for ``-mcpu=cortex-m0plus -mthumb``, soft float, newlib-nano; the host twin is the same
 ``spindle.c`` and options, float32, as a shared library, so the two compute the same numbers.
+With ``Config.stim_dir`` the firmware also holds the fixed-point stimulator (``stimulation.c``,
+:mod:`spindle.native.m0plus.stim`).
 """
 
 from __future__ import annotations
