@@ -621,7 +621,8 @@ int ps_stim_init(ps_stim_state *s, const ps_stim_config *c, ps_time t0_s);
 long ps_stim_max_events(const ps_stim_config *c, ps_time dt_s);
 
 /* One interval [t, t + dt_s) with rates_pps[n_channels] held over it (encoder.step): the
- * delivered pulses in time order into events[0 .. *n_events - 1]. Errors (nothing changed,
+ * delivered pulses in time order into events[0 .. *n_events - 1]. `c` must be the config
+ * `s` was initialised with (checked there, not at every step). Errors (nothing changed,
  * *n_events = 0): PS_ERR_NULL, PS_ERR_NOT_RESET, PS_ERR_STEP (dt_s not finite or outside
  * (0, PS_STIM_MAX_DT_S]), PS_ERR_BUFFER_FULL (more pulses than capacity). Bad rates are
  * handled by the counted rules, never an error. */

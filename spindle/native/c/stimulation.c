@@ -252,13 +252,18 @@ static long channel_crossings(const ps_stim_config *c, int k, channel_clock *cl,
     return n;
 }
 
+/* Crossings are at least 1/max_rate (deterministic) or the dead time (stochastic) apart. */
+static long max_events(const ps_stim_config *c, ps_time dt_s)
+{
+    double per = c->mode == PS_STIM_MODE_STOCHASTIC ? 1.0 / c->dead_time_s : c->max_rate_pps;
+    return (long)c->n_channels * ((long)(dt_s * per) + 2);
+}
+
 long ps_stim_max_events(const ps_stim_config *c, ps_time dt_s)
 {
-    double per;
     if (ps_stim_config_check(c) != PS_OK || !finite_in(dt_s, 1e-300, PS_STIM_MAX_DT_S))
         return -1;
-    per = c->mode == PS_STIM_MODE_STOCHASTIC ? 1.0 / c->dead_time_s : c->max_rate_pps;
-    return (long)c->n_channels * ((long)(dt_s * per) + 2);
+    return max_events(c, dt_s);
 }
 
 static int before(const ps_pulse *a, const ps_pulse *b)
@@ -325,7 +330,7 @@ int ps_stim_step(ps_stim_state *s, const ps_stim_config *c, const double *rates_
         return PS_ERR_NOT_RESET;
     if (!finite_in(dt_s, 1e-300, PS_STIM_MAX_DT_S))
         return PS_ERR_STEP;
-    if (capacity < ps_stim_max_events(c, dt_s) && count_candidates(s, c, rates_pps, dt_s) > capacity)
+    if (capacity < max_events(c, dt_s) && count_candidates(s, c, rates_pps, dt_s) > capacity)
         return PS_ERR_BUFFER_FULL;
     t0 = s->t_s;
     t1 = t0 + dt_s;
