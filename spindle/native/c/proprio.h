@@ -677,7 +677,10 @@ typedef struct ps_pulse_fx {
 
 /* The fixed-point config of a checked double config (host or start-up): rates rounded to
  * Q16, dead time and the total-rate spacing to whole µs (rounded up). The status of
- * ps_stim_config_check; q is untouched on failure. */
+ * ps_stim_config_check, or PS_ERR_CONFIG for what the integers cannot hold (full_scale_pps
+ * above 32767, full_scale_change_pps_s outside 1..2e9, a weight above 3e4, a total rate below
+ * 1e-3 pps, a dead time below 1 µs, stochastic max_rate_pps * dead_time_s above 0.99); q is
+ * untouched on failure. */
 int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c);
 /* -log(u) in Q30 of the double form's uniform u = (2 (bits >> 12) + 1) / 2^53. */
 int64_t ps_stim_fx_neg_log(uint64_t bits);

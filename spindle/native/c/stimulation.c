@@ -417,7 +417,8 @@ int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c)
     if (c->full_scale_pps > 32767.0 || c->full_scale_pps < 1.0 / 65536.0
         || c->full_scale_change_pps_s < 1.0 || c->full_scale_change_pps_s > 2e9
         || c->dead_time_s < 1e-6 || c->rate_level > 3e4 || c->rate_change > 3e4
-        || c->amp_level > 3e4 || c->amp_change > 3e4)
+        || c->amp_level > 3e4 || c->amp_change > 3e4
+        || (c->max_total_rate_pps > 0.0 && c->max_total_rate_pps < 1e-3))
         return PS_ERR_CONFIG;
     out.n_channels = c->n_channels;
     out.mode = c->mode;
@@ -443,8 +444,9 @@ int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c)
     out.min_total_us = c->max_total_rate_pps > 0.0
         ? (int32_t)ceil(1e6 / c->max_total_rate_pps) : 0;
     out.seed = c->seed;
+    /* r / (1 - r dead) at most 100 r: the phase's int64 arithmetic keeps its bounds */
     if (c->mode == PS_STIM_MODE_STOCHASTIC
-        && (int64_t)out.max_rate_q16 * out.dead_us >= FX_ONE)
+        && 100 * (int64_t)out.max_rate_q16 * out.dead_us > 99 * FX_ONE)
         return PS_ERR_CONFIG;
     *q = out;
     return PS_OK;
