@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import re
 import subprocess
 
 import numpy as np
@@ -21,6 +22,8 @@ import pytest
 from c_layout import c_layout
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from sanitized_build import SANITIZER_REPORT
+from sanitized_build import build as sanitized
 
 from spindle.native import abi, build
 from spindle.native import stimulation as cstim
@@ -302,10 +305,6 @@ def test_sanitizer_fuzz_of_the_stimulator(tmp_path):
     """fuzz/fuzz_stim.c under ASan + UBSan: random configs (some broken), rates (NaN, inf,
     huge, negative; int32 extremes), intervals and buffer sizes; the header's promises
     checked by the driver, zero sanitizer reports."""
-    import re
-
-    from sanitized_build import SANITIZER_REPORT, build as sanitized
-
     source = build.SOURCE_DIR / "fuzz" / "fuzz_stim.c"
     binary = sanitized(tmp_path / "fuzz_stim",
                        [build.SOURCE_DIR / "stimulation.c", source], "double")
