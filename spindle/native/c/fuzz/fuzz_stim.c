@@ -25,19 +25,16 @@
 
 #define CAPACITY 256
 
-typedef struct rng { unsigned long long s; } rng;
+/* The driver's draws come from the library's own counter-based hash (its SplitMix64
+ * finaliser is checked against a reference in tests/test_stimulation.py). */
+typedef struct rng { uint64_t seed, counter; } rng;
 
-static unsigned long long next_u64(rng *r)
-{
-    r->s ^= r->s << 13;
-    r->s ^= r->s >> 7;
-    r->s ^= r->s << 17;
-    return r->s;
-}
+static uint64_t next_u64(rng *r) { return ps_stim_bits(r->seed, 0xF022u, r->counter++); }
 
 static double uniform(rng *r, double lo, double hi)
 {
-    return lo + (hi - lo) * (double)(next_u64(r) >> 11) * (1.0 / 9007199254740992.0);
+    double u = (double)(next_u64(r) >> 11) / 9007199254740992.0; /* [0, 1) */
+    return lo + (hi - lo) * u;
 }
 
 static int below(rng *r, int n) { return (int)(next_u64(r) % (unsigned long long)n); }
@@ -203,7 +200,8 @@ int main(int argc, char **argv)
         fprintf(stderr, "usage: %s SEED ITERATIONS\n", argv[0]);
         return 2;
     }
-    r.s = strtoull(argv[1], NULL, 10) * 2654435761ULL + 88172645463325252ULL;
+    r.seed = strtoull(argv[1], NULL, 10);
+    r.counter = 0;
     iterations = strtol(argv[2], NULL, 10);
     for (it = 0; it < iterations; ++it) {
         ps_stim_config c = draw_config(&r);
