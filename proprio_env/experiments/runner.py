@@ -25,6 +25,7 @@ from proprio_env.experiments import (
     length_fits,
     obstruction,
     spindle_accuracy,
+    stimulation,
 )
 
 PNG_COLOURS = 128
@@ -71,6 +72,7 @@ def validation_steps(jobs: int = 1) -> tuple[Step, ...]:
         Step("length_fits", "Length fits (the paper's Fig. 5)", length_fits.run),
         Step("demo", "Chain demo (the paper's Fig. 8)", demo.run),
         Step("gto", "Golgi tendon organ (Ib): Lin & Crago 2002, the exact step", gto.run),
+        Step("stimulation", "Stimulator stage on the demo motion", stimulation.run),
     )
 
 
