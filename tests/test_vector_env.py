@@ -232,9 +232,11 @@ def test_batched_chain_does_not_keep_the_callers_block_buffers(backend):
 
 
 def test_fibre_lengths_of_both_muscles_equal_the_one_muscle_function():
-    from proprio_env.muscle_length import FibreLengths, fibre_length_L0
+    from proprio_env.model import MUSCLES
+    from proprio_env.muscle_length import FibreLengths, fibre_length_L0, muscle_geometry
 
-    geometries = gym.make(IDS[0]).unwrapped._geometries
+    model = gym.make(IDS[0]).unwrapped.model
+    geometries = tuple(muscle_geometry(model, m) for m in MUSCLES)
     both = FibreLengths(geometries)
     slack = np.array([g.tendon_slack_length_m for g in geometries])
     mtu = slack + np.random.default_rng(0).uniform(0.01, 0.2, (3, 10, 2))
