@@ -195,9 +195,9 @@ def _checked_angles(name: str, value: Any, n: int | None, limits_deg: tuple[floa
                              f"number or one per sub-env (num_envs={n})")
         where = [f"options[{name!r}][{i}] (sub-env {i})" for i in range(n)]
     out = np.array([check_real(w, v) for w, v in zip(where, values, strict=True)])
-    for w, v, x in zip(where, values, out, strict=True):
+    for w, x in zip(where, out.tolist(), strict=True):
         if not lo <= x <= hi:
-            raise ValueError(f"{w}={v!r} must lie within the joint range [{lo:g}, {hi:g}] "
+            raise ValueError(f"{w}={x!r} must lie within the joint range [{lo:g}, {hi:g}] "
                              "deg")
     return np.broadcast_to(out, (1 if n is None else n,)).copy()
 

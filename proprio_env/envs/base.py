@@ -32,6 +32,7 @@ class ElbowProprioEnv(CoreSettings, gym.Env):
         self.observation_space = core.observation_space
         self.action_space = core.action_space
         self._env = np.zeros(1, dtype=np.int64)  # the core's one env
+        self._action_shape = core.action_space.shape
         self._ready = False
 
     # -- gymnasium API ----------------------------------------------------------------------
@@ -58,7 +59,7 @@ class ElbowProprioEnv(CoreSettings, gym.Env):
             raise RuntimeError("call reset() before step()")
         core = self.core
         distance, control, pushed = core.step(
-            core.check_actions(action, self.action_space.shape)[None, :])
+            core.check_actions(action, self._action_shape)[None, :])
         obs = core.observations()[0]
         return obs, float(distance[0] + control[0]), False, False, self._info(pushed, distance,
                                                                                control)
@@ -88,6 +89,4 @@ class ElbowProprioEnv(CoreSettings, gym.Env):
 
     def _info(self, pushed: np.ndarray, distance: np.ndarray, control: np.ndarray
               ) -> dict[str, Any]:
-        """The core's ``info`` of its one env: numbers as Python scalars, (2,) arrays."""
-        return {key: value[0].item() if value.ndim == 1 else value[0]
-                for key, value in self.core.info(pushed, distance, control).items()}
+        return self.core.info(pushed, distance, control, env=0)

@@ -105,10 +105,13 @@ def observations(sample: Any, target_rad: np.ndarray, include_fusimotor: bool) -
         np.divide(sample.gamma_static_pps, RATE_SCALE_PPS, out=obs[:, 5:7], casting="same_kind")
         np.divide(sample.gamma_dynamic_pps, RATE_SCALE_PPS, out=obs[:, 7:9],
                   casting="same_kind")
-    if not np.isfinite(obs).all():  # never observed: the chain rejects bad samples
-        i = int(np.flatnonzero(~np.isfinite(obs).all(axis=1))[0])
-        raise RuntimeError(f"non-finite observation {obs[i].tolist()} in env {i} (chain "
-                           f"output t={sample.t_s[i]!r})")
+    # never observed (the chain rejects bad samples); a sum of finite rates stays finite
+    if not math.isfinite(obs.sum()):
+        bad = np.flatnonzero(~np.isfinite(obs).all(axis=1))
+        if bad.size:
+            i = int(bad[0])
+            raise RuntimeError(f"non-finite observation {obs[i].tolist()} in env {i} (chain "
+                               f"output t={sample.t_s[i]!r})")
     return obs
 
 
@@ -116,33 +119,21 @@ def rewards(angle_deg: np.ndarray, target_deg: np.ndarray, actions: np.ndarray,
             distance_weight: float, control_weight: float) -> tuple[np.ndarray, np.ndarray]:
     """(reward_distance, reward_control), each (n,): the distance term
     ``-w_dist |angle - target|`` (rad) and the control cost ``-w_ctrl |a|^2``."""
-    distance = -distance_weight * np.abs(np.radians(angle_deg - target_deg))
-    control = -control_weight * np.einsum("ij,ij->i", actions, actions)
+    distance = np.abs(np.radians(angle_deg - target_deg))
+    distance *= -distance_weight
+    control = np.vecdot(actions, actions)
+    control *= -control_weight
     return distance, control
 
 
-def step_info(sample: Any, time_s: np.ndarray, angle_deg: np.ndarray,
-              velocity_deg_s: np.ndarray, target_deg: np.ndarray, pushed: np.ndarray,
-              reward_distance: np.ndarray, reward_control: np.ndarray) -> dict[str, Any]:
-    """The raw signals of a step (``info``) of n envs, (n,) or (n, 2) each (the sample's
-    arrays are copied: the chain shares them with its state)."""
-    return {
-        "time_s": time_s,
-        "angle_deg": angle_deg,
-        "angular_velocity_deg_s": velocity_deg_s,
-        "target_deg": target_deg,
-        "angle_error_deg": angle_deg - target_deg,
-        "length_L0": np.array(sample.length_L0),
-        "velocity_L0_s": np.array(sample.velocity_L0_s),
-        "gamma_static_pps": np.array(sample.gamma_static_pps),
-        "gamma_dynamic_pps": np.array(sample.gamma_dynamic_pps),
-        "ia_pps": np.array(sample.ia_pps),
-        "ii_pps": np.array(sample.ii_pps),
-        "sensor_time_s": np.array(sample.t_s),
-        "sensor_samples": pushed,
-        "reward_distance": reward_distance,
-        "reward_control": reward_control,
-    }
+SCALAR_INFO = ("time_s", "angle_deg", "angular_velocity_deg_s", "target_deg",
+               "angle_error_deg", "sensor_time_s", "reward_distance", "reward_control")
+"""The ``info`` entries with one number per env: (n,) arrays in a vector env, floats in a
+single env."""
+MUSCLE_INFO = ("length_L0", "velocity_L0_s", "gamma_static_pps", "gamma_dynamic_pps",
+               "ia_pps", "ii_pps")
+"""The ``info`` entries with one number per muscle (``MUSCLES`` order): (n, 2) arrays, (2,)
+in a single env."""
 
 
 def check_actions(actions: Any, shape: tuple[int, ...], clip: bool,
@@ -322,7 +313,7 @@ class EnvCore:
         self.drive.write_controls(physics.ctrl, actions)
         physics.step()
         qv = physics.state[:, physics.qpos_qvel_index]
-        if not np.isfinite(qv).all():
+        if not math.isfinite(qv.sum()):
             bad = ~np.isfinite(qv).all(axis=1) & (True if active is None else active)
             if bad.any():
                 i = int(np.flatnonzero(bad)[0])
@@ -341,16 +332,29 @@ class EnvCore:
         """(n, 5) or (n, 9) float32: the chains' latest output and the targets."""
         return observations(self.sample, self._target_rad, self.include_fusimotor)
 
-    def info(self, pushed: np.ndarray, distance: np.ndarray, control: np.ndarray
-             ) -> dict[str, np.ndarray]:
-        """The raw signals of every env (see :func:`step_info`) and the drive's own."""
-        physics = self.physics
+    def info(self, pushed: np.ndarray, distance: np.ndarray, control: np.ndarray,
+             env: int | None = None) -> dict[str, Any]:
+        """The raw signals of a step (copies): :data:`SCALAR_INFO`, :data:`MUSCLE_INFO`,
+        ``sensor_samples`` (``pushed``) and the drive's own entries, of every env ((n,) and
+        (n, 2) arrays) or, given ``env``, of that one (numbers and (2,) arrays)."""
+        physics, sample, target = self.physics, self.sample, self.target_deg
         state = physics.state
-        info = step_info(self.sample, state[:, 0].copy(),
-                         np.degrees(state[:, physics.qpos_index]),
-                         np.degrees(state[:, physics.qvel_index]), self.target_deg.copy(),
-                         pushed, distance, control)
-        info.update(self.drive.info(physics.ctrl))
+        extra = self.drive.info(physics.ctrl)
+        # one array per kind, filled in a few calls (info is built at every step)
+        scalars = np.array((state[:, 0], state[:, physics.qpos_index],
+                            state[:, physics.qvel_index], target, target, sample.t_s,
+                            distance, control, *extra.values()))
+        np.degrees(scalars[1:3], out=scalars[1:3])
+        np.subtract(scalars[1], target, out=scalars[4])
+        muscles = np.array([getattr(sample, name) for name in MUSCLE_INFO])
+        if env is None:
+            info = dict(zip((*SCALAR_INFO, *extra), scalars, strict=True))
+            info.update(zip(MUSCLE_INFO, muscles, strict=True))
+            info["sensor_samples"] = pushed
+        else:
+            info = dict(zip((*SCALAR_INFO, *extra), scalars[:, env].tolist(), strict=True))
+            info.update(zip(MUSCLE_INFO, muscles[:, env], strict=True))
+            info["sensor_samples"] = int(pushed[env])
         return info
 
     # -- resets -----------------------------------------------------------------------------
