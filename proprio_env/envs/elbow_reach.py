@@ -145,6 +145,10 @@ class ElbowReachEnv(ElbowProprioEnv):
       64 readings from two streams spawned from the env's generator, which changes the
       encoder's random numbers (and the target/angle draws after the first episode) for a
       given seed.
+      Later in v0: the single and the vector env are one env core (n = 1 and n envs);
+      ``reset`` refuses a seed that is not ``None`` or an integer >= 0 and checks every
+      option before it changes anything (``ValueError``); the chain behind
+      ``env.unwrapped.afferents.chain`` is the batched chain of one arm (counters (1,)).
     """
 
     drive = MuscleDrive

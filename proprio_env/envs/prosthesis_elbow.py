@@ -132,6 +132,10 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
       ``mujoco.rollout`` (shared with the native vector env of ``gymnasium.make_vec``); the
       encoder draws its jitter, noise and glitches in chunks of 64 readings from two streams
       spawned from the env's generator: the random numbers for a given seed changed.
+      Later in v0: the single and the vector env are one env core (n = 1 and n envs);
+      ``reset`` refuses a seed that is not ``None`` or an integer >= 0 and checks every
+      option before it changes anything (``ValueError``); the chain behind
+      ``env.unwrapped.afferents.chain`` is the batched chain of one arm (counters (1,)).
     """
 
     drive = ServoDrive
