@@ -139,7 +139,7 @@ def test_refused_reset_changes_nothing(env_id):
         {"seed": 2.5, "options": {"target_deg": 40.0}},
     ]
     for k, call in enumerate(refused):
-        with pytest.raises(ValueError, match="seed|options|target_deg|angle_deg"):
+        with pytest.raises(ValueError, match=r"seed|options|target_deg|angle_deg"):
             env.reset(**call)
         a = np.full(n, 0.1 * k, dtype=np.float32)
         obs, reward, *_, info = env.step(a)

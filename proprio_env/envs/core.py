@@ -422,35 +422,43 @@ class EnvCore:
         return state
 
 
-def _from_core(name: str, doc: str) -> property:
-    return property(lambda self: getattr(self.core, name), doc=doc)
+SHOWN_SETTINGS = {
+    "backend": "The chains' backend, resolved: 'numpy' or 'c'.",
+    "afferent_source": "One of SOURCES.",
+    "afferents": "The AfferentReadout: chains (``.chain``), encoders (``.encoders``).",
+    "model": "The MuJoCo model (with the tendon-length sensors).",
+    "length_fits": "The length fits of the model.",
+    "frame_skip": "Physics steps per env step.",
+    "control_hz": "Env steps per second.",
+    "dt": "Duration of one env step (s).",
+    "joint_range_deg": "The elbow's range (deg).",
+    "target_ranges_deg": "Where targets are drawn (deg).",
+    "initial_angle_ranges_deg": "Where initial angles are drawn (deg).",
+    "include_fusimotor": "gamma_s, gamma_d observed.",
+    "clip_actions": "Out-of-box actions clipped (not refused).",
+    "distance_reward_weight": "w_dist.",
+    "control_cost_weight": "w_ctrl.",
+    "width": "Rendered image width (pixels).",
+    "height": "Rendered image height (pixels).",
+}
+"""The settings both env classes show (read-only) from their :class:`EnvCore`."""
 
 
 class CoreSettings:
     """What the single and the vector env show of their :class:`EnvCore` (``self.core``):
-    read from it, stored once there."""
+    :data:`SHOWN_SETTINGS`, read from it, stored once there."""
 
     core: EnvCore
-    backend = _from_core("backend", "The chains' backend, resolved: 'numpy' or 'c'.")
-    afferent_source = _from_core("afferent_source", "One of SOURCES.")
-    afferents = _from_core("afferents", "The AfferentReadout: chains (``.chain``), encoders.")
-    model = _from_core("model", "The MuJoCo model (with the tendon-length sensors).")
-    length_fits = _from_core("length_fits", "The length fits of the model.")
-    frame_skip = _from_core("frame_skip", "Physics steps per env step.")
-    control_hz = _from_core("control_hz", "Env steps per second.")
-    dt = _from_core("dt", "Duration of one env step (s).")
-    joint_range_deg = _from_core("joint_range_deg", "The elbow's range (deg).")
-    target_ranges_deg = _from_core("target_ranges_deg", "Where targets are drawn (deg).")
-    initial_angle_ranges_deg = _from_core("initial_angle_ranges_deg",
-                                          "Where initial angles are drawn (deg).")
-    include_fusimotor = _from_core("include_fusimotor", "gamma_s, gamma_d observed.")
-    clip_actions = _from_core("clip_actions", "Out-of-box actions clipped (not refused).")
-    distance_reward_weight = _from_core("distance_reward_weight", "w_dist.")
-    control_cost_weight = _from_core("control_cost_weight", "w_ctrl.")
-    width = _from_core("width", "Rendered image width (pixels).")
-    height = _from_core("height", "Rendered image height (pixels).")
 
     @property
     def disabled_groups(self) -> int:
         """The ``model.opt.disableactuator`` bits of this env's drive."""
         return self.core.drive.disabled_groups
+
+
+def _from_core(name: str, doc: str) -> property:
+    return property(lambda self: getattr(self.core, name), doc=doc)
+
+
+for _name, _doc in SHOWN_SETTINGS.items():
+    setattr(CoreSettings, _name, _from_core(_name, _doc))
