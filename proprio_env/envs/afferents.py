@@ -66,6 +66,7 @@ class AfferentReadout:
         self.chain = make_batched_chain(n, chain_config, fits)
         self.encoder_params = encoder_params
         self.encoders = EncoderBank(n, encoder_params, encoder_window(step_s, encoder_params))
+        self._all_frames: dict[int, np.ndarray] = {}
 
     def reset(self, arms: np.ndarray, t_s: np.ndarray, angle_deg: np.ndarray,
               length_L0: np.ndarray, rngs: list[np.random.Generator]) -> None:
@@ -102,7 +103,11 @@ class AfferentReadout:
             return self.chain.push_counts_block(read_t, counts, n_samples), n_samples
         frames = t_s.shape[1]
         if active is None:
-            n_samples, given = np.full(self.n, frames), None
+            # every arm pushes every frame: one read-only count array per block size
+            n_samples, given = self._all_frames.get(frames), None
+            if n_samples is None:
+                n_samples = self._all_frames[frames] = np.full(self.n, frames)
+                n_samples.flags.writeable = False
         else:
             n_samples = given = np.where(active, frames, 0)
         if self.source == "exact":

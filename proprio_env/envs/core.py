@@ -119,8 +119,8 @@ def rewards(angle_deg: np.ndarray, target_deg: np.ndarray, actions: np.ndarray,
             distance_weight: float, control_weight: float) -> tuple[np.ndarray, np.ndarray]:
     """(reward_distance, reward_control), each (n,): the distance term
     ``-w_dist |angle - target|`` (rad) and the control cost ``-w_ctrl |a|^2``."""
-    distance = np.abs(np.radians(angle_deg - target_deg))
-    distance *= -distance_weight
+    distance = np.abs(angle_deg - target_deg)
+    distance *= -distance_weight * (math.pi / 180.0)  # deg -> rad with the weight: one call
     control = np.vecdot(actions, actions)
     control *= -control_weight
     return distance, control
