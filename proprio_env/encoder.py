@@ -19,9 +19,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from spindle.chain.sensor import AX12, INVALID_READING, Calibration, EncoderParams
+from spindle.chain.sensor import (
+    AX12,
+    AX12_LOAD,
+    INVALID_READING,
+    LOAD_DIRECTION_BIT,
+    LOAD_MAGNITUDE_MAX,
+    Calibration,
+    EncoderParams,
+    LoadParams,
+)
 
-__all__ = ["CHUNK", "Encoder", "EncoderBank", "interp_rows", "interval_chunk", "readings"]
+__all__ = ["CHUNK", "Encoder", "EncoderBank", "LoadSensor", "interp_rows", "interval_chunk",
+           "load_readings", "readings"]
 
 CHUNK = 64
 """Readings per chunk of random draws (one generator call per stream every CHUNK readings)."""
@@ -279,3 +289,51 @@ class EncoderBank:
         self.last_t_s = end.copy()
         self.last_angle_deg = angle_deg[:, -1].copy()
         return read_t, counts, n_samples
+
+
+# -- the load reading (the force sense) --------------------------------------------------------
+def load_readings(torque_Nm: np.ndarray, draws: np.ndarray, params: LoadParams = AX12_LOAD,
+                  sign: int = 1) -> np.ndarray:
+    """Load words (float) for joint torques ``torque_Nm`` (N m, flexion positive; any shape S)
+    with per-reading randomness ``draws`` ((4,) + S, rows as :func:`read_chunk` with the noise
+    row in counts of ``params``).
+
+    A valid word is the torque's magnitude in counts plus noise, rounded and saturated to
+    0..1023, with bit 10 set for a CW load (flexion is CCW for ``sign`` +1); the direction
+    is the noisy torque's sign. With probability ``invalid_rate`` the word is
+    :data:`INVALID_READING` or (half of the time) a corrupted 16-bit word.
+    """
+    counts = sign * np.asarray(torque_Nm, dtype=float) / params.Nm_per_count + draws[_NOISE]
+    magnitude = np.clip(np.rint(np.abs(counts)), 0, LOAD_MAGNITUDE_MAX)
+    valid = magnitude + np.where(counts < 0, float(LOAD_DIRECTION_BIT), 0.0)
+    glitch = np.where(draws[_U_KIND] < 0.5, float(INVALID_READING), draws[_WORD])
+    return np.where(draws[_U_INVALID] < params.invalid_rate, glitch, valid)
+
+
+class LoadSensor:
+    """The servo's simulated load reading: quantised, noisy, occasionally invalid words.
+
+    Its own generator (spawned from ``rng``), so adding load readings leaves an
+    :class:`Encoder`'s angle readings unchanged for the same seed.
+    """
+
+    def __init__(self, params: LoadParams = AX12_LOAD, sign: int = 1,
+                 rng: np.random.Generator | int | None = None) -> None:
+        self.params = params
+        self.sign = sign
+        self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        self._noise = EncoderParams(noise_counts=params.noise_counts,
+                                    invalid_rate=params.invalid_rate)
+        self._draws = np.empty((_N_READ, 0))
+
+    def read_block(self, torque_Nm: np.ndarray) -> np.ndarray:
+        """Load words (float) at the torques ``torque_Nm`` (k,), in order."""
+        torque = np.asarray(torque_Nm, dtype=float)
+        if torque.ndim != 1 or not np.all(np.isfinite(torque)):
+            raise ValueError("torque_Nm must be a finite 1-D array")
+        k = torque.shape[0]
+        while self._draws.shape[1] < k:
+            self._draws = np.concatenate((self._draws, read_chunk(self.rng, self._noise)),
+                                         axis=1)
+        draws, self._draws = self._draws[:, :k], self._draws[:, k:]
+        return load_readings(torque, draws, self.params, self.sign)

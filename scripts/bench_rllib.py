@@ -25,6 +25,7 @@ from proprio_env.experiments.training_rllib import (
     env_steps,
     start_ray,
 )
+from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 
 
 def measure(num_runners: int, num_envs: int, iterations: int, backend: str) -> dict[str, float]:
@@ -57,7 +58,7 @@ def main(argv: list[str] | None = None) -> dict[int, list[dict[str, float]]]:
     parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--num-envs-per-runner", type=int, default=8)
-    parser.add_argument("--backend", choices=("c", "numpy"), default="c")
+    parser.add_argument("--backend", choices=BACKEND_CHOICES, default=DEFAULT_BACKEND)
     args = parser.parse_args(argv)
     if args.iterations < 1 or args.repeats < 1:
         parser.error("--iterations and --repeats must be positive")

@@ -24,6 +24,7 @@ from proprio_env.experiments.training import (
     sb3_ppo_kwargs,
     training_ranges,
 )
+from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 
 
 def train_steps_per_s(num_envs: int | None, timesteps: int, backend: str) -> float:
@@ -55,7 +56,7 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
     parser.add_argument("--timesteps", type=int, default=20 * ROLLOUT_STEPS)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 8])
-    parser.add_argument("--backend", choices=("c", "numpy", "auto"), default="c")
+    parser.add_argument("--backend", choices=BACKEND_CHOICES, default=DEFAULT_BACKEND)
     args = parser.parse_args(argv)
     if args.timesteps < 1 or args.repeats < 1:
         parser.error("--timesteps and --repeats must be positive")

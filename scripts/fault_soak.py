@@ -3,12 +3,18 @@
     python scripts/fault_soak.py                 # 10^6 samples (numpy dominates the time)
     python scripts/fault_soak.py --quick         # ~10^4 samples
     python scripts/fault_soak.py --samples 200000 --seed 3 --no-progress
+    python scripts/fault_soak.py --samples 0 --wrapper-steps 5000   # the wrappers only
 
 The stream, the faults and the checks are those of :mod:`proprio_env.fault_injection` (servo
 moves read by a noisy AX-12 encoder; dropouts from one sample to minutes, clock jumps,
 corrupted times and readings). Prints a summary table, then a last line
 ``fault_soak samples=<n> counters_equal=<bool> max_rate_diff_pps=<f> rss_growth_MB=<f>
 nonfinite=<n> ...``; exits 1 if any check fails.
+
+Then the wrapper section (:mod:`proprio_env.wrapper_fault_injection`): ``--wrapper-steps``
+wrapped steps per target (single, single lagged, vector with SAME_STEP autoreset) and backend,
+with clock jumps, copies and refused actions between steps; its table and a line
+``wrapper_soak steps=<n> ... ok=<bool>`` come before the chain's last line.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import argparse
 import sys
 
 from proprio_env.fault_injection import run_soak
+from proprio_env.wrapper_fault_injection import run_wrapper_soak
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,10 +35,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-call-s", type=float, default=5.0,
                         help="stop (and count) a push call running longer than this (s)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--wrapper-steps", type=int, default=None,
+                        help="wrapped steps per wrapper target and backend (default 2000, "
+                             "--quick 200; 0: no wrapper section)")
     args = parser.parse_args(argv)
     n = 10_000 if args.quick else args.samples
-    if n < 1:
-        parser.error(f"--samples={n} must be >= 1")
+    wrapper_steps = (200 if args.quick else 2000) if args.wrapper_steps is None \
+        else args.wrapper_steps
+    if n < 0 or wrapper_steps < 0 or n + wrapper_steps < 1:
+        parser.error(f"--samples={n} and --wrapper-steps={wrapper_steps} must be >= 0, "
+                     "not both 0")
+    wrappers = (run_wrapper_soak(wrapper_steps, seed=args.seed, max_call_s=args.max_call_s)
+                if wrapper_steps else None)
+    if n == 0:
+        print(wrappers.table())
+        print(wrappers.last_line())
+        return 0 if wrappers.ok else 1
 
     bar = None
     if not args.no_progress:
@@ -45,8 +64,11 @@ def main(argv: list[str] | None = None) -> int:
         if bar is not None:
             bar.close()
     print(report.table())
+    if wrappers is not None:
+        print(wrappers.table())
+        print(wrappers.last_line())
     print(report.last_line())
-    return 0 if report.ok else 1
+    return 0 if report.ok and (wrappers is None or wrappers.ok) else 1
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ import math
 import sys
 
 from proprio_env.experiments.soak import SoakError, soak, soak_vector
+from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -26,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--afferent-source", default=None)
-    parser.add_argument("--backend", choices=("auto", "c", "numpy"), default="c",
+    parser.add_argument("--backend", choices=BACKEND_CHOICES, default=DEFAULT_BACKEND,
                         help="spindle chain backend (c: compiled on first use)")
     parser.add_argument("--num-envs", type=int, default=0,
                         help="soak the vector env with this many sub-envs (0: single env)")

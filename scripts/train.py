@@ -25,19 +25,53 @@ from typing import Any
 
 from proprio_env.experiments.training import POLICY_NAMES, TrainConfig, sb3_ppo_kwargs
 from proprio_env.experiments.training import run as run_sb3
-from proprio_env.experiments.training_rllib import RLlibOptions
+from proprio_env.experiments.training_rllib import RLlibOptions, check_resume
 from proprio_env.experiments.training_rllib import run as run_rllib
+from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 
 FULL_TIMESTEPS = 250_000
 """Env steps of the documented full run."""
 SMOKE_TIMESTEPS = 256
 """Env steps of ``--smoke`` without ``--timesteps``: two smoke rollouts, seconds to a minute."""
 
+def checked_run(args: argparse.Namespace) -> tuple[TrainConfig, RLlibOptions | None]:
+    """The run's settings from the parsed command line, every one checked (ValueError
+    naming the option otherwise); nothing is built."""
+    if args.timesteps is None:
+        args.timesteps = SMOKE_TIMESTEPS if args.smoke else FULL_TIMESTEPS
+    if args.engine == "sb3":
+        given = [name for name, value in (("--address", args.address),
+                                          ("--num-envs-per-runner", args.num_envs_per_runner),
+                                          ("--checkpoint-dir", args.checkpoint_dir))
+                 if value is not None] + (["--resume"] if args.resume else [])
+        if given:
+            raise ValueError(f"{', '.join(given)} belong to --engine rllib")
+        num_envs = 8 if args.num_envs is None else args.num_envs
+    else:
+        if args.num_envs is not None:
+            raise ValueError("--num-envs belongs to --engine sb3 (rllib: --num-envs-per-runner)")
+        num_envs = 8 if args.num_envs_per_runner is None else args.num_envs_per_runner
+    if args.out.is_file():
+        raise ValueError(f"--out {str(args.out)!r} is a file; it must be a folder")
+    if args.curve is not None and args.curve.is_dir():
+        raise ValueError(f"--curve {str(args.curve)!r} is a folder; it must be a PNG's path")
+    config = TrainConfig(args.env, args.backend, args.afferent_source, args.timesteps,
+                         args.max_minutes, args.seed, args.eval_episodes, args.curve_episodes,
+                         args.eval_every, num_envs)
+    if args.engine == "sb3":
+        sb3_ppo_kwargs(num_envs, args.smoke)
+        return config, None
+    options = RLlibOptions(args.address, args.num_cpus, args.num_env_runners,
+                           args.checkpoint_dir, args.checkpoint_every, args.resume)
+    check_resume(config, options)
+    return config, options
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--engine", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
-    parser.add_argument("--backend", choices=("c", "numpy", "auto"), default="c",
+    parser.add_argument("--backend", choices=BACKEND_CHOICES, default=DEFAULT_BACKEND,
                         help="spindle chain backend (c: compiled on first use; needs a C "
                              "compiler)")
     parser.add_argument("--afferent-source", default=None,
@@ -73,31 +107,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     rllib.add_argument("--resume", action="store_true",
                        help="restore --checkpoint-dir and train on to --timesteps")
     args = parser.parse_args(argv)
-    if args.timesteps is None:
-        args.timesteps = SMOKE_TIMESTEPS if args.smoke else FULL_TIMESTEPS
-    if args.timesteps < 1 or args.max_minutes <= 0 or args.eval_episodes < 1:
-        parser.error("--timesteps, --max-minutes and --eval-episodes must be positive")
-    if args.engine == "sb3":
-        given = [name for name, value in (("--address", args.address),
-                                          ("--num-envs-per-runner", args.num_envs_per_runner),
-                                          ("--checkpoint-dir", args.checkpoint_dir))
-                 if value is not None] + (["--resume"] if args.resume else [])
-        if given:
-            parser.error(f"{', '.join(given)} belong to --engine rllib")
-        num_envs = 8 if args.num_envs is None else args.num_envs
-    else:
-        if args.num_envs is not None:
-            parser.error("--num-envs belongs to --engine sb3 (rllib: --num-envs-per-runner)")
-        num_envs = 8 if args.num_envs_per_runner is None else args.num_envs_per_runner
-    try:  # argument checks up front; errors while training keep their traceback
-        config = TrainConfig(args.env, args.backend, args.afferent_source, args.timesteps,
-                             args.max_minutes, args.seed, args.eval_episodes,
-                             args.curve_episodes, args.eval_every, num_envs)
-        if args.engine == "sb3":
-            sb3_ppo_kwargs(num_envs, args.smoke)
-        else:
-            options = RLlibOptions(args.address, args.num_cpus, args.num_env_runners,
-                                   args.checkpoint_dir, args.checkpoint_every, args.resume)
+    try:  # every argument checked before an env, a model or Ray exists (exit 2, as argparse)
+        config, options = checked_run(args)
     except ValueError as exc:
         parser.error(str(exc))
     if args.engine == "sb3":

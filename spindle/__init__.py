@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from spindle import simulate as _numpy_simulate
+from spindle.backends import DEFAULT_BACKEND, resolve_backend
 from spindle.chain.length_model import (
     LengthFit,
     LengthFits,
@@ -74,7 +75,7 @@ def simulate(
     params: SpindleParams = CAT,
     method: str | Method | None = None,
     step: float | None = None,
-    backend: str = "numpy",
+    backend: str = DEFAULT_BACKEND,
     chunk_samples: int | None = None,
 ) -> SpindleResult:
     """Ia and II rates of spindles whose host fascicles follow ``length``.
@@ -92,10 +93,12 @@ def simulate(
         method: ``"trapezoidal"`` (default), ``"backward_euler"`` or ``"forward_euler"``.
         step: internal integration step (s). Each sample interval is split into the fewest
             equal sub-steps no longer than ``step``. None means the method's default.
-        backend: ``"numpy"`` (default, :mod:`spindle.simulate`) or ``"c"``: the C port
-            (``spindle/native/c/spindle.c`` through :mod:`spindle.native.spindle`, compiled on
-            first use; :class:`spindle.native.build.CBackendError` if no C compiler is found).
-            Both take the same inputs, raise the same ValueErrors and agree to 1e-6 pps
+        backend: ``"numpy"`` (:mod:`spindle.simulate`), ``"c"`` (the C port,
+            ``spindle/native/c/spindle.c`` through :mod:`spindle.native.spindle`, compiled on
+            first use; :class:`spindle.native.build.CBackendError` if no C compiler is found)
+            or ``"auto"`` (the default: C where the library loads or builds here, else numpy;
+            :func:`spindle.backends.resolve_backend`). Both take the same inputs, raise the
+            same ValueErrors and agree to ~1e-12 pps for the implicit methods
             (``docs/c_port.md``).
         chunk_samples: sample intervals per chunk of the stream (default: about
             :data:`spindle.simulate.CHUNK_ELEMENTS` internal steps x spindles); only memory
@@ -114,17 +117,17 @@ def simulate(
             length changes faster than :data:`spindle.core.MAX_SPEED_L0_S`, negative drive,
             ``dt`` or ``step`` <= 0 or above the method's limit, more than
             :data:`spindle.simulate.MAX_SUBSTEPS` internal steps per sample interval, shapes
-            that do not match.
+            that do not match; :class:`spindle.number_rule.NumberError` (a ValueError and a
+            TypeError) for a bool, string, bytes, complex or None where a number belongs
+            (``dt=True``, string or complex lengths).
     """
-    if backend == "c":
+    if resolve_backend(backend) == "c":
         # imported here so that numpy-only use never loads ctypes or the C build
         from spindle.native import spindle as native
 
         run = native.simulate
-    elif backend == "numpy":
-        run = _numpy_simulate.simulate
     else:
-        raise ValueError(f"backend={backend!r} is not one of ['c', 'numpy']")
+        run = _numpy_simulate.simulate
     return run(length, dt, velocity=velocity, acceleration=acceleration, gamma_dyn=gamma_dyn,
                gamma_stat=gamma_stat, params=params, method=method, step=step,
                chunk_samples=chunk_samples)

@@ -53,11 +53,13 @@ from spindle.fibre_constants import (
     step_constants,
 )
 from spindle.methods import Method, get_method
+from spindle.number_rule import real_array, real_scalar
 from spindle.params import CAT, SpindleParams
 from spindle.scalar import SMALL_N, advance_small, afferents_one, as_floats
 
 __all__ = [
-    "LENGTH_RANGE_L0", "MAX_DRIVE_POWER", "MAX_SPEED_L0_S", "SMALL_N", "SpindleState",
+    "LENGTH_RANGE_L0", "MAX_DRIVE_POWER", "MAX_SPEED_L0_S", "SLEW_LIMIT_L0_S", "SMALL_N",
+    "STATE_FIELDS", "SpindleState",
     "activation_target", "advance", "afferents", "afferents_from_tension", "check_inputs",
     "check_speed", "check_step", "columns", "commit", "equilibrium_state", "force",
     "plain_advance", "step",
@@ -71,6 +73,15 @@ fitted."""
 
 MAX_SPEED_L0_S = 10.0
 """Largest accepted |dL/dt|: about the maximum shortening velocity of fast muscle fibres."""
+
+SLEW_LIMIT_L0_S = 8.0
+"""The default slew limit on the lengths a chain or a spindle bank feeds its spindles (L0/s):
+1000 deg/s of elbow motion for the brachialis, above the servo's 684 deg/s no-load speed and
+below :data:`MAX_SPEED_L0_S`; a faster change (a jump after a gap, a spike) is limited to it."""
+
+STATE_FIELDS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activation",
+                "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
+"""The arrays of a :class:`SpindleState`, in its fields' order."""
 
 AFFERENT_CHUNK = 8192
 """Spindles per block of :func:`afferents_from_tension` (its temporaries stay in cache)."""
@@ -113,10 +124,7 @@ class SpindleState:
         return {k: v for k, v in self.__dict__.items() if k != "_workspace"}
 
     def _arrays(self) -> tuple[np.ndarray, ...]:
-        return (
-            self.tension_FU, self.polar_velocity_L0_s, self.velocity_root, self.activation,
-            self.length_L0, self.gamma_dyn_pps, self.gamma_stat_pps,
-        )
+        return tuple(getattr(self, name) for name in STATE_FIELDS)
 
 
 def _fibre_major(buffer_3n: np.ndarray) -> np.ndarray:
@@ -125,7 +133,7 @@ def _fibre_major(buffer_3n: np.ndarray) -> np.ndarray:
 
 
 def _as_spindle_vector(name: str, value: object, n: int | None = None) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
+    arr = real_array(name, value)
     if arr.ndim > 1:
         raise ValueError(f"{name} must be a scalar or a 1-D array over spindles, got shape "
                          f"{arr.shape}")
@@ -173,14 +181,15 @@ def check_speed(length_change_L0: np.ndarray, dt_s: float) -> None:
             )
 
 
-def check_step(step_s: float, method: Method) -> None:
-    """Refuse a non-positive step or one beyond the method's limit."""
-    if not (np.isfinite(step_s) and step_s > 0):
-        raise ValueError(f"step={step_s!r} s must be finite and > 0")
-    if step_s > method.max_step_s * (1 + 1e-9):
+def check_step(step_s: float, method: Method, name: str = "step") -> float:
+    """``step_s`` as a Python float (the rule of :mod:`spindle.number_rule`); refuse a non-positive
+    step or one beyond the method's limit."""
+    h = real_scalar(name, step_s, low=0.0, low_open=True)
+    if h > method.max_step_s * (1 + 1e-9):
         raise ValueError(
-            f"step={step_s!r} s exceeds the {method.name} limit of {method.max_step_s!r} s"
+            f"{name}={step_s!r} s exceeds the {method.name} limit of {method.max_step_s!r} s"
         )
+    return h
 
 
 
@@ -231,7 +240,9 @@ def equilibrium_state(
     T = (Gamma + KPR*(L - LSR0 - LPR0)) / (1 + KPR/KSR). The number of spindles n is the
     broadcast size of the inputs (scalars or 1-D arrays).
     """
-    arrays = [np.asarray(x, dtype=float) for x in (length_L0, gamma_dyn_pps, gamma_stat_pps)]
+    arrays = [real_array(name, x) for name, x in (
+        ("length_L0", length_L0), ("gamma_dyn_pps", gamma_dyn_pps),
+        ("gamma_stat_pps", gamma_stat_pps))]
     try:
         if any(a.ndim > 1 for a in arrays):
             raise ValueError
@@ -321,7 +332,7 @@ def step(
     holds those at its start). Bad inputs raise ``ValueError`` and leave ``state`` unchanged.
     """
     m = get_method(method)
-    check_step(dt_s, m)
+    dt_s = check_step(dt_s, m, "dt_s")
     n = state.n
     L, gd, gs = (
         _as_spindle_vector(name, x, n)

@@ -322,6 +322,7 @@ class _Coefficients:
 
 def _coefficients(c: Columns, theta: float) -> _Coefficients:
     """The :class:`_Coefficients` of ``c`` for ``theta`` (kept on ``c``)."""
+    theta = float(theta)
     hit = c.per_spindle_coefficients
     if hit is None or hit.theta != theta:
         hit = c.per_spindle_coefficients = _Coefficients(c, theta)
@@ -373,6 +374,10 @@ class _ParameterColumns:
 def spindle_step_constants(c: Columns, h: np.ndarray, theta: float) -> SpindleStepConstants:
     """The :class:`SpindleStepConstants` of ``c`` for the step sizes ``h`` (n,) and
     ``theta``, kept until either changes."""
+    # keyed on float64 values: numpy compares a float32 array with float64 ones as float64,
+    # but a cached float32 h would make every later step float32
+    h = np.asarray(h, dtype=np.float64)
+    theta = float(theta)
     hit = c.spindle_step_constants
     if (hit is None or hit.theta != theta or hit.h.shape != h.shape
             or not np.array_equal(hit.h, h)):
@@ -382,7 +387,12 @@ def spindle_step_constants(c: Columns, h: np.ndarray, theta: float) -> SpindleSt
 
 
 def step_constants(c: Columns, h: float, theta: float) -> StepConstants:
-    """The :class:`StepConstants` of ``c`` for (h, theta), kept until either changes."""
+    """The :class:`StepConstants` of ``c`` for (h, theta), kept until either changes.
+
+    The key is the Python floats h and theta stand for: numpy compares ``np.float32(0.001)``
+    equal to ``0.001`` (the Python float is cast down), so a key kept as a float32 would
+    hand its float32 constants to every later float64 step of that size."""
+    h, theta = float(h), float(theta)
     hit = c.step_constants
     if hit is None or hit.h != h or hit.theta != theta:
         hit = c.step_constants = StepConstants(c, h, theta)

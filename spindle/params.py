@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from spindle.number_rule import check_fields
+
 FIBRES = ("bag1", "bag2", "chain")
 """Intrafusal fibre order used on every fibre axis of the package."""
 
@@ -52,10 +54,7 @@ class FibreParams:
     tau_s: float = 0.0
 
     def __post_init__(self) -> None:
-        for field in dataclasses.fields(self):
-            value = getattr(self, field.name)
-            if not np.isfinite(value):
-                raise ValueError(f"{field.name}={value!r} must be finite")
+        check_fields(self, tuple(field.name for field in dataclasses.fields(self)))
         for name in ("KSR_FU_L0", "M_FU_s2_L0", "freq_pps", "p", "a", "CL", "CS"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name}={getattr(self, name)!r} must be > 0")
@@ -74,6 +73,9 @@ class SpindleParams:
     chain: FibreParams
     S: float = 0.156
     name: str = "custom"
+
+    def __post_init__(self) -> None:
+        check_fields(self, ("S",), low=0.0)
 
     @property
     def fibres(self) -> tuple[FibreParams, FibreParams, FibreParams]:

@@ -12,7 +12,6 @@ the results do not depend on the chunk size (bit for bit).
 
 from __future__ import annotations
 
-import operator
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -21,6 +20,7 @@ import numpy as np
 from spindle import core
 from spindle.fibre_constants import step_constants
 from spindle.methods import Method, get_method
+from spindle.number_rule import positive_int, real_array, real_scalar
 from spindle.params import CAT, SpindleParams
 from spindle.scalar import afferents_one, step_floats
 from spindle.substeps import substep_lengths, substeps
@@ -58,7 +58,7 @@ CHUNK_ELEMENTS = 1 << 16
 
 
 def _broadcast_trace(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
+    arr = real_array(name, value)
     try:
         return np.broadcast_to(arr, shape)
     except ValueError:
@@ -75,6 +75,7 @@ class PreparedInputs(NamedTuple):
         L, gd, gs: (T, n) lengths and drives.
         derivatives: the derivative traces (T, n) that shape the length between samples.
         k: internal steps per sample interval; h: their length (s).
+        dt: the sample interval (s), a Python float.
     """
 
     method: Method
@@ -84,19 +85,20 @@ class PreparedInputs(NamedTuple):
     derivatives: list[np.ndarray]
     k: int
     h: float
+    dt: float
 
 
 def prepare_inputs(length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method,
                    step) -> PreparedInputs:
     """Check and broadcast :func:`simulate`'s arguments (its Raises section applies)."""
     m = get_method(method)
-    length = np.asarray(length, dtype=float)
+    # spindle.number_rule: no bool, string, bytes or complex taken as a number, and every
+    # number a Python float / float64 before anything (the step constants' cache) keeps it
+    length = real_array("length", length)
     if length.ndim not in (1, 2) or length.shape[0] < 1:
         raise ValueError(f"length must have shape (T,) or (T, n), got {length.shape}")
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt={dt!r} s must be finite and > 0")
-    h_max = m.default_step_s if step is None else float(step)
-    core.check_step(h_max, m)
+    dt = real_scalar("dt", dt, low=0.0, low_open=True)
+    h_max = core.check_step(m.default_step_s if step is None else step, m)
     k = substeps(dt, h_max)
     if k > MAX_SUBSTEPS:
         raise ValueError(
@@ -132,7 +134,7 @@ def prepare_inputs(length, dt, velocity, acceleration, gamma_dyn, gamma_stat, me
         if not np.isfinite(arr).all():
             raise ValueError(f"{name} contains non-finite values; every value must be finite")
 
-    return PreparedInputs(m, L, gd, gs, derivatives, k, h)
+    return PreparedInputs(m, L, gd, gs, derivatives, k, h, dt)
 
 
 def simulate(
@@ -150,7 +152,7 @@ def simulate(
 ) -> SpindleResult:
     """The numpy path of :func:`spindle.simulate` (the package's function, which also takes
     ``backend``): the same arguments, results and errors, as documented there."""
-    m, L, gd, gs, derivatives, k, h = prepare_inputs(
+    m, L, gd, gs, derivatives, k, h, dt = prepare_inputs(
         length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method, step)
     shape = np.shape(length)
     c = core.columns(params)
@@ -182,9 +184,7 @@ def chunk_bounds(shape: tuple[int, int], k: int, chunk_samples: int | None):
     if chunk_samples is None:
         size = max(1, CHUNK_ELEMENTS // (k * max(shape[1], 1)))
     else:
-        size = operator.index(chunk_samples)
-        if size < 1:
-            raise ValueError(f"chunk_samples={chunk_samples!r} must be >= 1")
+        size = positive_int("chunk_samples", chunk_samples)
     return [(i0, min(shape[0], i0 + size)) for i0 in range(1, shape[0], size)]
 
 

@@ -114,3 +114,25 @@ def hermite_weights(s: float, order: int) -> np.ndarray:
         0.5 * (s3 - 2 * s4 + s5),
     ])
 
+
+def slew_limited(L: np.ndarray, last: np.ndarray, limit, axis: int = 0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The slew limit of a chain and a spindle bank: each length of ``L`` moved by at most
+    ``limit`` (a float, or an array broadcasting against ``L``) from the one before it along
+    ``axis`` (the first from ``last``, ``L`` without that axis). Returns the limited lengths
+    and where the limit acted. A length within the limit is kept as it is (bit for bit)."""
+    steps = np.diff(L, axis=axis, prepend=np.expand_dims(last, axis))
+    with np.errstate(invalid="ignore"):
+        if not bool(np.any(np.abs(steps) > limit)):  # one check, not one per step
+            return L, np.zeros(L.shape, dtype=bool)
+    L = np.moveaxis(L, axis, 0)
+    limit = np.moveaxis(np.broadcast_to(limit, np.moveaxis(L, 0, axis).shape), axis, 0)
+    out = np.empty_like(L)
+    hit = np.zeros(L.shape, dtype=bool)
+    previous = last
+    for q in range(L.shape[0]):
+        change = L[q] - previous
+        hit[q] = np.abs(change) > limit[q]
+        out[q] = np.where(hit[q], previous + np.clip(change, -limit[q], limit[q]), L[q])
+        previous = out[q]
+    return np.moveaxis(out, 0, axis), np.moveaxis(hit, 0, axis)

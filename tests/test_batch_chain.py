@@ -16,9 +16,10 @@ import pytest
 
 from spindle import core
 from spindle.chain import ArmChain, ChainConfig
-from spindle.chain.batch import BatchedArmChain, BatchSample
+from spindle.chain.batch import BatchedArmChain
 from spindle.chain.config import COUNTERS, ArmSample
 from spindle.chain.length_model import load_length_fits
+from spindle.chain.samples import BatchSample
 
 FITS = load_length_fits()
 CONFIG = ChainConfig()

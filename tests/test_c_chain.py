@@ -68,7 +68,8 @@ def pair():
 # -- construction and build -----------------------------------------------------------------
 def test_backend_c_builds_a_c_chain_with_the_numpy_chains_ranges():
     numpy_chain, c_chain = pair()
-    assert isinstance(c_chain, native_chain.CArmChain) and isinstance(c_chain, ArmChain)
+    assert isinstance(c_chain, native_chain.CArmChain) and not isinstance(c_chain, ArmChain)
+    assert (c_chain.backend, c_chain.config.backend, numpy_chain.backend) == ("c", "c", "numpy")
     assert type(numpy_chain) is ArmChain
     # the fitted range in degrees and each muscle's range over 1301 points, computed in C
     assert c_chain.angle_range_deg == numpy_chain.angle_range_deg

@@ -29,7 +29,7 @@ try:
 except build.CBackendError as exc:  # pragma: no cover - depends on the machine
     pytest.skip(str(exc), allow_module_level=True)
 
-REPO = Path(build.__file__).resolve().parents[1]
+REPO = Path(build.__file__).resolve().parents[2]  # the project root (it was spindle/)
 
 FAKECC = r"""#!/bin/sh
 # ccache-like launcher: fakecc [compiler] flags... (logs each compile; serves the stored build)
@@ -95,10 +95,10 @@ def compiles(env) -> list[str]:
     return log.read_text().splitlines() if log.exists() else []
 
 
-def load_in_child(env, **extra: str) -> subprocess.CompletedProcess:
+def load_in_child(env, *, script: str = CHILD, **extra: str) -> subprocess.CompletedProcess:
     child_env = {**os.environ, **env, **extra,
                  "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-    return subprocess.run([sys.executable, "-c", CHILD], env=child_env, capture_output=True,
+    return subprocess.run([sys.executable, "-c", script], env=child_env, capture_output=True,
                           text=True, timeout=120)
 
 
@@ -243,3 +243,66 @@ def test_concurrent_builds_do_not_corrupt_each_other(built, env):
     done = len(compiles(env))
     assert_loaded(load_in_child(env))  # the cache they left is valid as it is
     assert len(compiles(env)) == done
+
+
+# A child that asks for the C backend both ways: "c" must name the cache, "auto" falls back.
+BACKEND_CHILD = """
+import numpy as np
+import spindle
+from spindle.backends import resolve_backend
+from spindle.native.build import CBackendError
+print(resolve_backend("auto"))
+try:
+    spindle.simulate(np.ones(3), 1e-3, backend="c")
+except CBackendError as exc:
+    print("CBackendError:", exc)
+"""
+
+
+def _file_in_place(cache: Path) -> None:
+    cache.write_text("not a folder\n")
+
+
+def _file_as_parent(cache: Path) -> Path:
+    cache.write_text("not a folder\n")
+    return cache / "sub"
+
+
+def _read_only(cache: Path) -> None:
+    cache.mkdir()
+    cache.chmod(0o555)
+
+
+@pytest.mark.parametrize("make_bad", [_file_in_place, _file_as_parent, pytest.param(
+    _read_only, marks=pytest.mark.skipif(os.geteuid() == 0, reason="root writes anywhere"))],
+    ids=["file-in-place", "file-as-parent", "read-only"])
+def test_an_unwritable_cache_is_a_clear_error_and_auto_falls_back(env, tmp_path, make_bad):
+    """A raw FileExistsError / NotADirectoryError / PermissionError naming a temp file used
+    to come out of ``backend="c"``; ``"auto"`` fell back to numpy and still must."""
+    cache = tmp_path / "bad-cache"
+    cache = make_bad(cache) or cache
+    env = {**env, "PROPRIO_C_CACHE": str(cache)}
+    result = load_in_child(env, script=BACKEND_CHILD)
+    assert result.returncode == 0, result.stderr[-2000:]
+    first, *rest = result.stdout.splitlines()
+    assert first == "numpy"
+    assert len(rest) == 1 and rest[0].startswith("CBackendError: the C cache " + str(cache))
+    assert "$PROPRIO_C_CACHE" in rest[0] and "tmp-" not in rest[0]
+    assert compiles(env) == []
+
+
+def test_a_cache_that_refuses_new_files_is_a_clear_error(env, tmp_path, monkeypatch):
+    """The read-only case for a process that may write anywhere (root): the cache folder
+    exists but creating the build's temporary file there is refused."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    monkeypatch.setenv("PROPRIO_C_CACHE", str(cache))
+
+    def refuse(*args, dir=None, **kwargs):
+        raise PermissionError(13, "Permission denied", str(Path(dir) / "tmp-xyz.so"))
+
+    monkeypatch.setattr(build.tempfile, "mkstemp", refuse)
+    with pytest.raises(build.CBackendError, match=rf"the C cache {cache} cannot be written "
+                       r"\(Permission denied.*\$PROPRIO_C_CACHE"):
+        build.library_path("double")
+    assert list(cache.iterdir()) == []

@@ -52,11 +52,18 @@ class _Broken(ArmChain):
     """The numpy chain with one bug: every 40th push reports an NaN Ia and counts nothing."""
 
     pushes = 0
+    lost = 0
+
+    @property
+    def counters(self):
+        counted = super().counters
+        counted["accepted"] -= self.lost
+        return counted
 
     def _broken(self, out):
         self.pushes += 1
         if self.pushes % 40 == 0:
-            self.counters["accepted"] -= 1
+            self.lost += 1
             out.ia_pps[0] = math.nan
         return out
 
@@ -98,3 +105,38 @@ def test_soak_quick_mode():
     """What ``python scripts/fault_soak.py --quick`` runs (10^4 samples)."""
     report = fi.run_soak(10_000, seed=0)
     assert report.failures == []
+
+
+# -- the wrapper section -----------------------------------------------------------------
+
+def test_wrapper_soak_passes_on_both_backends():
+    """Both backends, the three wrapper targets, every wrapper fault: nothing non-finite or
+    outside the wrapped space, restarts as the rules say, copies equal, refused steps leave
+    no trace."""
+    from proprio_env import wrapper_fault_injection as wfi
+
+    report = wfi.run_wrapper_soak(40, seed=0, fault_probability=0.5)
+    assert set(report.faults) == set(wfi.WRAPPER_FAULTS)
+    assert report.restarts["clock_far"] == report.faults["clock_far"] > 0
+    assert report.max_rate_pps > 10.0  # the spindles fire
+    assert report.failures == []
+    assert report.last_line().endswith("ok=True")
+
+
+def test_wrapper_soak_checks_catch_a_copy_that_drifts(monkeypatch):
+    """A wrapper whose copies lose their recorded lengths (the fault of issue 28.3,
+    re-created) is caught: the copy differs from its original."""
+    from proprio_env import wrapper_fault_injection as wfi
+    from proprio_env.wrappers import capture
+
+    def frozen(self, state):
+        self.__dict__.update(state)
+        self._bind()
+        self._length_view = self._length_view.copy()  # a frozen array, as before the fix
+
+    monkeypatch.setattr(capture.PhysicsHook, "__setstate__", frozen)
+    monkeypatch.setattr(wfi, "WRAPPER_FAULTS", ("deepcopy",))
+    report = wfi.run_wrapper_soak(30, seed=0, fault_probability=0.5, targets=("single",),
+                                  backends=("numpy",))
+    assert report.copy_mismatches and not report.ok
+    assert "copy_mismatches=0" not in report.last_line()

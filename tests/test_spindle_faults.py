@@ -276,7 +276,7 @@ def test_chunked_results_equal_one_chunk_bit_for_bit(backend, n, dt):
 
 
 def test_chunk_samples_must_be_a_positive_count():
-    with pytest.raises(ValueError, match="chunk_samples=0 must be >= 1"):
+    with pytest.raises(ValueError, match="chunk_samples=0 must be an integer >= 1"):
         spindle.simulate(np.ones(5), 1e-3, chunk_samples=0)
     with pytest.raises(TypeError):
         spindle.simulate(np.ones(5), 1e-3, chunk_samples=2.5)

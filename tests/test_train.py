@@ -136,3 +136,82 @@ def test_bad_arguments_are_refused_before_anything_starts(args, message, tmp_pat
     assert run.returncode == 2
     assert message in run.stderr
     assert not (tmp_path / "eval.json").exists()
+
+
+def _train_script(monkeypatch):
+    """scripts/train.py as a module whose engines and env builders fail if reached."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_script", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    class Reached(Exception):
+        pass
+
+    def reached(*args, **kwargs):
+        raise Reached
+
+    for name in ("run_sb3", "run_rllib"):
+        monkeypatch.setattr(module, name, reached)
+    for name in ("make", "make_vec"):
+        monkeypatch.setattr(gym, name, reached)
+    return module, Reached
+
+
+def _checkpoint(path: Path, env_id: str) -> Path:
+    path.mkdir()
+    trl.write_curve(path, [[128, 1.0, 30.0, 40.0]], 1.0, env_id)
+    return path
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--afferent-source", "bogus"], "afferent_source='bogus' is not one of"),
+    (["--seed", "-1"], "seed=-1 must be an integer in 0..2147483647"),
+    (["--seed", str(2**31)], f"seed={2**31} must be an integer in 0.."),
+    (["--curve-episodes", "-1"], "curve_episodes=-1 must be an integer >= 1"),
+    (["--curve-episodes", "0"], "curve_episodes=0 must be an integer >= 1"),
+    (["--eval-every", "0"], "eval_every=0 must be an integer >= 1"),
+    (["--eval-episodes", "0"], "eval_episodes=0 must be an integer >= 1"),
+    (["--timesteps", "-5"], "timesteps=-5 must be an integer >= 1"),
+    (["--max-minutes", "nan"], "max_minutes=nan must be a finite real number > 0"),
+    (["--max-minutes", "0"], "max_minutes=0.0 must be a finite real number > 0"),
+    (["--env", "proprio_env/Nope-v0"], "env_id='proprio_env/Nope-v0' is not a registered"),
+    (["--env", "no_such_module:Env-v0"], "its module 'no_such_module' does not import"),
+    (["--out", "{file}"], "is a file; it must be a folder"),
+    (["--curve", "{dir}"], "is a folder; it must be a PNG's path"),
+    (["--engine", "rllib", "--checkpoint-dir", "{file}"], "is a file, not a folder"),
+    (["--engine", "rllib", "--resume", "--checkpoint-dir", "{dir}/missing"],
+     "does not exist: nothing to resume"),
+    (["--engine", "rllib", "--resume", "--checkpoint-dir", "{dir}"],
+     "holds no checkpoint of a training run"),
+    (["--engine", "rllib", "--resume", "--checkpoint-dir", "{prosthesis}"],
+     "was trained on env 'proprio_env/ProsthesisElbow-v0', not 'proprio_env/ElbowReach-v0'"),
+])
+def test_every_argument_is_checked_before_an_env_or_ray_exists(args, message, tmp_path,
+                                                              monkeypatch, capsys):
+    """These used to fail after the env was built (a bad source, a negative seed), be
+    accepted (NaN curve points from --curve-episodes -1, --eval-every 0), or raise
+    FileNotFoundError / a torch size mismatch after Ray had started (--resume)."""
+    script, _ = _train_script(monkeypatch)
+    places = {"file": tmp_path / "a-file", "dir": tmp_path,
+              "prosthesis": tmp_path / "ckpt-prosthesis"}
+    places["file"].write_text("x")
+    _checkpoint(places["prosthesis"], "proprio_env/ProsthesisElbow-v0")
+    argv = [a.format(**places) for a in args]
+    with pytest.raises(SystemExit) as exit_info:
+        script.main(argv + (["--out", str(tmp_path / "out")] if "--out" not in argv else []))
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert "ray" not in sys.modules
+    assert not (tmp_path / "out").exists()
+
+
+def test_good_arguments_and_a_matching_checkpoint_reach_the_engine(tmp_path, monkeypatch):
+    script, reached = _train_script(monkeypatch)
+    ckpt = _checkpoint(tmp_path / "ckpt", "proprio_env/ElbowReach-v0")
+    for argv in (["--seed", "0", "--curve-episodes", "1", "--eval-every", "1"],
+                 ["--engine", "rllib", "--resume", "--checkpoint-dir", str(ckpt),
+                  "--seed", str(train.MAX_SEED)]):
+        with pytest.raises(reached):
+            script.main([*argv, "--out", str(tmp_path / "out")])

@@ -130,8 +130,8 @@ def test_wrapper_equals_the_chain_fed_the_same_lengths():
     muscles, kin = env.muscles, ActuatorKinematics(model, env.muscles.ids)
     chain = ArmChain(ChainConfig(lowpass_hz=None))
     chain.length_min_L0[:], chain.length_max_L0[:] = 0.75, 1.05
-    chain._fusimotor.length_min_L0[:] = 0.75  # h(x)'s span as the wrapper's
-    chain._fusimotor.length_max_L0[:] = 1.05
+    chain._arms._fusimotor.length_min_L0[:] = 0.75  # h(x)'s span as the wrapper's
+    chain._arms._fusimotor.length_max_L0[:] = 1.05
     _, info = env.reset(seed=1)
     data = env.unwrapped.data
     chain.reset(0.0, data.time, length_L0=info["spindle_length_L0"])

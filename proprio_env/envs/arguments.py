@@ -4,12 +4,12 @@ Type confusion is refused, not coerced: a bool is not a number (``True`` is not 
 string is not a bool (``"no"`` would be truthy), a complex number is not real (its
 imaginary part would be dropped). numpy scalars of the right kind are accepted
 (``np.float32(50)``, ``np.int64(320)``, ``np.True_``). Every refusal is a ``ValueError``
-naming the argument, the value and what it must be.
+naming the argument, the value and what it must be (numbers: the project's one rule,
+:mod:`spindle.number_rule`, whose ``NumberError`` is a ``ValueError``).
 """
 
 from __future__ import annotations
 
-import math
 import numbers
 import os
 from collections.abc import Mapping, Sequence
@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from spindle.number_rule import positive_int, real_array, real_scalar
 
 __all__ = ["MIN_CONTROL_HZ", "check_flag", "check_instance", "check_path",
            "check_positive_int", "check_ranges_deg", "check_real", "check_real_array",
@@ -36,29 +38,13 @@ def _is_bool(value: Any) -> bool:
 def check_real(name: str, value: Any, *, low: float | None = None,
                low_open: bool = False) -> float:
     """``value`` as a finite float: a real number (Python or numpy, not bool) ``>= low``
-    (``> low`` with ``low_open``)."""
-    if _is_bool(value) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{name}={value!r} must be a real number (got {type(value).__name__})")
-    try:
-        x = float(value)
-    except OverflowError as exc:  # Python ints beyond the float range
-        raise ValueError(f"{name}={value!r} is too large (must be finite)") from exc
-    if not math.isfinite(x):
-        raise ValueError(f"{name}={value!r} must be finite")
-    if low is not None and (x <= low if low_open else x < low):
-        raise ValueError(f"{name}={value!r} must be {'>' if low_open else '>='} {low:g}")
-    return x
+    (``> low`` with ``low_open``); the project's rule, :func:`spindle.number_rule.real_scalar`."""
+    return real_scalar(name, value, low=low, low_open=low_open)
 
 
 def check_positive_int(name: str, value: Any, *, high: int | None = None) -> int:
     """``value`` as an int: an integer (Python or numpy, not bool) in ``[1, high]``."""
-    if _is_bool(value) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name}={value!r} must be an integer (got {type(value).__name__})")
-    n = int(value)
-    if n < 1 or (high is not None and n > high):
-        limit = "" if high is None else f" and <= {high}"
-        raise ValueError(f"{name}={value!r} must be >= 1{limit}")
-    return n
+    return positive_int(name, value, high=high)
 
 
 def check_flag(name: str, value: Any) -> bool:
@@ -94,17 +80,10 @@ def check_instance(name: str, value: Any, cls: type) -> Any:
 
 
 def check_real_array(name: str, value: Any) -> np.ndarray:
-    """``value`` as a float64 array if its elements are real numbers: integer or floating
-    dtype. Complex (the imaginary part would be dropped), bool, string and object arrays
-    (e.g. Python ints beyond the float range) are refused."""
-    try:
-        a = np.asarray(value)
-    except (TypeError, ValueError) as exc:  # ragged nesting
-        raise ValueError(f"{name} {value!r} is not a numeric array") from exc
-    if a.dtype.kind not in "iuf":
-        raise ValueError(f"{name} {value!r} must hold real numbers (got dtype {a.dtype})")
-    with np.errstate(over="ignore"):  # float128 beyond float64 becomes inf, refused as such
-        return a.astype(np.float64)
+    """``value`` as a new float64 array if its elements are real numbers
+    (:func:`spindle.number_rule.real_array`: complex, bool, string, bytes and object arrays
+    are refused; a Python int beyond float's range becomes inf)."""
+    return np.array(real_array(name, value), dtype=np.float64)  # a copy: callers keep it
 
 
 def frames_per_step(control_hz: float, timestep: float) -> int:

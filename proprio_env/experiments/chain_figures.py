@@ -81,11 +81,11 @@ def predictor_experiment() -> dict[str, np.ndarray]:
     L = np.where(t >= 0.3, base + 0.1, base)
     L = np.where(t >= 1.5, base + 0.1 - 0.5 * np.minimum(t - 1.5, 0.3), L)
     out = {"t": t, "input": L}
-    fus.reset(0.0, np.array([L[0], 0.8]))
-    res = [fus.update(ti, np.array([Li, 0.8])) for ti, Li in zip(t, L, strict=True)]
-    out["template"] = np.array([r[0][0] for r in res])
-    out["gamma_s"] = np.array([r[1][0] for r in res])
-    out["gamma_d"] = np.array([r[2][0] for r in res])
+    fus.reset(np.zeros(1), np.array([[L[0], 0.8]]))
+    inputs = np.stack((L, np.full_like(L, 0.8)), axis=-1)[None]  # one arm, (1, T, 2)
+    template, gamma_s, gamma_d = fus.update(t[None], inputs)
+    out["template"], out["gamma_s"], out["gamma_d"] = (x[0, :, 0] for x in (template, gamma_s,
+                                                                           gamma_d))
     return out
 
 

@@ -196,13 +196,11 @@ def fusimotor_drive(t_s: np.ndarray, length_L0: np.ndarray, curve: EcrbCurve
     """(gamma_s, gamma_d) in pps along the movement, from the chain's fusimotor model."""
     full = curve.length_L0(np.linspace(*curve.range_deg, 1401))
     fusimotor = Fusimotor(np.array([full.min()]), np.array([full.max()]))
-    gs = np.empty_like(length_L0)
-    gd = np.empty_like(length_L0)
-    _, s, d = fusimotor.reset(float(t_s[0]), length_L0[:1])
-    gs[0], gd[0] = s[0], d[0]
-    for i in range(1, t_s.size):
-        _, s, d = fusimotor.update(float(t_s[i]), length_L0[i:i + 1])
-        gs[i], gd[i] = s[0], d[0]
+    # one arm, one muscle: the rest state at the first sample, then the rest as one block
+    _, s0, d0 = fusimotor.reset(t_s[:1], length_L0[None, :1])
+    _, s, d = fusimotor.update(t_s[None, 1:], length_L0[None, 1:, None])
+    gs = np.concatenate((s0[:, 0], s[0, :, 0]))
+    gd = np.concatenate((d0[:, 0], d[0, :, 0]))
     return gs, gd
 
 

@@ -20,10 +20,12 @@ from typing import Protocol
 from proprio_env.experiments import (
     demo,
     ecrb,
+    gto,
     human_gains,
     length_fits,
     obstruction,
     spindle_accuracy,
+    stimulation,
 )
 
 PNG_COLOURS = 128
@@ -69,6 +71,8 @@ def validation_steps(jobs: int = 1) -> tuple[Step, ...]:
              partial(spindle_accuracy.run, jobs=jobs)),
         Step("length_fits", "Length fits (the paper's Fig. 5)", length_fits.run),
         Step("demo", "Chain demo (the paper's Fig. 8)", demo.run),
+        Step("gto", "Golgi tendon organ (Ib): Lin & Crago 2002, the exact step", gto.run),
+        Step("stimulation", "Stimulator stage on the demo motion", stimulation.run),
     )
 
 

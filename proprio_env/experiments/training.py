@@ -29,6 +29,9 @@ from typing import Any
 
 import numpy as np
 
+from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
+from spindle.number_rule import positive_int, real_scalar
+
 HELD_OUT_BANDS = ((35.0, 40.0), (60.0, 65.0), (85.0, 90.0))
 """Target bands (deg) never drawn during training; evaluation targets come only from them."""
 TARGET_SPAN_DEG = (15.0, 115.0)
@@ -39,6 +42,31 @@ ROLLOUT_STEPS = 2048
 SMOKE_ROLLOUT_STEPS = 128
 """The same for ``quick`` (smoke) runs."""
 CURVE_COLUMNS = ("timesteps", "elapsed_s", "train_abs_err_deg", "held_out_abs_err_deg")
+MAX_SEED = 2**31 - 1
+"""Largest ``seed``: the runs add sub-env and runner offsets to it, and numpy's legacy seeding
+(stable-baselines3's ``set_random_seed``) takes at most 2^32 - 1."""
+
+
+def check_env_id(env_id: str) -> str:
+    """``env_id`` if Gymnasium knows it (``module:id`` imports ``module`` first, as
+    ``gymnasium.make`` does), else ValueError naming the registered project ids."""
+    import importlib
+
+    import gymnasium as gym
+
+    import proprio_env  # registers the project's ids (light: no MuJoCo)
+
+    module, _, name = env_id.rpartition(":")
+    try:
+        if module:
+            importlib.import_module(module)
+    except ImportError as exc:
+        raise ValueError(f"env_id={env_id!r}: its module {module!r} does not import "
+                         f"({exc})") from None
+    if name not in gym.registry:
+        raise ValueError(f"env_id={env_id!r} is not a registered Gymnasium env (the project's: "
+                         f"{', '.join(proprio_env.ENV_IDS)})")
+    return env_id
 
 
 def training_ranges(span: tuple[float, float] = TARGET_SPAN_DEG,
@@ -211,7 +239,7 @@ class TrainConfig:
     """One training run: the env, its afferent path, the budget and the evaluation."""
 
     env_id: str = "proprio_env/ElbowReach-v0"
-    backend: str = "c"
+    backend: str = DEFAULT_BACKEND
     afferent_source: str | None = None
     """exact | reduced | encoder (None: the env's default)"""
     timesteps: int = 250_000
@@ -225,13 +253,26 @@ class TrainConfig:
     """Envs stepped together in one process (SB3: the vector env; RLlib: per env runner)."""
 
     def __post_init__(self) -> None:
-        if self.timesteps < 1 or not self.max_minutes > 0 or self.eval_episodes < 1:
-            raise ValueError(f"timesteps={self.timesteps!r}, max_minutes={self.max_minutes!r} "
-                             f"and eval_episodes={self.eval_episodes!r} must be positive")
-        if isinstance(self.num_envs, bool) or not isinstance(self.num_envs, int) or not (
-                1 <= self.num_envs <= SMOKE_ROLLOUT_STEPS):
-            raise ValueError(f"num_envs={self.num_envs!r} must be an int in "
-                             f"1..{SMOKE_ROLLOUT_STEPS}")
+        # everything a run needs is checked here, before an env, a model or Ray exists
+        if not (isinstance(self.env_id, str) and self.env_id):
+            raise ValueError(f"env_id={self.env_id!r} must be a Gymnasium env id")
+        check_env_id(self.env_id)
+        if not (isinstance(self.backend, str) and self.backend in BACKEND_CHOICES):
+            raise ValueError(f"backend={self.backend!r} is not one of {BACKEND_CHOICES}")
+        from proprio_env.envs.afferents import SOURCES  # imports MuJoCo: only when checked
+
+        if self.afferent_source is not None and self.afferent_source not in SOURCES:
+            raise ValueError(f"afferent_source={self.afferent_source!r} is not one of "
+                             f"{SOURCES}")
+        for name in ("timesteps", "eval_episodes", "curve_episodes", "eval_every"):
+            object.__setattr__(self, name, positive_int(name, getattr(self, name)))
+        object.__setattr__(self, "num_envs", positive_int("num_envs", self.num_envs,
+                                                          high=SMOKE_ROLLOUT_STEPS))
+        if (isinstance(self.seed, bool) or not isinstance(self.seed, int)
+                or not 0 <= self.seed <= MAX_SEED):
+            raise ValueError(f"seed={self.seed!r} must be an integer in 0..{MAX_SEED}")
+        object.__setattr__(self, "max_minutes", real_scalar("max_minutes", self.max_minutes,
+                                                            low=0.0, low_open=True))
 
     def env_kwargs(self) -> dict[str, Any]:
         kwargs: dict[str, Any] = {"backend": self.backend}

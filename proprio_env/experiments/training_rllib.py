@@ -85,6 +85,31 @@ class RLlibOptions:
             raise ValueError(f"num_env_runners={n!r} must be an int >= 0")
         if self.resume and self.checkpoint_dir is None:
             raise ValueError("resume=True needs a checkpoint_dir")
+        if self.checkpoint_dir is not None and Path(self.checkpoint_dir).is_file():
+            raise ValueError(f"checkpoint_dir={str(self.checkpoint_dir)!r} is a file, not a "
+                             "folder")
+
+
+def check_resume(config: TrainConfig, options: RLlibOptions) -> None:
+    """With ``options.resume``: ValueError unless ``options.checkpoint_dir`` holds a
+    checkpoint this module wrote (:func:`save_checkpoint`) for the same env. Runs before Ray
+    is imported: a missing checkpoint was a FileNotFoundError, and another env's a torch
+    size mismatch, after Ray had started."""
+    if not options.resume:
+        return
+    where = Path(options.checkpoint_dir)
+    if not where.is_dir():
+        raise ValueError(f"checkpoint_dir={str(where)!r} does not exist: nothing to resume "
+                         "(drop --resume to start a new run)")
+    try:
+        load_curve(where)
+        env_id = json.loads((where / CURVE_FILE).read_text()).get("env_id")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"checkpoint_dir={str(where)!r} holds no checkpoint of a training "
+                         f"run ({CURVE_FILE} unreadable: {exc!r})") from None
+    if env_id is not None and env_id != config.env_id:
+        raise ValueError(f"checkpoint_dir={str(where)!r} was trained on env {env_id!r}, not "
+                         f"{config.env_id!r}: resume with --env {env_id}")
 
 
 def rllib_env_id(env_id: str) -> str:
@@ -253,12 +278,19 @@ def training_error(result: dict[str, Any]) -> float:
     return float(total) / float(n) if total is not None and n else math.nan
 
 
-def save_checkpoint(algo, checkpoint_dir: Path, rows: list, elapsed_s: float) -> None:
+def save_checkpoint(algo, checkpoint_dir: Path, rows: list, elapsed_s: float,
+                    env_id: str) -> None:
     """The algorithm (``save_to_path``) and the curve so far."""
     checkpoint_dir = Path(checkpoint_dir).resolve()
     algo.save_to_path(str(checkpoint_dir))
-    (checkpoint_dir / CURVE_FILE).write_text(json.dumps({"rows": rows,
-                                                         "elapsed_s": elapsed_s}))
+    write_curve(checkpoint_dir, rows, elapsed_s, env_id)
+
+
+def write_curve(checkpoint_dir: Path, rows: list, elapsed_s: float, env_id: str) -> None:
+    """The curve so far and the env it was trained on, beside a checkpoint
+    (:func:`load_curve`, :func:`check_resume` read it)."""
+    (Path(checkpoint_dir) / CURVE_FILE).write_text(json.dumps(
+        {"rows": rows, "elapsed_s": elapsed_s, "env_id": env_id}))
 
 
 def load_curve(checkpoint_dir: Path) -> tuple[list, float]:
@@ -275,12 +307,13 @@ def run(out_dir: Path, quick: bool = False, config: TrainConfig | None = None,
     ``out_dir`` and the learning curve to ``curve`` (default ``out_dir/curve.png``).
     ``quick``: tiny batches and evaluations (the smoke run). Returns what ``eval.json``
     holds."""
+    config = TrainConfig() if config is None else config
+    options = RLlibOptions() if options is None else options
+    check_resume(config, options)  # before Ray starts
     import gymnasium as gym
     import ray
     import torch
 
-    config = TrainConfig() if config is None else config
-    options = RLlibOptions() if options is None else options
     if quick:
         config = quick_config(config)
     out_dir = Path(out_dir)
@@ -327,10 +360,10 @@ def run(out_dir: Path, quick: bool = False, config: TrainConfig | None = None,
             print(progress_line(steps, config.timesteps, elapsed, rows[-1][2], held),
                   flush=True)
             if options.checkpoint_dir is not None and iteration % options.checkpoint_every == 0:
-                save_checkpoint(algo, options.checkpoint_dir, rows, elapsed)
+                save_checkpoint(algo, options.checkpoint_dir, rows, elapsed, config.env_id)
         train_s = elapsed_before + time.perf_counter() - start
         if options.checkpoint_dir is not None:
-            save_checkpoint(algo, options.checkpoint_dir, rows, train_s)
+            save_checkpoint(algo, options.checkpoint_dir, rows, train_s, config.env_id)
         module = algo.get_module()
         module.save_to_path(str((out_dir / "policy").resolve()))
         results: dict[str, Any] = evaluate_policies(module_policy(module, action_space),

@@ -11,11 +11,11 @@
 ``docs/wrapper.md`` describes what the wrappers assume about a model and their rules.
 """
 
-from proprio_env.wrappers.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
 from proprio_env.wrappers.muscles import MuscleSet, find_muscles
 from proprio_env.wrappers.single import SpindleAfferents
 from proprio_env.wrappers.trajectory import TrajectoryAfferents, afferents_from_trajectory
 from proprio_env.wrappers.vector import SpindleAfferentsVector
+from spindle.chain.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
 
 __all__ = ["ConstantFusimotor", "MuscleSet", "SpindleAfferents", "SpindleAfferentsVector",
            "SpindleBank", "TemplateFusimotor", "TrajectoryAfferents",

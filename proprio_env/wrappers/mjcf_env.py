@@ -63,6 +63,7 @@ class MuscleModelEnv(MujocoEnv):
         self._compiled = model
         MujocoEnv.__init__(self, str(Path(xml_file).resolve()), frame_skip,
                            observation_space=None, **kwargs)
+        self._compiled = None  # copied into self.model; a pickle of the env would carry it
         self.metadata = {**self.metadata, "render_fps": round(1.0 / self.dt)}
         n = self.model.nq + self.model.nv
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64)

@@ -127,6 +127,15 @@ class ActuatorKinematics:
         self.scratch = mujoco.MjData(model)
         self._moment = np.zeros((model.nu, model.nv))
 
+    def __getstate__(self) -> dict:
+        # the scratch data holds nothing between calls (compute sets every input it reads)
+        # and pickles as the model's whole arena (41 MB on myo-sim's elbow): made anew
+        return {k: v for k, v in self.__dict__.items() if k != "scratch"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.scratch = mujoco.MjData(self.model)
+
     def compute(self, qpos: np.ndarray, qvel: np.ndarray,
                 mocap_pos: np.ndarray | None = None, mocap_quat: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray]:

@@ -9,14 +9,16 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from proprio_env.wrappers.bank import (
+from proprio_env.wrappers.capture import MAX_INTERVAL_S, EnvTap, check_max_interval, step_knots
+from proprio_env.wrappers.muscles import MuscleSet, find_muscles, model_and_data
+from spindle.backends import DEFAULT_BACKEND
+from spindle.chain.bank import (
     COUNTERS,
     ConstantFusimotor,
     SpindleBank,
     TemplateFusimotor,
 )
-from proprio_env.wrappers.capture import EnvTap, step_knots
-from proprio_env.wrappers.muscles import MuscleSet, find_muscles, model_and_data
+from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
 
 OBSERVATION_MODES = ("box", "dict")
@@ -128,10 +130,11 @@ class SpindleAfferents(gym.Wrapper):
         method, step_s: the spindle integrator and its largest sub-step (default
             trapezoidal, 1 ms).
         max_speed_L0_s: the lengths' slew limit (L0/s).
-        backend: the spindle core, ``"numpy"`` (default), ``"c"`` (the C port's batch step,
-            built on first use; needs a C compiler or a cached build) or ``"auto"`` (C when
-            it builds or loads here, else numpy). Both give the same rates to ~1e-10 pps;
-            C costs a fraction of numpy (``scripts/bench_wrapper.py``).
+        backend: the spindle core, ``"numpy"``, ``"c"`` (the C port's batch step, built on
+            first use; needs a C compiler or a cached build) or ``"auto"`` (the default: C when
+            it builds or loads here, else numpy; :func:`spindle.backends.resolve_backend`). Both
+            give the same rates to ~1e-10 pps; C costs a fraction of numpy
+            (``scripts/bench_wrapper.py``).
         lag_physics_step: the afferents describe the muscles one physics step before the
             env's state: each env step's spindles stop at its last physics step but one
             (whose lengths ``mj_step`` computed anyway) and take the last one at the start of
@@ -140,8 +143,20 @@ class SpindleAfferents(gym.Wrapper):
             step, ``docs/wrapper.md``). Needs the recorded physics steps
             (``substep_source`` ``"frames"``). After a reset, the spindles rest at the reset
             lengths from one physics step before it. Default False: the env's state now.
+        max_interval_s: the longest env step (s) the spindles are carried through (default
+            1 s). A longer one (the env's clock set forward, a reset inside ``step`` that
+            moves time, the env stepped for long without the wrapper) restarts them at rest
+            at the env's state, counted in ``spindle_restarts``, so that the work of a step
+            is bounded. ``ValueError`` if it is shorter than a physics step or the env step,
+            or needs more than ``spindle.simulate.MAX_SUBSTEPS`` spindle sub-steps.
 
-    Version history: v0 (first release); v0.1: ``backend``; v0.2: ``lag_physics_step``.
+    Copies (``copy.deepcopy``, ``pickle``) of a wrapped env continue bit for bit as the
+    original would, on either backend. Several wrappers on one env share its recorded
+    physics steps.
+
+    Version history: v0 (first release); v0.1: ``backend``; v0.2: ``lag_physics_step``;
+    v0.3: ``max_interval_s``, copies, wrappers stacked on one env; ``backend`` defaults to
+    ``"auto"`` (was ``"numpy"``).
     """
 
     def __init__(self, env: gym.Env, muscles: Sequence[str] | None = None,
@@ -149,8 +164,9 @@ class SpindleAfferents(gym.Wrapper):
                  fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
                  observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
                  substep_source: str = "auto", method: str = "trapezoidal",
-                 step_s: float | None = None, max_speed_L0_s: float = 8.0,
-                 backend: str = "numpy", lag_physics_step: bool = False) -> None:
+                 step_s: float | None = None, max_speed_L0_s: float = SLEW_LIMIT_L0_S,
+                 backend: str = DEFAULT_BACKEND, lag_physics_step: bool = False,
+                 max_interval_s: float = MAX_INTERVAL_S) -> None:
         super().__init__(env)
         model, _ = model_and_data(env)
         self.muscles: MuscleSet = find_muscles(model, muscles)
@@ -158,9 +174,14 @@ class SpindleAfferents(gym.Wrapper):
         self.observation_mode = observation
         self.observation_space = afferent_spaces(env.observation_space, self.muscles.n,
                                                  observation)
-        self.tap = EnvTap(env, self.muscles, substep_source, lag_physics_step)
-        self.bank = SpindleBank(1, self.muscles.range_low_L0, self.muscles.range_high_L0,
-                                params, fusimotor, method, step_s, max_speed_L0_s, backend)
+        bank = SpindleBank(1, self.muscles.range_low_L0, self.muscles.range_high_L0,
+                           params, fusimotor, method, step_s, max_speed_L0_s, backend)
+        self.max_interval_s = check_max_interval(
+            max_interval_s, float(model.opt.timestep), bank.step_s,
+            getattr(env.unwrapped, "dt", None))
+        self.tap = EnvTap(env, self.muscles, substep_source, lag_physics_step,
+                          self.max_interval_s)
+        self.bank = bank
         self._measured = np.ones((1, self.muscles.n))
         self._source = self.tap.substep_source
         self._started = False
@@ -171,13 +192,18 @@ class SpindleAfferents(gym.Wrapper):
 
     @property
     def substep_source(self) -> str:
-        """``"frames"`` or ``"hermite"``: how the lengths inside an env step are obtained."""
-        return self.tap.substep_source
+        """``"frames"`` or ``"hermite"``: how the lengths inside the last env step were
+        obtained (after a reset: the source the next step will try, the recorded frames
+        where the env could be hooked). A step whose records are missing or do not line up
+        (the hook replaced, the clock set by hand) falls back to the Hermite curve and says
+        so here and in ``info["spindle_substep_source"]``."""
+        return self._source
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
         self.tap.records()  # whatever the reset stepped belongs to no env step
         self._rest()
+        self._source = self.tap.substep_source
         self._started = True
         return self._observation(obs), {**info, **self._info()}
 
@@ -188,8 +214,9 @@ class SpindleAfferents(gym.Wrapper):
         records = [self.tap.records()]
         t_env = self.tap.time()
         t_prev = float(self.bank.t_s[0])
-        if t_env < t_prev or not np.isfinite(t_env):
-            # the env reset itself inside step (time ran back): start again at rest there
+        if not (t_prev <= t_env <= t_prev + self.tap.interval_limit_s):
+            # the env reset itself inside step (time ran back), or its clock jumped (set by
+            # hand, a reset that moves it): start again at rest there
             self.bank.restarts += 1
             self._rest()
         elif t_env > t_prev:

@@ -4,24 +4,34 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from numbers import Integral
 
 import mujoco
 import numpy as np
 
-from proprio_env.wrappers.bank import (
+from proprio_env.wrappers.muscles import ActuatorKinematics, find_muscles
+from spindle.backends import DEFAULT_BACKEND
+from spindle.chain.bank import (
     COUNTERS,
     ConstantFusimotor,
     SpindleBank,
     TemplateFusimotor,
 )
-from proprio_env.wrappers.muscles import ActuatorKinematics, find_muscles
+from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
+from spindle.substeps import substeps
 
 UNIFORM_TOLERANCE = 1e-6
 """Largest relative spread of the sample intervals of a trajectory (it must be uniform)."""
 
-CHUNK_SAMPLES = 2048
-"""Samples per batched advance: bounds the sub-step buffers of a long trajectory."""
+CHUNK_SUBSTEPS = 4096
+"""Spindle sub-steps per batched advance (at least one sample): bounds the sub-step buffers
+of a long trajectory whatever its sample interval."""
+
+MAX_TRAJECTORY_SUBSTEPS = 10_000_000
+"""Default bound on the spindle sub-steps of one trajectory (``max_substeps``): 10^7 sub-steps
+of 1 ms are 2.8 h of motion. More (times in ms taken as s, a corrupted time axis) is refused
+with ``ValueError`` before any work, since it would run for minutes to hours."""
 
 
 @dataclass(frozen=True)
@@ -61,8 +71,9 @@ def afferents_from_trajectory(
     fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
     method: str = "trapezoidal",
     step_s: float | None = None,
-    max_speed_L0_s: float = 8.0,
-    backend: str = "numpy",
+    max_speed_L0_s: float = SLEW_LIMIT_L0_S,
+    backend: str = DEFAULT_BACKEND,
+    max_substeps: int = MAX_TRAJECTORY_SUBSTEPS,
 ) -> TrajectoryAfferents:
     """Ia and II of every muscle of ``model`` along recorded joint motion.
 
@@ -81,10 +92,54 @@ def afferents_from_trajectory(
         qvel_t: (T, nv) joint velocities, or None.
         muscles, params, fusimotor, method, step_s, max_speed_L0_s, backend: as the
             wrapper's.
+        max_substeps: the most spindle sub-steps (of at most ``step_s``) the trajectory may
+            take in all; ``ValueError`` naming the count and the limit beyond it, or beyond
+            ``spindle.simulate.MAX_SUBSTEPS`` in one sample interval (both checked before any
+            work).
 
     Returns:
         :class:`TrajectoryAfferents`.
     """
+    q, t, qv = _checked_trajectory(model, qpos_t, t_s, qvel_t)
+    dt = np.diff(t)
+    muscle_set = find_muscles(model, muscles)
+    bank = SpindleBank(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
+                       fusimotor, method, step_s, max_speed_L0_s, backend)
+    per_interval = _check_work(dt, bank.step_s, max_substeps)
+    kinematics = ActuatorKinematics(model, muscle_set.ids)
+    zero = np.zeros(model.nv)
+    length_m = np.empty((t.size, muscle_set.n))
+    velocity_m_s = np.empty_like(length_m)
+    for i in range(t.size):
+        length_m[i], velocity_m_s[i] = kinematics.compute(
+            q[i], zero if qv is None else qv[i])
+    if qvel_t is None:
+        velocity_m_s = np.gradient(length_m, t, axis=0)
+    L = muscle_set.length_L0(length_m)
+    V = muscle_set.velocity_L0_s(velocity_m_s)
+
+    bank.reset(None, t[:1], L[:1], V[:1])
+    out = {key: np.empty_like(L) for key in ("ia_pps", "ii_pps", "length_L0", "velocity_L0_s",
+                                              "gamma_static_pps", "gamma_dynamic_pps")}
+    out["ia_pps"][0], out["ii_pps"][0] = bank.ia_pps[0], bank.ii_pps[0]
+    out["length_L0"][0], out["velocity_L0_s"][0] = bank.length_L0[0], bank.velocity_L0_s[0]
+    out["gamma_static_pps"][0] = bank.gamma_static_pps[0]
+    out["gamma_dynamic_pps"][0] = bank.gamma_dynamic_pps[0]
+    chunk = max(1, CHUNK_SUBSTEPS // per_interval)
+    for i0 in range(1, t.size, chunk):
+        i1 = min(i0 + chunk, t.size)
+        bank.advance(t[i0:i1, None], L[i0:i1, None], V[i0:i1, None], record=True)
+        for key in out:
+            out[key][i0:i1] = bank.knots[key][:, 0]
+    counters = {name: bank.counters[name][0].copy() for name in COUNTERS}
+    return TrajectoryAfferents(t_s=t.copy(), muscle_names=muscle_set.names,
+                               measured_length_L0=L, counters=counters, **out)
+
+
+def _checked_trajectory(model: mujoco.MjModel, qpos_t, t_s, qvel_t
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(qpos, times, qvel or None) as float arrays, shapes, finiteness and uniform times
+    checked."""
     q = np.asarray(qpos_t, dtype=float)
     t = np.asarray(t_s, dtype=float)
     if q.ndim != 2 or q.shape[1] != model.nq or t.shape != (q.shape[0],):
@@ -98,37 +153,33 @@ def afferents_from_trajectory(
     if not (dt.min() > 0 and dt.max() - dt.min() <= UNIFORM_TOLERANCE * dt.mean()):
         raise ValueError(f"t_s must be increasing and uniform: sample intervals range over "
                          f"[{dt.min()!r}, {dt.max()!r}] s")
+    qv = None
     if qvel_t is not None:
         qv = np.asarray(qvel_t, dtype=float)
         if qv.shape != (t.size, model.nv) or not np.all(np.isfinite(qv)):
             raise ValueError(f"qvel_t has shape {qv.shape}; expected finite (T, {model.nv})")
-    muscle_set = find_muscles(model, muscles)
-    kinematics = ActuatorKinematics(model, muscle_set.ids)
-    zero = np.zeros(model.nv)
-    length_m = np.empty((t.size, muscle_set.n))
-    velocity_m_s = np.empty_like(length_m)
-    for i in range(t.size):
-        length_m[i], velocity_m_s[i] = kinematics.compute(
-            q[i], zero if qvel_t is None else qv[i])
-    if qvel_t is None:
-        velocity_m_s = np.gradient(length_m, t, axis=0)
-    L = muscle_set.length_L0(length_m)
-    V = muscle_set.velocity_L0_s(velocity_m_s)
+    return q, t, qv
 
-    bank = SpindleBank(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
-                       fusimotor, method, step_s, max_speed_L0_s, backend)
-    bank.reset(None, t[:1], L[:1], V[:1])
-    out = {key: np.empty_like(L) for key in ("ia_pps", "ii_pps", "length_L0", "velocity_L0_s",
-                                              "gamma_static_pps", "gamma_dynamic_pps")}
-    out["ia_pps"][0], out["ii_pps"][0] = bank.ia_pps[0], bank.ii_pps[0]
-    out["length_L0"][0], out["velocity_L0_s"][0] = bank.length_L0[0], bank.velocity_L0_s[0]
-    out["gamma_static_pps"][0] = bank.gamma_static_pps[0]
-    out["gamma_dynamic_pps"][0] = bank.gamma_dynamic_pps[0]
-    for i0 in range(1, t.size, CHUNK_SAMPLES):
-        i1 = min(i0 + CHUNK_SAMPLES, t.size)
-        bank.advance(t[i0:i1, None], L[i0:i1, None], V[i0:i1, None], record=True)
-        for key in out:
-            out[key][i0:i1] = bank.knots[key][:, 0]
-    counters = {name: bank.counters[name][0].copy() for name in COUNTERS}
-    return TrajectoryAfferents(t_s=t.copy(), muscle_names=muscle_set.names,
-                               measured_length_L0=L, counters=counters, **out)
+
+def _check_work(dt_s: np.ndarray, step_s: float, max_substeps: object) -> int:
+    """The spindle sub-steps per sample interval; ``ValueError`` if one interval needs more
+    than ``spindle.simulate.MAX_SUBSTEPS`` or the whole trajectory more than
+    ``max_substeps``."""
+    from spindle.simulate import MAX_SUBSTEPS
+
+    if isinstance(max_substeps, bool | np.bool_) or not isinstance(max_substeps, Integral) \
+            or max_substeps < 1:
+        raise ValueError(f"max_substeps={max_substeps!r} must be an integer >= 1")
+    interval = float(dt_s.mean())
+    k = substeps(interval, step_s)
+    if k > MAX_SUBSTEPS:
+        raise ValueError(f"the sample interval {interval!r} s needs {k} spindle sub-steps of "
+                         f"{step_s!r} s, above the limit MAX_SUBSTEPS = {MAX_SUBSTEPS}; are "
+                         "t_s in seconds?")
+    total = k * dt_s.size
+    if total > max_substeps:
+        raise ValueError(f"the trajectory needs {total} spindle sub-steps ({dt_s.size} "
+                         f"intervals of {interval!r} s, {k} sub-steps of at most {step_s!r} s "
+                         f"each), above the limit max_substeps = {max_substeps}; are t_s in "
+                         "seconds? (pass a larger max_substeps for a longer replay)")
+    return k

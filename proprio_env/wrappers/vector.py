@@ -10,8 +10,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
-from proprio_env.wrappers.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
-from proprio_env.wrappers.capture import EnvTap, step_knots
+from proprio_env.wrappers.capture import MAX_INTERVAL_S, EnvTap, check_max_interval, step_knots
 from proprio_env.wrappers.muscles import find_muscles, model_and_data
 from proprio_env.wrappers.single import (
     RATE_SCALE_PPS,
@@ -20,6 +19,9 @@ from proprio_env.wrappers.single import (
     bank_info,
     check_rate_scale,
 )
+from spindle.backends import DEFAULT_BACKEND
+from spindle.chain.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
+from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
 
 
@@ -34,8 +36,13 @@ class SpindleAfferentsVector(VectorWrapper):
     Autoreset: ``NEXT_STEP`` (Gymnasium's default: the step after a sub-env ended resets it)
     and ``SAME_STEP`` re-equilibrate that sub-env's spindles at its reset lengths; with
     ``DISABLED``, ``reset(options={"reset_mask": mask})`` does so for the masked sub-envs.
-    A sub-env whose time ran backwards inside a step (it reset itself) is re-equilibrated
-    too.
+    With ``SAME_STEP`` the ending step's afferents are computed too (the wrapper keeps each
+    sub-env's state when the vector env resets it, through an instance attribute ``reset``
+    on the sub-env): ``info["final_obs"][i]`` is the wrapped observation (in
+    :attr:`single_observation_space`) and ``info["final_info"][i]`` holds that step's
+    ``spindle_*`` keys. A sub-env whose time ran backwards inside a step (it reset itself),
+    jumped by more than ``max_interval_s``, or moved by another time than the others' is
+    re-equilibrated at its state (counted in ``spindle_restarts``).
 
     ``info`` gains the single wrapper's per-muscle keys as (n_envs, M) arrays (each with its
     ``_key`` mask, all True), ``spindle_substep_source``, ``spindle_substeps_limited`` and
@@ -49,8 +56,9 @@ class SpindleAfferentsVector(VectorWrapper):
                  fusimotor: ConstantFusimotor | TemplateFusimotor | None = None,
                  observation: str = "box", rate_scale_pps: float = RATE_SCALE_PPS,
                  substep_source: str = "auto", method: str = "trapezoidal",
-                 step_s: float | None = None, max_speed_L0_s: float = 8.0,
-                 backend: str = "numpy", lag_physics_step: bool = False) -> None:
+                 step_s: float | None = None, max_speed_L0_s: float = SLEW_LIMIT_L0_S,
+                 backend: str = DEFAULT_BACKEND, lag_physics_step: bool = False,
+                 max_interval_s: float = MAX_INTERVAL_S) -> None:
         super().__init__(env)
         subs = getattr(env, "envs", None)
         if subs is None:
@@ -64,27 +72,47 @@ class SpindleAfferentsVector(VectorWrapper):
             raise ValueError("the sub-envs' muscles differ: "
                              f"{sorted({s.names for s in sets})}")
         self.muscles = sets[0]
-        self.taps = [EnvTap(e, s, substep_source, lag_physics_step)
-                     for e, s in zip(subs, sets, strict=True)]
-        if len({t.timestep_s for t in self.taps}) != 1:
-            raise ValueError("the sub-envs' physics timesteps differ")
+        timesteps = {float(model_and_data(e)[0].opt.timestep) for e in subs}
+        if len(timesteps) != 1:
+            raise ValueError(f"the sub-envs' physics timesteps differ: {sorted(timesteps)}")
+        bank = SpindleBank(len(subs), self.muscles.range_low_L0, self.muscles.range_high_L0,
+                           params, fusimotor, method, step_s, max_speed_L0_s, backend)
+        timestep_s = timesteps.pop()
+        self.max_interval_s = max(check_max_interval(
+            max_interval_s, timestep_s, bank.step_s, getattr(e.unwrapped, "dt", None))
+            for e in subs)
+        dts = {getattr(e.unwrapped, "dt", None) for e in subs}
+        dt = dts.pop() if len(dts) == 1 else None
+        self._env_steps = (round(dt / timestep_s) if isinstance(dt, float | int) and dt > 0
+                           else None)  # physics steps per env step, if the envs say
+        self.autoreset_mode = env.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         self.rate_scale_pps = rate_scale_pps
         self.observation_mode = observation
         self.single_observation_space = afferent_spaces(env.single_observation_space,
                                                         self.muscles.n, observation)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self.bank = SpindleBank(self.num_envs, self.muscles.range_low_L0,
-                                self.muscles.range_high_L0, params, fusimotor, method, step_s,
-                                max_speed_L0_s, backend)
-        self.autoreset_mode = env.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
+        # the sub-envs are hooked last, once every argument has been accepted
+        self.taps = [EnvTap(e, s, substep_source, lag_physics_step, self.max_interval_s)
+                     for e, s in zip(subs, sets, strict=True)]
+        self._final_hooks = ([FinalStateOnReset(e, tap) for e, tap in
+                              zip(subs, self.taps, strict=True)]
+                             if self.autoreset_mode == AutoresetMode.SAME_STEP else [])
+        self.bank = bank
         self._pending = np.zeros(self.num_envs, dtype=bool)
         self._measured = np.ones((self.num_envs, self.muscles.n))
-        self._source = "frames" if all(t.recorder for t in self.taps) else "hermite"
+        self._source = "frames" if all(t.recorder is not None for t in self.taps) \
+            else "hermite"
         self._started = False
 
     @property
     def muscle_names(self) -> tuple[str, ...]:
         return self.muscles.names
+
+    @property
+    def substep_source(self) -> str:
+        """``"frames"`` or ``"hermite"``: how the lengths inside the last step were obtained
+        (see :attr:`SpindleAfferents.substep_source`)."""
+        return self._source
 
     def reset(self, *, seed: int | list[int] | None = None,
               options: dict[str, Any] | None = None):
@@ -94,35 +122,95 @@ class SpindleAfferentsVector(VectorWrapper):
                 else np.flatnonzero(np.asarray(mask, dtype=bool)))
         self._rest(rows, discard_records=True)
         self._pending[rows] = False
+        self._source = "frames" if all(t.recorder is not None for t in self.taps) \
+            else "hermite"
         self._started = True
         return self._observation(obs), self._info(info)
 
     def step(self, actions):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        obs, rewards, terminations, truncations, info = self.env.step(actions)
+        for hook in self._final_hooks:
+            hook.armed = True
+        try:
+            obs, rewards, terminations, truncations, info = self.env.step(actions)
+        except BaseException:
+            # the vector env stepped some sub-envs and refused another: those it reset
+            # rest at their reset state, as the rest of this step is lost anyway
+            frozen = np.flatnonzero([tap.final is not None for tap in self.taps])
+            for i in frozen:
+                self.taps[i].thaw()
+            self._rest(frozen, discard_records=True)
+            raise
+        finally:
+            for hook in self._final_hooks:
+                hook.armed = False
         records = [tap.records() for tap in self.taps]
         t_env = np.array([tap.time() for tap in self.taps])
         ended = np.logical_or(terminations, truncations)
-        reset = self._pending.copy() if self.autoreset_mode == AutoresetMode.NEXT_STEP \
-            else (ended if self.autoreset_mode == AutoresetMode.SAME_STEP
-                  else np.zeros(self.num_envs, bool))
-        back = ~(t_env >= self.bank.t_s)
-        self.bank.restarts += int(np.count_nonzero(back & ~reset))
-        reset |= back
-        moving = ~reset & (t_env > self.bank.t_s)
+        final = np.array([tap.final is not None for tap in self.taps])
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            reset = self._pending.copy()
+        else:  # SAME_STEP: a sub-env that ended was reset; its final state was kept
+            reset = ended & ~final if self.autoreset_mode == AutoresetMode.SAME_STEP \
+                else np.zeros(self.num_envs, bool)
+        restart = ~reset & self._clock_faults(t_env)
+        self.bank.restarts += int(np.count_nonzero(restart))
+        moving = ~reset & ~restart & (t_env > self.bank.t_s)
         if moving.any():
-            t, L, V, self._source = step_knots(self.taps, records, self.bank.t_s,
-                                               self.bank.length_L0, self.bank.velocity_L0_s,
-                                               moving)
+            t, L, V, self._source = step_knots(
+                self.taps, records, self.bank.t_s, self.bank.length_L0,
+                self.bank.velocity_L0_s, moving)
             self.bank.advance(t, L, V, hold=~moving)
             self._measured[moving] = L[-1, moving]
+        self._rest(np.flatnonzero(restart))
+        if final.any():
+            info = self._final_observations(info, np.flatnonzero(final))
         self._rest(np.flatnonzero(reset))
         self._pending = (ended if self.autoreset_mode == AutoresetMode.NEXT_STEP
                          else np.zeros(self.num_envs, bool))
         return self._observation(obs), rewards, terminations, truncations, self._info(info)
 
+    def _clock_faults(self, t_env: np.ndarray) -> np.ndarray:
+        """(n,) bool: the sub-envs whose clock ran backwards (it reset itself), is not
+        finite, jumped by more than ``max_interval_s``, or moved by another number of
+        physics steps than most sub-envs (a clock set by hand in one of them): each is
+        restarted at rest at its state rather than carried along."""
+        span = t_env - self.bank.t_s
+        bad = ~((span >= 0) & (span <= self.taps[0].interval_limit_s))
+        steps = np.rint(np.where(bad, 0.0, span) / self.taps[0].timestep_s).astype(np.int64)
+        moved = ~bad & (steps > 0)
+        if moved.any():
+            values, counts = np.unique(steps[moved], return_counts=True)
+            common = values[counts == counts.max()]
+            # a tie (two sub-envs, one set by hand): the env's own step if it tells it
+            usual = common[-1] if self._env_steps not in common else self._env_steps
+            bad |= moved & (steps != usual)
+        return bad
+
+    def _final_observations(self, info: dict[str, Any], rows: np.ndarray) -> dict[str, Any]:
+        """SAME_STEP: ``info["final_obs"]`` / ``["final_info"]`` of the sub-envs ``rows``
+        (which ended this step) with the afferents at their final state; then their taps
+        read the reset env again."""
+        info = dict(info)
+        final_obs = info["final_obs"].copy()
+        final_info = dict(info.get("final_info", {}))
+        for i in rows:
+            final_obs[i] = add_afferents(final_obs[i], self.bank.ia_pps[i], self.bank.ii_pps[i],
+                                         self.observation_mode, self.rate_scale_pps,
+                                         getattr(self.single_observation_space, "dtype", None))
+            # batched the way the vector env batches the sub-envs' infos (arrays, _key masks)
+            final_info = VectorEnv._add_info(
+                self, final_info, bank_info(self.bank, self._measured, self._source, row=int(i)),
+                int(i))
+            self.taps[i].thaw()
+        info["final_obs"], info["final_info"] = final_obs, final_info
+        self._rest(rows, discard_records=True)
+        return info
+
     def close(self, **kwargs: Any) -> None:
+        for hook in getattr(self, "_final_hooks", ()):
+            hook.remove()
         for tap in getattr(self, "taps", ()):  # absent if __init__ refused the env
             tap.close()
         super().close(**kwargs)
@@ -157,3 +245,31 @@ class SpindleAfferentsVector(VectorWrapper):
         out["spindle_substeps_limited"] = self.bank.substeps_limited
         out["spindle_restarts"] = self.bank.restarts
         return out
+
+
+class FinalStateOnReset:
+    """Put on a sub-env as its instance attribute ``reset``: while :attr:`armed` (during the
+    vector env's step), it freezes the sub-env's tap (:meth:`EnvTap.freeze`: the state and
+    records at the episode's end) before the sub-env's own reset runs. :meth:`remove` takes
+    it off."""
+
+    def __init__(self, env: Any, tap: EnvTap) -> None:
+        self.env, self.tap, self.armed = env, tap, False
+        # an instance attribute reset already there, else None: the class's is called (a
+        # bound method kept here would be unpickled as getattr(env, "reset"): this object)
+        self.own = env.__dict__.get("reset")
+        env.reset = self
+
+    def __call__(self, *args: Any, **kwargs: Any):
+        if self.armed:
+            self.tap.freeze()
+        if self.own is not None:
+            return self.own(*args, **kwargs)
+        return type(self.env).reset(self.env, *args, **kwargs)
+
+    def remove(self) -> None:
+        if self.env.__dict__.get("reset") is self:
+            if self.own is not None:
+                self.env.reset = self.own
+            else:
+                del self.env.__dict__["reset"]

@@ -26,75 +26,42 @@ raises, every arm is left exactly as it was.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from spindle import core
-from spindle.chain.arm import fits_and_ranges
-from spindle.chain.conditioning import natural_rad_s, tracking_step, tracking_steps
-from spindle.chain.config import COUNTERS, ArmSample, ChainConfig, real_array
-from spindle.chain.fusimotor import BatchedFusimotor
-from spindle.chain.length_model import LengthFits
-from spindle.chain.sensor import BatchedMedianFilter, valid_readings
+from spindle import core, number_rule
+from spindle.chain.conditioning import natural_rad_s, tracking_steps
+from spindle.chain.config import COUNTERS, MUSCLES, ArmSample, ChainConfig, real_array
+from spindle.chain.fusimotor import Fusimotor
+from spindle.chain.length_model import LengthFits, load_length_fits
+from spindle.chain.samples import BatchSample, lengths_valid
+from spindle.chain.sensor import MedianFilter, valid_readings
 from spindle.methods import get_method
-from spindle.substeps import bounded_hermite_length
+from spindle.substeps import bounded_hermite_length, slew_limited
 
 _COUNTER = {name: i for i, name in enumerate(COUNTERS)}
-_SPINDLE_ARRAYS = ("tension_FU", "polar_velocity_L0_s", "velocity_root", "activation",
-                   "length_L0", "gamma_dyn_pps", "gamma_stat_pps")
 _OUTPUTS = tuple(f.name for f in fields(ArmSample) if f.name != "accepted")
 _ALL = slice(None)
 _MAX = np.maximum.reduce
-_MIN = np.minimum.reduce
-_ALL_TRUE = np.logical_and.reduce
+LENGTH_RANGE_POINTS = 1301
+"""Points of the angle grid over the fitted range on which each muscle's length range (the
+fusimotor's h(x) and g(x) span) is taken; ``FIT_RANGE_POINTS`` in ``chain.c`` is the same."""
 
 
-def _accepted_all(n: int) -> np.ndarray:
-    return np.ones(n, dtype=bool)
+def fits_and_ranges(config: ChainConfig, fits: LengthFits | None
+                    ) -> tuple[LengthFits, tuple[float, float], np.ndarray, np.ndarray]:
+    """The chain's length fits (``fits``, or those of ``config.fits_path``), the angle range
+    they hold (deg) and each muscle's shortest and longest length over it (L0): what the
+    chain clamps to and spans h(x) with."""
+    fits = fits if fits is not None else load_length_fits(config.fits_path)
+    if fits.muscles != MUSCLES:
+        raise ValueError(f"length fits are for {fits.muscles}, the chain needs {MUSCLES}")
+    lo_rad, hi_rad = fits.valid_range_rad
+    span = fits.length_L0(np.linspace(lo_rad, hi_rad, LENGTH_RANGE_POINTS))
+    return fits, (math.degrees(lo_rad), math.degrees(hi_rad)), span.min(axis=0), span.max(axis=0)
 
 
-def _one_or_each(h: np.ndarray) -> float | np.ndarray:
-    """One sub-step size if the arms share it (the core's scalar-h step), else each arm's."""
-    return float(h[0]) if _MIN(h) == _MAX(h) else h
-
-
-@dataclass(frozen=True)
-class BatchSample:
-    """The outputs of every arm after one push: :class:`~spindle.chain.config.ArmSample`'s
-    fields with a leading axis of arms.
-
-    Attributes:
-        t_s, accepted, counts, counts_filtered, angle_deg: (n_arms,) each.
-        length_L0, velocity_L0_s, acceleration_L0_s2, template_L0, gamma_static_pps,
-            gamma_dynamic_pps, ia_pps, ii_pps: (n_arms, 2) each, muscles in ``MUSCLES``
-            order.
-
-    An arm whose sample was rejected, or that got none, repeats its last output with
-    ``accepted`` False. The arrays are read-only (the chain shares them with its state).
-    """
-
-    t_s: np.ndarray
-    accepted: np.ndarray
-    counts: np.ndarray
-    counts_filtered: np.ndarray
-    angle_deg: np.ndarray
-    length_L0: np.ndarray
-    velocity_L0_s: np.ndarray
-    acceleration_L0_s2: np.ndarray
-    template_L0: np.ndarray
-    gamma_static_pps: np.ndarray
-    gamma_dynamic_pps: np.ndarray
-    ia_pps: np.ndarray
-    ii_pps: np.ndarray
-
-    def arm(self, k: int) -> ArmSample:
-        """Arm ``k``'s output as the single chain's :class:`ArmSample`."""
-        return ArmSample(
-            t_s=float(self.t_s[k]), accepted=bool(self.accepted[k]),
-            counts=float(self.counts[k]), counts_filtered=float(self.counts_filtered[k]),
-            angle_deg=float(self.angle_deg[k]),
-            **{name: getattr(self, name)[k].copy() for name in _OUTPUTS[4:]})
 
 
 @dataclass
@@ -112,6 +79,7 @@ class _Block:
     rejected: np.ndarray | None
     slewed: np.ndarray
     clamped: np.ndarray | None = None
+    angle: np.ndarray | None = None
 
 
 class BatchedArmChain:
@@ -129,17 +97,20 @@ class BatchedArmChain:
         fits: the length fits (default: ``config.fits_path``'s).
     """
 
+    backend = "numpy"
+
     def __init__(self, n_arms: int, config: ChainConfig | None = None,
                  fits: LengthFits | None = None):
         if (isinstance(n_arms, bool | np.bool_) or not isinstance(n_arms, int | np.integer)
                 or n_arms < 1):
             raise ValueError(f"n_arms={n_arms!r} must be an integer >= 1")
         self.n_arms = int(n_arms)
-        self.config = ChainConfig() if config is None else config
-        if self.config.backend == "c":
+        config = ChainConfig() if config is None else config
+        if config.backend == "c":
             raise ValueError(
                 "BatchedArmChain is the numpy batch, but config.backend='c'; build the batch "
                 "with spindle.chain.make_batched_chain(n_arms, config, fits)")
+        self.config = replace(config, backend=self.backend)
         (self.fits, self.angle_range_deg, self.length_min_L0,
          self.length_max_L0) = fits_and_ranges(self.config, fits)
         self._theta = get_method(self.config.method).theta
@@ -147,9 +118,9 @@ class BatchedArmChain:
         self._omega = (None if self.config.lowpass_hz is None
                        else natural_rad_s(self.config.lowpass_hz))
         n = self.n_arms
-        self._median = BatchedMedianFilter(n, self.config.median_window)
-        self._fusimotor = BatchedFusimotor(n, self.length_min_L0, self.length_max_L0,
-                                           self.config.fusimotor)
+        self._median = MedianFilter(self.config.median_window, n)
+        self._fusimotor = Fusimotor(self.length_min_L0, self.length_max_L0,
+                                    self.config.fusimotor, n)
         self._ready = np.zeros(n, dtype=bool)  # reset at least once
         self._intended = np.full((n, 2), math.nan)  # NaN rows: the measured motion
         self._following = True  # every row of _intended NaN
@@ -208,16 +179,14 @@ class BatchedArmChain:
             self._per_arm("t_s", t_s, (m,), rows)
         _check_finite("t_s", t, rows)
         _check_finite("angle_deg", angle, rows)
-        lo, hi = self.angle_range_deg
         if length_L0 is None:
-            clamped = (angle < lo) | (angle > hi)
-            recorded = np.minimum(np.maximum(angle, lo), hi)
+            clamped, recorded = _clamped_angles(angle, self.angle_range_deg)
             L = self.fits.length_L0(np.radians(recorded))
         else:
             clamped = np.zeros(m, dtype=bool)
             recorded = angle.copy()
             L = self._per_arm("length_L0", length_L0, (m, 2), rows)
-            bad = ~_lengths_valid(L)
+            bad = ~lengths_valid(L)
             if bad.any():
                 i = int(np.argmax(bad))
                 raise ValueError(f"length_L0 of arm {int(rows[i])} is {L[i]!r}; it must be 2 "
@@ -256,16 +225,16 @@ class BatchedArmChain:
             self._intended = np.full((n, 2), math.nan)
             self._following = True
             return
-        angle = self._per_arm("angle_deg", angle_deg, (n,), np.arange(n))
+        angle = self._per_arm("angle_deg", number_rule.real_array("angle_deg", angle_deg), (n,),
+                              np.arange(n))
         if np.isinf(angle).any():
             i = int(np.argmax(np.isinf(angle)))
             raise ValueError(f"angle_deg of arm {i} is {angle[i]!r}; it must be a finite real "
                              "number (NaN: the measured motion)")
-        lo, hi = self.angle_range_deg
         given = ~np.isnan(angle)
         intended = np.full((n, 2), math.nan)
         if given.any():
-            clamped = np.minimum(np.maximum(angle[given], lo), hi)
+            _, clamped = _clamped_angles(angle[given], self.angle_range_deg)
             intended[given] = self.fits.length_L0(np.radians(clamped))
         self._intended = intended
         self._following = not given.any()
@@ -286,10 +255,12 @@ class BatchedArmChain:
         return self._push("angle_deg", t_s, angle_deg, active, ())
 
     def push_lengths(self, t_s: np.ndarray, length_L0: np.ndarray,
-                     active: np.ndarray | None = None) -> BatchSample:
+                     active: np.ndarray | None = None,
+                     angle_deg: np.ndarray | None = None) -> BatchSample:
         """The two fibre lengths (L0) of every arm, (n_arms, 2), skipping the sensor and the
-        length model (the recorded angle stays the arm's last)."""
-        return self._push("length_L0", t_s, length_L0, active, (2,))
+        length model. ``angle_deg`` (n_arms,) is only recorded in the output (the arm's last
+        angle where None or not finite)."""
+        return self._push("length_L0", t_s, length_L0, active, (2,), angle_deg)
 
     def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray,
                           n_samples: np.ndarray | None = None) -> BatchSample:
@@ -310,33 +281,31 @@ class BatchedArmChain:
         return self._block("angle_deg", t_s, angle_deg, n_samples, ())
 
     def push_lengths_block(self, t_s: np.ndarray, length_L0: np.ndarray,
-                           n_samples: np.ndarray | None = None) -> BatchSample:
-        """:meth:`push_lengths` over (n_arms, k) times and (n_arms, k, 2) lengths; see
-        :meth:`push_counts_block`."""
-        return self._block("length_L0", t_s, length_L0, n_samples, (2,))
+                           n_samples: np.ndarray | None = None,
+                           angle_deg: np.ndarray | None = None) -> BatchSample:
+        """:meth:`push_lengths` over (n_arms, k) times and (n_arms, k, 2) lengths (and
+        recorded angles (n_arms, k)); see :meth:`push_counts_block`."""
+        return self._block("length_L0", t_s, length_L0, n_samples, (2,), angle_deg)
 
     # -- the push --------------------------------------------------------------------------
-    def _push(self, kind: str, t_s, signal, active, sample_shape) -> BatchSample:
+    def _push(self, kind: str, t_s, signal, active, sample_shape, angle_deg=None
+              ) -> BatchSample:
         n = self.n_arms
         t = _shaped("t_s", t_s, (n,), "(n_arms,)")
         x = _shaped(kind, signal, (n, *sample_shape), f"(n_arms{', 2' if sample_shape else ''})")
+        count = np.ones(n, dtype=np.int64)
         if active is not None:
             active = np.asarray(active)
             if active.shape != (n,) or active.dtype != bool:
                 raise ValueError(f"active has shape {active.shape} and dtype {active.dtype}; "
                                  f"expected ({n},) bool")
-            if active.all():
-                active = None
-        self._check_ready(active)
-        saved = self._snapshot()
-        try:
-            accepted = self._column(kind, t, x, active)
-        except BaseException:
-            self._restore(saved)
-            raise
-        return self._sample(accepted)
+            count = active.astype(np.int64)
+        angle = None if angle_deg is None else _shaped("angle_deg", angle_deg, (n,), "(n_arms,)")
+        return self._sample(self._run(kind, t[:, None], x[:, None], count,
+                                      None if angle is None else angle[:, None]))
 
-    def _block(self, kind: str, t_s, signal, n_samples, sample_shape) -> BatchSample:
+    def _block(self, kind: str, t_s, signal, n_samples, sample_shape, angle_deg=None
+               ) -> BatchSample:
         n = self.n_arms
         t = np.array(real_array(t_s), dtype=float)  # a copy: the chain keeps its columns
         if t.ndim != 2 or t.shape[0] != n:
@@ -355,37 +324,46 @@ class BatchedArmChain:
             if count.size and (count.min() < 0 or count.max() > k):
                 raise ValueError(f"n_samples must lie in 0..{k} (the block's k), got "
                                  f"{count.min()}..{count.max()}")
+        angle = None if angle_deg is None else _shaped("angle_deg", angle_deg, t.shape,
+                                                       "(n_arms, k) like t_s")
+        self._run(kind, t, x, count, angle)
+        return self._sample(count > 0)
+
+    def _run(self, kind: str, t: np.ndarray, x: np.ndarray, count: np.ndarray,
+             angle: np.ndarray | None = None) -> np.ndarray:
+        """Arm i's samples ``x[i, :count[i]]`` at ``t[i, ...]`` (n, k) (and recorded angles,
+        for lengths), atomically: in one pass (:meth:`_advance`) when the block holds only the
+        common case, else column by column (:meth:`_column`). Returns which arms accepted a
+        sample."""
         self._check_ready(None if count.min() > 0 else count > 0)
+        if t.shape[1] == 0:
+            return np.zeros(self.n_arms, dtype=bool)
         saved = self._snapshot()
         try:
-            if self._fast_block(kind, t, x, count):
-                return self._sample(count > 0)
-            for j in range(int(count.max()) if n else 0):
-                active = count > j
-                self._column(kind, t[:, j], x[:, j], None if active.all() else active)
+            block = self._block_samples(kind, t, x, count, angle)
+            if block is not None:
+                self._advance(kind, block)
+                return block.n_ok > 0
+            accepted = np.zeros(self.n_arms, dtype=bool)
+            for j in range(int(count.max())):
+                accepted |= self._column(kind, t[:, j], x[:, j], count > j,
+                                         None if angle is None else angle[:, j])
         except BaseException:
             self._restore(saved)
             raise
-        return self._sample(count > 0)
+        return accepted
 
-    def _fast_block(self, kind: str, t: np.ndarray, x: np.ndarray, count: np.ndarray) -> bool:
-        """A whole block in one pass, if it holds only the common case: every arm's given
-        times increasing from its last accepted one by at most ``max_bridge_s`` (no restart,
-        no resync); rejected samples (bad readings, angles or lengths) and the slew limits
-        are handled. Then returns True, every arm's state and outputs as after
-        :meth:`_column` over the block's columns; else False with nothing changed (the
-        caller steps the columns).
+    def _advance(self, kind: str, block: _Block) -> None:
+        """A checked block (:meth:`_block_samples`: every arm's given times increasing from
+        its last accepted one by at most ``max_bridge_s``, no restart, no resync) in one pass:
+        every rule but the time rules and restarts (:meth:`_column`) is applied here, for
+        k columns (a block) or one (a push, or the arms of a column that continue).
 
         Everything that does not depend on the spindles (sensor stage, length fits, slew and
         range checks, the tracking filter's recursion, the PI predictor, the gamma drive and
         the sub-step lengths) is computed for all columns at once; the loop over columns
         then only steps and commits the spindles (arms without a sample in a column are
         stepped and not committed, like a waiting arm)."""
-        if t.shape[1] == 0:
-            return True
-        block = self._block_samples(kind, t, x, count)
-        if block is None:
-            return False
         angle, L, filtered, windows = self._block_lengths(kind, block)
         # -- the block is the common case: from here on the state changes --------------------
         ok, dt = block.ok, block.dt
@@ -406,7 +384,7 @@ class BatchedArmChain:
             template_in = np.where(np.isnan(self._intended[:, None]), x1,
                                    self._intended[:, None])
         t = np.where(ok, block.t, self._t[:, None])  # (padding: finite templates)
-        template, gs, gd = self._fusimotor.update_block(t, template_in, ok)
+        template, gs, gd = self._fusimotor.update(t, template_in, ok)
         if kind == "counts":
             self._median.restore(windows)
         self._advance_block(ok, dt, x0, v0, x1, v1, gd, gs)
@@ -433,10 +411,9 @@ class BatchedArmChain:
             S = np.flatnonzero(has)
             self._set(S, **{name: value[S] for name, value in values.items()})
             self._set_out(S, *(value[S] for value in out))
-        return True
 
-    def _block_samples(self, kind: str, t: np.ndarray, x: np.ndarray,
-                       count: np.ndarray) -> _Block | None:
+    def _block_samples(self, kind: str, t: np.ndarray, x: np.ndarray, count: np.ndarray,
+                       angle: np.ndarray | None = None) -> _Block | None:
         """The block's samples checked for the common case (None if it is not: a time not
         after the arm's last accepted one, or an interval beyond ``max_bridge_s``), each
         arm's accepted samples moved first, in order; nothing changed."""
@@ -448,12 +425,7 @@ class BatchedArmChain:
             rise = np.diff(t, axis=1, prepend=self._t[:, None])
             if not bool(np.where(given, rise, 1.0).min() > 0.0):  # (NaN fails)
                 return None
-            if kind == "counts":
-                valid = valid_readings(x, cfg.encoder.max_count)
-            elif kind == "angle_deg":
-                valid = np.isfinite(x)
-            else:
-                valid = _lengths_valid(x)
+            valid = _valid_samples(kind, x, cfg.encoder.max_count)
         ok = given & valid
         rejected = given & ~valid
         any_rejected = bool(rejected.any())
@@ -462,13 +434,15 @@ class BatchedArmChain:
             order = np.argsort(~ok, axis=1, kind="stable")
             t = np.take_along_axis(t, order, axis=1)
             x = np.take_along_axis(x, order if x.ndim == 2 else order[..., None], axis=1)
+            if angle is not None:
+                angle = np.take_along_axis(angle, order, axis=1)
             ok = cols < n_ok[:, None]
         with np.errstate(invalid="ignore"):
             dt = np.diff(t, axis=1, prepend=self._t[:, None])
         if not bool(np.where(ok, dt, 0.0).max() <= cfg.max_bridge_s):
             return None
         dt = np.where(ok, dt, cfg.spindle_step_s)  # (padding: any valid interval)
-        return _Block(t=t, x=x, ok=ok, dt=dt, n_ok=n_ok,
+        return _Block(t=t, x=x, ok=ok, dt=dt, n_ok=n_ok, angle=angle,
                       rejected=rejected.sum(axis=1) if any_rejected else None,
                       slewed=np.zeros(t.shape[0], dtype=np.int64))
 
@@ -479,38 +453,36 @@ class BatchedArmChain:
         computed (:meth:`_fast_block` stores them once the block is known to go through)."""
         cfg = self.config
         ok, dt, x = block.ok, block.dt, block.x
-        n, k = ok.shape
         okm = ok[..., None]
-        lo, hi = self.angle_range_deg
         filtered = windows = None
         if kind == "length_L0":
             L = np.where(okm, x, self._u[:, None])
-            angle = np.broadcast_to(self._angle[:, None], (n, k))
+            angle = _recorded_angles(block.angle, ok, self._angle)
         else:
             if kind == "counts":
-                filtered, windows = self._median.push_block(x, block.n_ok)
+                filtered, windows = self._median.filter(x, block.n_ok)
                 angle = cfg.calibration.angle_deg(filtered)
             else:
                 angle = x
             angle = np.where(ok, angle, self._angle[:, None])
-            bounded = np.minimum(np.maximum(angle, lo), hi)
+            outside, bounded = _clamped_angles(angle, self.angle_range_deg)
             before = np.concatenate((self._angle[:, None], bounded[:, :-1]), axis=1)
             limit = cfg.max_speed_deg_s * dt
             if bool((ok & (np.abs(angle - before) > limit)).any()):
                 # the slew limit reached: each column's limit depends on the last
-                angle, slewed = _slew_angles(angle, limit, ok, self._angle, lo, hi)
+                angle, slewed = _slew_angles(angle, limit, ok, self._angle,
+                                             self.angle_range_deg)
                 block.slewed += slewed.sum(axis=1)
-                bounded = np.minimum(np.maximum(angle, lo), hi)
-            outside = (angle < lo) | (angle > hi)  # (padding: the last angle, inside)
-            if bool(outside.any()):
+                outside, bounded = _clamped_angles(angle, self.angle_range_deg)
+            if bool(outside.any()):  # (padding: the last angle, inside)
                 block.clamped = outside.sum(axis=1)
             angle = bounded
             L = self.fits.length_L0(np.radians(angle))
         u0 = np.concatenate((self._u[:, None], L[:, :-1]), axis=1)
         limit = cfg.max_speed_L0_s * dt[..., None]
         if bool((okm & (np.abs(L - u0) > limit)).any()):
-            L, slewed = _slew_lengths(L, limit, ok, self._u)
-            block.slewed += slewed.sum(axis=1)
+            L, slewed = slew_limited(L, self._u, limit, axis=1)
+            block.slewed += (ok & slewed.any(axis=2)).sum(axis=1)
         return angle, L, filtered, windows
 
     def _count_block(self, kind: str, block: _Block) -> None:
@@ -519,9 +491,7 @@ class BatchedArmChain:
         counters[:, _COUNTER["accepted"]] += block.n_ok
         counters[:, _COUNTER["gaps"]] += (block.ok & (block.dt > self.config.gap_s)).sum(axis=1)
         if block.rejected is not None:
-            bad = {"counts": "invalid_reading", "angle_deg": "invalid_angle"}.get(
-                kind, "invalid_length")
-            counters[:, _COUNTER[bad]] += block.rejected
+            counters[:, _COUNTER[_INVALID[kind]]] += block.rejected
         if block.clamped is not None:
             counters[:, _COUNTER["angle_clamped"]] += block.clamped
         counters[:, _COUNTER["slew_limited"]] += block.slewed
@@ -573,271 +543,73 @@ class BatchedArmChain:
                 else:
                     core.commit(state, new, L_q, gd_j, gs_j, where=live[j] & (start[j] <= q))
 
-    def _column(self, kind: str, t: np.ndarray, x: np.ndarray,
-                active: np.ndarray | None) -> np.ndarray:
-        """One sample per active arm (``active`` None: every arm); returns the accepted mask.
+    def _column(self, kind: str, t: np.ndarray, x: np.ndarray, active: np.ndarray,
+                angle: np.ndarray | None = None) -> np.ndarray:
+        """One sample per active arm, whatever its time: the time rules (repeated,
+        backwards, bad, clock resyncs), the validity rules, restarts; the arms that continue
+        then go through :meth:`_advance` as a block of one column. Returns the accepted mask.
 
         Rebinds the chain's arrays (never writes into them) except the median windows, the
-        predictors and the spindles, which the caller's snapshot covers. ``t`` and ``x`` are
-        the caller's own copies (the chain keeps them)."""
+        predictors and the spindles, which the caller's snapshot covers."""
         cfg = self.config
         counters = self._counters.copy()
         with np.errstate(invalid="ignore"):  # inf - inf where a time is not finite
             dt = t - self._t
-        if active is None:
-            # The common push, every arm's sample good and continuing (no restart): four
-            # reductions decide it (a NaN fails every comparison), the rest is skipped.
-            dt_min, dt_max = float(_MIN(dt)), float(_MAX(dt))
-            if dt_min > 0.0 and dt_max <= cfg.max_bridge_s and self._all_valid(kind, x):
-                self._behind = self._no_behind
-                if dt_max > cfg.gap_s:
-                    counters[:, _COUNTER["gaps"]] += dt > cfg.gap_s
-                counters[:, _COUNTER["accepted"]] += 1
-                self._continue(kind, _ALL, t, x, dt, dt_min == dt_max, counters)
-                self._counters = counters
-                return _accepted_all(self.n_arms)
-        given = np.isfinite(t)
-        if active is not None:
-            given &= active
-        time_ok = given & (dt > 0.0)
+        given = active & np.isfinite(t)
+        counters[:, _COUNTER["bad_time"]] += active & ~np.isfinite(t)
+        counters[:, _COUNTER["repeated_time"]] += given & (dt == 0.0)
         back = given & (dt < 0.0)
-        any_back = back.any()
-        if any_back:
-            behind = self._behind + back
-            time_ok |= back & (behind >= cfg.resync_after_samples)
-        else:
-            behind = self._behind
-        if kind == "counts":
-            valid, bad_name = valid_readings(x, cfg.encoder.max_count), "invalid_reading"
-        elif kind == "angle_deg":
-            valid, bad_name = np.isfinite(x), "invalid_angle"
-        else:
-            valid, bad_name = _lengths_valid(x), "invalid_length"
+        behind = self._behind + back
+        time_ok = (given & (dt > 0.0)) | (back & (behind >= cfg.resync_after_samples))
+        counters[:, _COUNTER["time_backwards"]] += back & ~time_ok
+        valid = _valid_samples(kind, x, cfg.encoder.max_count)
+        counters[:, _COUNTER[_INVALID[kind]]] += time_ok & ~valid
         ok = time_ok & valid
-        all_ok = ok.all()
-        if not all_ok:
-            if active is None:
-                counters[:, _COUNTER["bad_time"]] += ~np.isfinite(t)
-            else:
-                counters[:, _COUNTER["bad_time"]] += active & ~np.isfinite(t)
-            counters[:, _COUNTER["repeated_time"]] += given & (dt == 0.0)
-            if any_back:
-                counters[:, _COUNTER["time_backwards"]] += back & ~time_ok
-            counters[:, _COUNTER[bad_name]] += time_ok & ~valid
         # an accepted sample starts the count of late ones anew
-        self._behind = self._no_behind if all_ok else np.where(ok, 0, behind)
-        if not all_ok and not ok.any():
-            self._counters = counters
-            return ok
-        S = _ALL if all_ok else np.flatnonzero(ok)
-        if S is not _ALL:
-            t, x, dt = t[S], x[S], dt[S]
-        restart = (dt < 0.0) | (dt > cfg.max_bridge_s)
-        counters[S, _COUNTER["gaps"]] += dt > cfg.gap_s
-        counters[S, _COUNTER["accepted"]] += 1
-        any_restart = bool(restart.any())
-        if not any_restart:
-            self._continue(kind, S, t, x, dt, False, counters)
-            self._counters = counters
-            return ok
-        normal = ~restart
-        given_angle = None
-        if kind == "length_L0":
-            L, angle = x, self._angle[S]
-            counts = filtered = np.full(t.size, -1.0)
-        else:
-            if kind == "counts":
-                counts = x
-                # a restart starts the window afresh on its reading
-                filtered = x.copy()
-                i = np.flatnonzero(normal)
-                if i.size:
-                    filtered[i] = self._median.push(x[i], _rows(S, i))
-                angle = cfg.calibration.angle_deg(filtered)
-            else:
-                angle = x
-                counts = filtered = np.full(t.size, -1.0)
-            given_angle = angle
-            angle = self._limit_angle(S, angle, dt, counters, normal)
-            L = self.fits.length_L0(np.radians(angle))
-        if any_restart:
-            counters[S, _COUNTER["restarts"]] += restart
-            counters[S, _COUNTER["clock_resyncs"]] += restart & (dt < 0.0)
-            i = np.flatnonzero(restart)
-            reading = counts[i].copy()
-            from_angle = reading < 0
-            if from_angle.any():
-                # the window restarts on the sample's own reading (an encoder's, or the one
-                # of the angle as given, as reset does)
-                source = angle if given_angle is None else given_angle
-                reading[from_angle] = self._rest_reading(source[i][from_angle])
-            self._rest(_rows(S, i), t[i], angle[i], L[i], reading, counts[i], filtered[i])
-            i = np.flatnonzero(normal)
-            if i.size == 0:
-                self._counters = counters
-                return ok
-            S = _rows(S, i)
-            t, dt, L, angle, counts, filtered = (a[i] for a in (t, dt, L, angle, counts,
-                                                                 filtered))
-        self._step(S, t, dt, L, angle, counts, filtered, counters)
+        self._behind = np.where(ok, 0, behind)
+        restart = ok & ((dt < 0.0) | (dt > cfg.max_bridge_s))
+        if restart.any():
+            self._restart(kind, np.flatnonzero(restart), t, x, dt, counters, angle)
         self._counters = counters
+        going = ok & ~restart
+        if going.any():
+            self._advance(kind, self._block_samples(
+                kind, t[:, None], x[:, None], going.astype(np.int64),
+                None if angle is None else angle[:, None]))
         return ok
 
-    def _all_valid(self, kind: str, x: np.ndarray) -> bool:
-        """Whether every sample of ``x`` is valid (:func:`valid_readings`, a finite angle,
-        :func:`_lengths_valid`), in few reductions."""
+    def _restart(self, kind: str, rows: np.ndarray, t: np.ndarray, x: np.ndarray,
+                 dt: np.ndarray, counters: np.ndarray, angle: np.ndarray | None) -> None:
+        """Arms ``rows`` restart at rest at their new sample (an interval beyond
+        ``max_bridge_s``, or a clock resync), counted: as :meth:`reset` at its angle (the
+        median window on its own reading, clamped to the length model's range) but keeping
+        the counters and the switch."""
+        x, t, dt = x[rows], t[rows], dt[rows]
+        none = np.full(rows.size, -1.0)
         if kind == "length_L0":
-            lo, hi = core.LENGTH_RANGE_L0
-            return bool(_MIN(x, axis=None) >= lo) and bool(_MAX(x, axis=None) <= hi)
-        if kind == "angle_deg":
-            return math.isfinite(float(np.add.reduce(x)))
-        # readings: whole numbers in 0..max_count (NaN fails the comparisons)
-        return (bool(_MIN(x) >= 0.0) and bool(_MAX(x) <= self.config.encoder.max_count)
-                and bool(_ALL_TRUE(np.equal(np.floor(x), x))))
-
-    def _limit_angle(self, S, angle, dt, counters, normal) -> np.ndarray:
-        """The slew limit (on the arms ``normal``, None: all) and the clamp to the length
-        model's range of the angles of arms ``S``, counted."""
-        limit = self.config.max_speed_deg_s * dt
-        last_angle = self._angle if S is _ALL else self._angle[S]
-        change = angle - last_angle
-        slew = np.abs(change) > limit
-        if normal is not None:
-            slew &= normal
-        if slew.any():
-            counters[S, _COUNTER["slew_limited"]] += slew
-            angle = np.where(slew, last_angle + np.copysign(limit, change), angle)
-        lo, hi = self.angle_range_deg
-        if _MIN(angle) < lo or _MAX(angle) > hi:  # (NaN cannot reach here)
-            counters[S, _COUNTER["angle_clamped"]] += (angle < lo) | (angle > hi)
-            angle = np.minimum(np.maximum(angle, lo), hi)
-        return angle
-
-    def _continue(self, kind, S, t, x, dt, shared, counters) -> None:
-        """Accepted samples that continue arms ``S`` (no restart): the sensor stage, then
-        :meth:`_step`. ``shared``: every arm has the same interval."""
-        if kind == "length_L0":
-            L, angle = x, self._angle if S is _ALL else self._angle[S]
-            counts = filtered = self._no_reading(t.size)
+            angle = _recorded_angles(None if angle is None else angle[rows, None],
+                                     np.ones((rows.size, 1), dtype=bool), self._angle[rows])[:, 0]
+            L, counts, filtered = x, none, none
+            reading = self._rest_reading(angle)
         else:
             if kind == "counts":
-                counts = x
-                filtered = self._median.push(x, None if S is _ALL else S)
-                angle = self.config.calibration.angle_deg(filtered)
+                counts = filtered = reading = x
+                given = self.config.calibration.angle_deg(x)
             else:
-                angle = x
-                counts = filtered = self._no_reading(t.size)
-            angle = self._limit_angle(S, angle, dt, counters, None)
+                given, counts, filtered = x, none, none
+                reading = self._rest_reading(given)
+            clamped, angle = _clamped_angles(given, self.angle_range_deg)
+            counters[rows, _COUNTER["angle_clamped"]] += clamped
             L = self.fits.length_L0(np.radians(angle))
-        self._step(S, t, dt, L, angle, counts, filtered, counters, shared)
+        counters[rows, _COUNTER["restarts"]] += 1
+        counters[rows, _COUNTER["clock_resyncs"]] += dt < 0.0
+        counters[rows, _COUNTER["accepted"]] += 1
+        counters[rows, _COUNTER["gaps"]] += dt > self.config.gap_s
+        self._rest(rows, t, angle, L, reading, counts, filtered)
 
     def _no_reading(self, m: int) -> np.ndarray:
         # the outputs share one read-only array of -1 (no encoder reading)
         return self._minus_one if m == self.n_arms else np.full(m, -1.0)
-
-    def _step(self, S, t, dt, L_in, angle, counts, filtered, counters,
-              shared: bool = False) -> None:
-        """An accepted sample that continues arms ``S`` (slice or index array); ``shared``:
-        every arm's interval is the same (its steps then take one scalar dt)."""
-        cfg = self.config
-        if S is _ALL:
-            u0, x0, v0 = self._u, self._x, self._v
-        else:
-            u0, x0, v0 = self._u[S], self._x[S], self._v[S]
-        dt_col = float(dt[0]) if shared else dt[:, None]
-        limit = cfg.max_speed_L0_s * dt_col
-        change = L_in - u0
-        fastest = np.abs(change)
-        if _MAX(fastest, axis=None) > (limit if shared else _MIN(limit, axis=None)):
-            slew = (fastest > limit).any(axis=1)
-            if slew.any():
-                counters[S, _COUNTER["slew_limited"]] += slew
-                limited = L_in - change + np.clip(change, -limit, limit)
-                L_in = np.where(slew[:, None], limited, L_in)
-        if self._omega is None:
-            x1 = L_in
-            v1 = (x1 - x0) / dt_col
-            a1 = (v1 - v0) / dt_col
-        else:
-            x1, v1, a1 = tracking_step(x0, v0, u0, L_in, dt_col, self._omega)
-        rows = None if S is _ALL else S
-        if self._following:  # every arm's template follows its measured motion
-            template_in = x1
-        else:
-            intended = self._intended[S]
-            template_in = np.where(np.isnan(intended), x1, intended)
-        template, gs, gd = self._fusimotor.update(t, template_in, rows)
-        ia, ii = self._advance_spindles(S, x0, v0, x1, v1, gd, gs, dt, dt_col, shared)
-        self._set(S, t=t, angle=angle, u=L_in, x=x1, v=v1, a=a1)
-        self._set_out(S, t, counts, filtered, angle, x1, v1, a1, template, gs, gd, ia, ii)
-
-    def _advance_spindles(self, S, x0, v0, x1, v1, gd, gs, dt, dt_col, shared):
-        """Arms ``S`` from their last sample to the new one (``ArmChain._advance_spindles``),
-        in groups of equal numbers of sub-steps, each arm with its own sub-step size;
-        returns (Ia, II), each (m, 2)."""
-        step_s = self.config.spindle_step_s
-        if shared:
-            k = max(math.ceil(dt_col / step_s * (1 - 1e-12)), 1)
-            return self._advance_group(S, k, dt_col / k, x0, v0, x1, v1, gd, gs, dt_col)
-        k = np.maximum(np.ceil(dt / step_s * (1 - 1e-12)), 1.0)
-        h = dt / k
-        # arms with fewer sub-steps than others wait (see _advance_group)
-        return self._advance_group(S, int(k[0]) if _MIN(k) == _MAX(k) else k,
-                                   _one_or_each(h), x0, v0, x1, v1, gd, gs, dt_col)
-
-    def _advance_group(self, S, k, h, x0, v0, x1, v1, gd, gs, dt_col):
-        """Arms ``S``, each ``k`` sub-steps of ``h`` (floats, or (m,) per arm; the core then
-        steps each spindle with its arm's h, in one call): the Hermite curve between their
-        states, kept in range and within the slew limit (as ``ArmChain`` does), then the
-        spindle steps of all of them at once. ``dt_col`` the interval, a float or (m, 1).
-
-        With counts ``k`` that differ, all arms step max(k) times and an arm with fewer
-        waits for its turn: its first steps are computed and not committed (one call per
-        sub-step for all arms instead of a gathered group per count; an encoder's jitter
-        gives 2-3 counts)."""
-        c = self._columns
-        whole = S is _ALL or (S.size == self.n_arms and np.array_equal(S, np.arange(S.size)))
-        state = self._state if whole else _gather(self._state, _spindles(S))
-        gd_flat, gs_flat = gd.reshape(-1), gs.reshape(-1)
-        if np.ndim(h):
-            h_step = np.repeat(h, 2)  # arm-major spindles
-            reach = self.config.max_speed_L0_s * h[:, None]
-        else:
-            h_step = float(h)
-            reach = self.config.max_speed_L0_s * h_step
-
-        def advance(L):
-            return core.advance(state, L, gd_flat, gs_flat, h_step, self._theta, c)
-
-        previous = x0
-        waiting = np.ndim(k) > 0
-        if waiting:
-            counts = k[:, None]
-            first = int(_MAX(k)) - counts  # the sub-steps each arm waits
-            k = int(_MAX(k))
-        for j in range(1, k):
-            if waiting:
-                own = np.maximum(j - first, 0.0)  # each arm's own sub-step (0: waiting)
-                s, left = own / counts, reach * (counts - own)
-            else:
-                s, left = j / k, reach * (k - j)
-            Ls = bounded_hermite_length(s, x0, x1, v0, v1, dt_col, previous, reach, left)
-            flat = Ls.reshape(-1)
-            if waiting:
-                moving = own > 0.0
-                core.commit(state, advance(flat), flat, gd_flat, gs_flat,
-                            where=np.repeat(moving.reshape(-1), 2))
-                previous = np.where(moving, Ls, x0)
-            else:
-                core.commit(state, advance(flat), flat, gd_flat, gs_flat)
-                previous = Ls
-        flat = x1.reshape(-1)
-        new = advance(flat)
-        core.commit(state, new, flat, gd_flat, gs_flat)
-        ia, ii = core.afferents_from_tension(new[0], flat, c)
-        if not whole:
-            _scatter(self._state, _spindles(S), state)
-        return ia.reshape(-1, 2), ii.reshape(-1, 2)
 
     def _rest(self, rows, t, angle, L, reading, counts, filtered) -> None:
         """Arms ``rows`` at rest (``ArmChain._rest``): what reset and a restart share."""
@@ -887,14 +659,14 @@ class BatchedArmChain:
         # the median windows, predictors and spindles are written in place: copies.
         return (dict(self.__dict__), self._median.snapshot(),
                 self._fusimotor.predictor.snapshot(),
-                [getattr(self._state, name).copy() for name in _SPINDLE_ARRAYS])
+                [getattr(self._state, name).copy() for name in core.STATE_FIELDS])
 
     def _restore(self, saved: tuple) -> None:
         attributes, median, predictor, spindles = saved
         self.__dict__.update(attributes)
         self._median.restore(median)
         self._fusimotor.predictor.restore(predictor)
-        for name, array in zip(_SPINDLE_ARRAYS, spindles, strict=True):
+        for name, array in zip(core.STATE_FIELDS, spindles, strict=True):
             getattr(self._state, name)[...] = array
 
     def _check_ready(self, active: np.ndarray | None) -> None:
@@ -948,17 +720,47 @@ def _check_finite(name: str, values: np.ndarray, rows: np.ndarray) -> None:
                          "real number")
 
 
-def _lengths_valid(L: np.ndarray) -> np.ndarray:
-    """Per row of (m, 2): 2 finite lengths within the spindle's range."""
-    lo, hi = core.LENGTH_RANGE_L0
-    # NaN and infinities fail one of the comparisons
-    return ((L >= lo) & (L <= hi)).all(axis=-1)
+def _recorded_angles(given: np.ndarray | None, ok: np.ndarray, last: np.ndarray
+                     ) -> np.ndarray:
+    """The angles recorded with lengths (n, k): each accepted column's given angle where it
+    is finite, else the one before (from ``last`` (n,))."""
+    n, k = ok.shape
+    if given is None:
+        return np.broadcast_to(last[:, None], (n, k))
+    angles = np.concatenate((last[:, None], given), axis=1)
+    known = np.concatenate((np.ones((n, 1), dtype=bool), ok & np.isfinite(given)), axis=1)
+    source = np.maximum.accumulate(np.where(known, np.arange(k + 1), 0), axis=1)
+    return np.take_along_axis(angles, source, axis=1)[:, 1:]
 
 
-def _slew_angles(angle, limit, ok, last, lo, hi) -> tuple[np.ndarray, np.ndarray]:
-    """:meth:`BatchedArmChain._limit_angle`'s slew limit column by column over (n, k)
-    angles (each column's last angle the previous one's, clamped to lo..hi); returns the
-    limited angles (before the clamp) and where the limit acted (on ``ok``)."""
+_INVALID = {"counts": "invalid_reading", "angle_deg": "invalid_angle",
+            "length_L0": "invalid_length"}
+"""The counter of each entry point's invalid samples."""
+
+
+def _valid_samples(kind: str, x: np.ndarray, max_count: int) -> np.ndarray:
+    """Whether each sample of an entry point is valid (the validity rules of
+    ``docs/faults.md``): a reading an integer in 0..max_count, an angle finite, the two
+    lengths finite and within the spindle's range."""
+    if kind == "counts":
+        return valid_readings(x, max_count)
+    if kind == "angle_deg":
+        return np.isfinite(x)
+    return lengths_valid(x)
+
+
+def _clamped_angles(angle: np.ndarray, angle_range_deg: tuple[float, float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The angle rule: an angle outside the length model's range is clamped to it. Returns
+    where it acted and the clamped angles."""
+    lo, hi = angle_range_deg
+    return (angle < lo) | (angle > hi), np.minimum(np.maximum(angle, lo), hi)
+
+
+def _slew_angles(angle, limit, ok, last, angle_range_deg) -> tuple[np.ndarray, np.ndarray]:
+    """The angles' slew limit column by column over (n, k) angles (each column's last angle
+    the previous one's, clamped to the range); returns the limited angles (before the clamp)
+    and where the limit acted (on ``ok``)."""
     out = angle.copy()
     slewed = np.zeros(angle.shape, dtype=bool)
     for j in range(angle.shape[1]):
@@ -966,28 +768,10 @@ def _slew_angles(angle, limit, ok, last, lo, hi) -> tuple[np.ndarray, np.ndarray
         slew = ok[:, j] & (np.abs(change) > limit[:, j])
         out[:, j] = np.where(slew, last + np.copysign(limit[:, j], change), angle[:, j])
         slewed[:, j] = slew
-        last = np.minimum(np.maximum(out[:, j], lo), hi)
+        last = _clamped_angles(out[:, j], angle_range_deg)[1]
     return out, slewed
 
 
-def _slew_lengths(L, limit, ok, last) -> tuple[np.ndarray, np.ndarray]:
-    """:meth:`BatchedArmChain._step`'s slew limit of the lengths column by column over
-    (n, k, 2) lengths from ``last`` (n, 2); returns them limited and where the limit acted
-    (on ``ok``, per arm)."""
-    out = L.copy()
-    slewed = np.zeros(L.shape[:2], dtype=bool)
-    for j in range(L.shape[1]):
-        change = L[:, j] - last
-        slew = ok[:, j] & (np.abs(change) > limit[:, j]).any(axis=1)
-        limited = L[:, j] - change + np.clip(change, -limit[:, j], limit[:, j])
-        out[:, j] = last = np.where(slew[:, None], limited, L[:, j])
-        slewed[:, j] = slew
-    return out, slewed
-
-
-def _rows(S, i: np.ndarray) -> np.ndarray:
-    """The arm indices of positions ``i`` of the subset ``S`` (a slice of all, or indices)."""
-    return i if S is _ALL else S[i]
 
 
 def _spindles(rows) -> np.ndarray:
@@ -996,17 +780,11 @@ def _spindles(rows) -> np.ndarray:
     return np.stack((2 * rows, 2 * rows + 1), axis=1).reshape(-1)
 
 
-def _gather(state: core.SpindleState, spindles: np.ndarray) -> core.SpindleState:
-    """The spindles ``spindles`` of ``state`` as a new state (fibre-major, as the core keeps
-    its states)."""
-    return core.SpindleState(*(
-        getattr(state, name).T[:, spindles].T if getattr(state, name).ndim == 2
-        else getattr(state, name)[spindles] for name in _SPINDLE_ARRAYS))
 
 
 def _scatter(state: core.SpindleState, spindles: np.ndarray, part: core.SpindleState) -> None:
     """Write ``part`` into the spindles ``spindles`` of ``state``."""
-    for name in _SPINDLE_ARRAYS:
+    for name in core.STATE_FIELDS:
         target, source = getattr(state, name), getattr(part, name)
         if target.ndim == 2:
             target.T[:, spindles] = source.T

@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from spindle.number_rule import real_scalar
+
 
 def natural_rad_s(natural_hz: float) -> float:
     """Filter natural frequency w (rad/s) from ``natural_hz``, checked."""
-    if not (np.isfinite(natural_hz) and natural_hz > 0):
-        raise ValueError(f"natural_hz={natural_hz!r} must be finite and > 0")
-    return 2.0 * np.pi * float(natural_hz)
+    return 2.0 * np.pi * real_scalar("natural_hz", natural_hz, low=0.0, low_open=True)
 
 
 def tracking_step(
@@ -38,17 +38,12 @@ def tracking_step(
     Returns (x, x', x'') at the end of the interval. With the input slope s = (u1 - u0)/dt,
     the error e = x - u obeys e'' + 2 w e' + w^2 e = -2 w s, so
     e(t) = -2 s/w + (A + B t) e^(-w t) with A = e0 + 2 s/w and B = (x'0 - s) + w A, in
-    closed form. Vectorised over any leading shape.
+    closed form. Vectorised over any leading shape: :func:`tracking_steps` with one interval.
     """
-    slope = (u1 - u0) / dt_s
-    offset = 2.0 * slope / omega_rad_s
-    A = x - u0 + offset
-    B = v - slope + omega_rad_s * A
-    decay = np.exp(-omega_rad_s * dt_s)
-    x1 = u1 - offset + (A + B * dt_s) * decay
-    v1 = slope + (B - omega_rad_s * (A + B * dt_s)) * decay
-    a1 = omega_rad_s * omega_rad_s * (u1 - x1) - 2.0 * omega_rad_s * v1
-    return x1, v1, a1
+    x1, v1, a1 = tracking_steps(np.asarray(x, dtype=float)[None], np.asarray(v, dtype=float)[None],
+                                np.stack(np.broadcast_arrays(u0, u1))[None],
+                                np.reshape(dt_s, (1, 1, *np.shape(dt_s))), omega_rad_s)
+    return x1[0, 0], v1[0, 0], a1[0, 0]
 
 
 def tracking_steps(

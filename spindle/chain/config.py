@@ -7,7 +7,6 @@ output), and the coercion of pushed values to real numbers.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -15,12 +14,17 @@ from typing import Protocol
 import numpy as np
 
 from spindle import core
-from spindle.backends import BACKEND_CHOICES
+from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 from spindle.backends import BACKENDS as BACKENDS  # re-exported: the one table lives there
 from spindle.chain.conditioning import natural_rad_s
 from spindle.chain.fusimotor import SEED_PAPER, FusimotorParams
 from spindle.chain.sensor import AX12, Calibration, EncoderParams
 from spindle.methods import get_method
+from spindle.number_rule import check_fields, positive_int
+
+# the chain's bad-sample rule, under the names its pushes use
+from spindle.number_rule import sample_array as real_array  # noqa: F401
+from spindle.number_rule import sample_number as real_number  # noqa: F401
 from spindle.params import HUMAN, SpindleParams
 
 MUSCLES = ("BRA", "TRImed")
@@ -102,22 +106,23 @@ class ChainConfig:
     max_bridge_s: float = 0.05
     resync_after_samples: int = 7
     max_speed_deg_s: float = 1000.0
-    max_speed_L0_s: float = 8.0
+    max_speed_L0_s: float = core.SLEW_LIMIT_L0_S
     fits_path: str | Path | None = None
-    backend: str = "numpy"
+    backend: str = DEFAULT_BACKEND
 
     def __post_init__(self) -> None:
-        # bool is an int and a float to Python; here it is always a mistake
-        _check_positive_int("median_window", self.median_window)
-        _check_positive_int("resync_after_samples", self.resync_after_samples,
-                            MAX_RESYNC_AFTER_SAMPLES)
+        # the project's number rule (spindle.number_rule): a bool, a string or a complex value
+        # is a mistake here, and a numpy scalar is kept as the Python number it stands for
+        object.__setattr__(self, "median_window",
+                           positive_int("median_window", self.median_window))
+        object.__setattr__(self, "resync_after_samples", positive_int(
+            "resync_after_samples", self.resync_after_samples, high=MAX_RESYNC_AFTER_SAMPLES))
         if self.median_window % 2 == 0:
             raise ValueError(f"median_window={self.median_window!r} must be an odd integer >= 1")
-        for name in ("lowpass_hz", "step_s", "max_gap_s"):
-            if getattr(self, name) is not None:
-                _check_positive_real(name, getattr(self, name))
-        for name in ("max_bridge_s", "max_speed_deg_s", "max_speed_L0_s"):
-            _check_positive_real(name, getattr(self, name))
+        optional = tuple(name for name in ("lowpass_hz", "step_s", "max_gap_s")
+                         if getattr(self, name) is not None)
+        check_fields(self, (*optional, "max_bridge_s", "max_speed_deg_s", "max_speed_L0_s"),
+                     low=0.0, low_open=True)
         if self.lowpass_hz is not None:
             natural_rad_s(self.lowpass_hz)
         method = get_method(self.method)
@@ -208,43 +213,3 @@ class Chain(Protocol):
         """Push a whole trace through entry point ``push`` (``"push_counts"``...), setting
         the switch from ``intended_angle_deg`` before each sample; the stacked outputs."""
         ...
-
-def _check_positive_int(name: str, value: object, most: int | None = None) -> None:
-    if (isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer)
-            or value < 1 or (most is not None and value > most)):
-        limit = "" if most is None else f" and <= {most}"
-        raise ValueError(f"{name}={value!r} must be an integer >= 1{limit}")
-
-
-def _check_positive_real(name: str, value: object) -> None:
-    if isinstance(value, bool | np.bool_) or not (math.isfinite(real_number(value))
-                                                  and real_number(value) > 0):
-        raise ValueError(f"{name}={value!r} must be a finite real number > 0")
-
-
-def real_number(value: object) -> float:
-    """``value`` as a float; NaN if it is not one real number (complex, an integer beyond
-    float's range, a string, None...), so the caller's rule for non-finite input applies."""
-    if isinstance(value, complex | np.complexfloating) or (
-            isinstance(value, np.ndarray) and np.iscomplexobj(value)):
-        return math.nan
-    try:
-        return float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError, OverflowError):
-        return math.nan
-
-
-def real_array(value: object) -> np.ndarray:
-    """``value`` as a float array; NaN in place of every element that is not a real number
-    (all of them if the array is complex)."""
-    if np.iscomplexobj(value):
-        return np.full(np.shape(value), math.nan)
-    try:
-        return np.asarray(value, dtype=float)
-    except (TypeError, ValueError, OverflowError):
-        try:
-            items = np.asarray(value, dtype=object)
-        except ValueError:  # ragged
-            return np.full(1, math.nan)
-        return np.vectorize(real_number, otypes=[float])(items) if items.size else np.zeros(
-            items.shape)

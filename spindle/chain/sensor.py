@@ -12,17 +12,18 @@ This module holds the device-side pieces, each usable alone:
   (:class:`proprio_env.encoder.Encoder`) draws from;
 - :func:`is_valid_reading`: integers in 0..max_count;
 - :class:`Calibration`: f(x), elbow angle = sign * (counts - zero_count) * deg_per_count;
-- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming), causal;
-  :class:`BatchedMedianFilter` streams many independent signals (one per arm) at once;
-  :func:`valid_readings` is :func:`is_valid_reading` over an array.
+- :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming, many
+  independent signals at once: one per arm), causal;
+  :func:`valid_readings` is :func:`is_valid_reading` over an array (the one rule).
 """
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
+
+from spindle.number_rule import NumberError, check_fields, positive_int
 
 INVALID_READING = -1
 """The driver's error code for a dropped reading (what the simulated encoder returns too)."""
@@ -53,18 +54,10 @@ class EncoderParams:
     invalid_rate: float = 1e-3
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.max_count, int) and self.max_count >= 1):
-            raise ValueError(f"max_count={self.max_count!r} must be an integer >= 1")
-        for name, low in (("full_scale_deg", 0.0), ("sample_rate_hz", 0.0)):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > low):
-                raise ValueError(f"{name}={value!r} must be finite and > {low}")
-        for name in ("jitter_s", "noise_counts"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name}={value!r} must be finite and >= 0")
-        if not 0.0 <= self.invalid_rate <= 1.0:
-            raise ValueError(f"invalid_rate={self.invalid_rate!r} must lie in [0, 1]")
+        object.__setattr__(self, "max_count", positive_int("max_count", self.max_count))
+        check_fields(self, ("full_scale_deg", "sample_rate_hz"), low=0.0, low_open=True)
+        check_fields(self, ("jitter_s", "noise_counts"), low=0.0)
+        check_fields(self, ("invalid_rate",), low=0.0, high=1.0)
 
     @property
     def deg_per_count(self) -> float:
@@ -104,12 +97,11 @@ class Calibration:
     deg_per_count: float = AX12.deg_per_count
 
     def __post_init__(self) -> None:
-        if self.sign not in (1, -1):
-            raise ValueError(f"sign={self.sign!r} must be +1 or -1")
-        if not (np.isfinite(self.deg_per_count) and self.deg_per_count > 0):
-            raise ValueError(f"deg_per_count={self.deg_per_count!r} must be finite and > 0")
-        if not np.isfinite(self.zero_count):
-            raise ValueError(f"zero_count={self.zero_count!r} must be finite")
+        if isinstance(self.sign, bool | np.bool_) or self.sign not in (1, -1):
+            raise NumberError(f"sign={self.sign!r} must be +1 or -1")
+        object.__setattr__(self, "sign", int(self.sign))
+        check_fields(self, ("deg_per_count",), low=0.0, low_open=True)
+        check_fields(self, ("zero_count",))
 
     def angle_deg(self, counts: np.ndarray | float) -> np.ndarray:
         """Elbow angle (deg) of encoder reading(s) ``counts``."""
@@ -121,19 +113,22 @@ class Calibration:
 
 
 def is_valid_reading(counts: float, max_count: int = AX12.max_count) -> bool:
-    """True for an integer reading in 0..max_count (NaN, fractions and others are invalid)."""
+    """True for an integer reading in 0..max_count (NaN, fractions and others are invalid):
+    :func:`valid_readings` of one value."""
     try:
-        x = float(counts)
-    except (TypeError, ValueError):
+        x = np.float64(counts)
+    except (TypeError, ValueError, OverflowError):
         return False
-    return bool(np.isfinite(x) and x == np.floor(x) and 0 <= x <= max_count)
+    return bool(valid_readings(x, max_count))
 
 
 def valid_readings(counts: np.ndarray, max_count: int = AX12.max_count) -> np.ndarray:
-    """:func:`is_valid_reading` elementwise over a float array (NaN for non-real values)."""
+    """Whether each reading of a float array is an integer in 0..max_count (NaN for
+    non-real values fails)."""
     # comparisons with NaN are False (and raise no warning)
-    return np.isfinite(counts) & (counts == np.floor(counts)) & (counts >= 0) & (
-        counts <= max_count)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(counts) & (counts == np.floor(counts)) & (counts >= 0) & (
+            counts <= max_count)
 
 
 def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
@@ -152,95 +147,128 @@ def median_filter(x: np.ndarray, window: int = 7) -> np.ndarray:
 
 
 class MedianFilter:
-    """Streaming causal median of the last ``window`` accepted samples (window odd).
-
-    Many signals at once: :class:`BatchedMedianFilter` (the single chain pushes faster on
-    this deque and ``sorted``; the figure is in :class:`~spindle.chain.fusimotor.MotionPredictor`).
-    """
-
-    def __init__(self, window: int = 7) -> None:
-        _check_window(window)
-        self.window = window
-        self._buffer: deque[float] = deque(maxlen=window)
-
-    def reset(self, value: float) -> float:
-        """Fill the window with ``value`` (a signal at rest) and return it."""
-        self._buffer.clear()
-        self._buffer.extend([float(value)] * self.window)
-        return float(value)
-
-    def push(self, value: float) -> float:
-        """Add one sample and return the median of the window."""
-        if not self._buffer:
-            return self.reset(value)
-        self._buffer.append(float(value))
-        return sorted(self._buffer)[self.window // 2]
-
-    def snapshot(self) -> tuple[float, ...]:
-        """The window's contents, for :meth:`restore` (a caller undoing a failed update)."""
-        return tuple(self._buffer)
-
-    def restore(self, snapshot: tuple[float, ...]) -> None:
-        """Put back the window a :meth:`snapshot` of this filter returned."""
-        self._buffer.clear()
-        self._buffer.extend(snapshot)
-
-
-class BatchedMedianFilter:
     """Streaming causal medians of ``n`` independent signals, each over its own last
-    ``window`` accepted samples: :class:`MedianFilter` over a leading axis.
+    ``window`` accepted samples (window odd; one signal is ``n = 1``).
 
-    Each signal's window is a row of an (n, window) array, oldest first. ``rows`` (an index
-    array, or None for every signal) picks the signals a call concerns.
+    Each signal's window is a row of an (n, window) array, oldest first; :meth:`reset` fills
+    it with one value (a signal at rest), as :func:`median_filter` pads its start.
+    :meth:`filter` computes the medians of a block of k samples per signal (k = 1: one
+    sample each) without changing the windows; :meth:`push` is that, kept.
     """
 
-    def __init__(self, n: int, window: int = 7) -> None:
+    def __init__(self, window: int = 7, n: int = 1) -> None:
         _check_window(window)
         self.window = window
         self._buffer = np.zeros((n, window))
 
     def reset(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        """Fill the windows of ``rows`` with ``values`` (signals at rest); return them."""
+        """Fill the windows of ``rows`` (None: all) with ``values`` (r,); return them."""
         values = np.asarray(values, dtype=float)
         self._buffer[slice(None) if rows is None else rows] = values[:, None]
         return values.copy()
 
-    def push(self, values: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        """Add one sample to each signal of ``rows``; return their medians."""
-        if rows is None:
-            window = self._buffer
-            window[:, :-1] = window[:, 1:]
-            window[:, -1] = values
-        else:
-            window = self._buffer[rows]
-            window[:, :-1] = window[:, 1:]
-            window[:, -1] = values
-            self._buffer[rows] = window
-        middle = self.window // 2
-        return np.partition(window, middle, axis=1)[:, middle]
-
-    def push_block(self, values: np.ndarray, n_values: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`push` column by column of ``values[i, :n_values[i]]`` (n, k) for every
-        signal, without changing the windows: returns the medians after each (n, k)
-        (entries past ``n_values[i]`` are padding and their medians meaningless) and the
-        windows after the last, which :meth:`restore` makes the filter's."""
+    def filter(self, values: np.ndarray, n_values: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The medians after each of ``values[i, :n_values[i]]`` (n, k) pushed in order
+        (None: all k), without changing the windows: returns the medians (n, k) (entries past
+        ``n_values[i]`` are padding and their medians meaningless) and the windows after the
+        last, which :meth:`restore` makes the filter's."""
         n, w = self._buffer.shape
+        n_values = np.full(n, values.shape[1]) if n_values is None else n_values
         extended = np.concatenate((self._buffer, values), axis=1)
         windows = np.lib.stride_tricks.sliding_window_view(extended, w, axis=1)[:, 1:]
         middle = self.window // 2
         medians = np.partition(windows, middle, axis=2)[:, :, middle]
         return medians, extended[np.arange(n)[:, None], n_values[:, None] + np.arange(w)]
 
+    def push(self, values: np.ndarray) -> np.ndarray:
+        """Push ``values`` (n, k) in order; return the medians after each (n, k)."""
+        medians, self._buffer = self.filter(np.asarray(values, dtype=float))
+        return medians
+
     def snapshot(self) -> np.ndarray:
         """The windows, for :meth:`restore` (a caller undoing a failed update)."""
         return self._buffer.copy()
 
     def restore(self, snapshot: np.ndarray) -> None:
-        """Put back the windows a :meth:`snapshot` of this filter returned (once)."""
+        """Put back the windows a :meth:`snapshot` (or :meth:`filter`) returned (once)."""
         self._buffer = snapshot
 
 
 def _check_window(window: int) -> None:
     if not (isinstance(window, int | np.integer) and window >= 1 and window % 2 == 1):
         raise ValueError(f"median window={window!r} must be an odd integer >= 1")
+
+
+# -- the servo's load reading (appended: the force sense, issue 24) ---------------------------
+# The AX-12 reports its present load (control table address 40-41) as an 11-bit word: bits 0-9
+# the magnitude, 0..1023 as a fraction of the maximum torque, bit 10 the direction (0: CCW,
+# 1: CW). It is an estimate from the motor current, not a torque sensor.
+
+LOAD_MAGNITUDE_MAX = 1023
+"""Largest load magnitude (bits 0-9): 1023 = the maximum torque."""
+LOAD_DIRECTION_BIT = 1 << 10
+"""Bit 10 of the load word: set for a clockwise load."""
+LOAD_MAX_WORD = LOAD_DIRECTION_BIT | LOAD_MAGNITUDE_MAX
+"""Largest valid load word (2047): a CW load at the maximum torque."""
+
+
+@dataclass(frozen=True)
+class LoadParams:
+    """The servo's load reading (defaults: AX-12A).
+
+    Attributes:
+        max_torque_Nm: the torque a magnitude of 1023 stands for (N m): the AX-12A's stall
+            torque at 12 V, 1.5 N m (ROBOTIS AX-12A specification), with the torque limit
+            register at 1023.
+        noise_counts: standard deviation of the Gaussian noise on the magnitude before
+            rounding (counts; the current-based estimate is coarse).
+        invalid_rate: probability that a reading is invalid (half dropouts,
+            :data:`INVALID_READING`, half corrupted 16-bit words), as for the angle.
+    """
+
+    max_torque_Nm: float = 1.5
+    noise_counts: float = 3.0
+    invalid_rate: float = 1e-3
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.max_torque_Nm) and self.max_torque_Nm > 0):
+            raise ValueError(f"max_torque_Nm={self.max_torque_Nm!r} must be finite and > 0")
+        if not (np.isfinite(self.noise_counts) and self.noise_counts >= 0):
+            raise ValueError(f"noise_counts={self.noise_counts!r} must be finite and >= 0")
+        if not 0.0 <= self.invalid_rate <= 1.0:
+            raise ValueError(f"invalid_rate={self.invalid_rate!r} must lie in [0, 1]")
+
+    @property
+    def Nm_per_count(self) -> float:
+        """Resolution of the reading (N m per count)."""
+        return self.max_torque_Nm / LOAD_MAGNITUDE_MAX
+
+
+AX12_LOAD = LoadParams()
+"""The seed paper's servo's load reading (AX-12A)."""
+
+
+def valid_load_words(words: np.ndarray) -> np.ndarray:
+    """Elementwise validity of load words: integers in 0..:data:`LOAD_MAX_WORD` (a dropout,
+    a fraction, NaN or a word with bits above 10 is invalid)."""
+    w = np.asarray(words, dtype=np.float64)
+    return np.isfinite(w) & (w == np.floor(w)) & (w >= 0) & (w <= LOAD_MAX_WORD)
+
+
+def load_torque_Nm(words: np.ndarray, params: LoadParams = AX12_LOAD,
+                   sign: int = 1) -> np.ndarray:
+    """Joint torque (N m, flexion positive) of valid load words: the magnitude's fraction of
+    ``max_torque_Nm``, positive for a CCW load; ``sign`` is the mounting's (the
+    :class:`Calibration` sign: +1 when counts, i.e. CCW, grow with flexion). Invalid words
+    raise ValueError naming the first (the chain's rule decides what replaces them)."""
+    w = np.asarray(words, dtype=np.float64)
+    ok = valid_load_words(w)
+    if not np.all(ok):
+        raise ValueError(f"load word {w[~ok].ravel()[0]!r} is invalid (valid: integers "
+                         f"0..{LOAD_MAX_WORD})")
+    if sign not in (1, -1):
+        raise ValueError(f"sign={sign!r} must be +1 or -1")
+    wi = w.astype(np.int64)
+    direction = np.where(wi & LOAD_DIRECTION_BIT, -1.0, 1.0)
+    return sign * direction * (wi & LOAD_MAGNITUDE_MAX) * params.Nm_per_count

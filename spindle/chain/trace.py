@@ -6,10 +6,11 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from spindle.chain.arm import checked_lengths
+from spindle import number_rule
 from spindle.chain.config import MUSCLES, ArmSample, ChainConfig, real_array
 from spindle.chain.factory import make_chain
 from spindle.chain.length_model import LengthFits
+from spindle.chain.samples import checked_lengths
 from spindle.chain.sensor import is_valid_reading
 
 
@@ -113,12 +114,10 @@ def run_chain(
 def _intended_angles(value: object) -> np.ndarray:
     """``run_chain``'s intended angles as floats: real numbers, NaN for the measured motion."""
     why = "must hold real angles in deg (NaN: the measured motion)"
-    if np.iscomplexobj(value):
-        raise ValueError(f"intended_angle_deg {why}, got complex values")
     try:
-        intended = np.asarray(value, dtype=float)
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise ValueError(f"intended_angle_deg {why}: {exc}") from None
+        intended = number_rule.real_array("intended_angle_deg", value)
+    except number_rule.NumberError as exc:
+        raise number_rule.NumberError(f"intended_angle_deg {why}: {exc}") from None
     if np.isinf(intended).any():
         raise ValueError(f"intended_angle_deg {why}, got an infinite one")
     return intended

@@ -69,7 +69,7 @@ SANITIZE_FLAGS = ("-O1", "-g", "-fsanitize=address,undefined", "-fno-omit-frame-
                   "-fno-sanitize-recover=all")
 CACHE_FORMAT = 2
 """Part of the cache key: bump when the cache's layout or the manifest's meaning changes."""
-REQUIRED_SYMBOLS = ("ps_spindle_step", "ps_chain_init")
+REQUIRED_SYMBOLS = ("ps_spindle_step", "ps_chain_init", "ps_gto_step", "ps_stim_step")
 """A freshly built library must export these (one per source file) to be cached."""
 STALE_TMP_AGE_S = 3600.0
 """A temporary file older than this is a leftover whatever its name says (a build takes s)."""
@@ -188,11 +188,29 @@ def _verified(manifest: Path, stem: str) -> tuple[Path | None, str]:
 
 def _build(compiler: list[str], flags: list[str], srcs: list[Path], directory: Path,
            stem: str) -> Path:
+    try:
+        return _compile_into(compiler, flags, srcs, directory, stem)
+    except CBackendError:
+        raise
+    except OSError as exc:  # a cache folder that cannot be written (read-only, a file...)
+        what = "is a file, not a folder" if directory.is_file() else "cannot be written"
+        raise CBackendError(
+            f"the C cache {directory} {what} ({exc.strerror or exc}: {exc.filename}); make "
+            "it a writable folder or point $PROPRIO_C_CACHE at one, or use backend='numpy'"
+        ) from exc
+
+
+def _compile_into(compiler: list[str], flags: list[str], srcs: list[Path], directory: Path,
+                  stem: str) -> Path:
     directory.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_file(directory, ".so")
     try:
         cmd = [*compiler, *flags, "-I", str(SOURCE_DIR), *map(str, srcs), "-o", str(tmp), "-lm"]
-        result = subprocess.run(cmd, capture_output=True, text=True)
+        try:
+            result = subprocess.run(cmd, capture_output=True, text=True)
+        except OSError as exc:  # not the cache's fault: the compiler would not start
+            raise CBackendError(f"the C compiler {shlex.join(compiler)} could not be run "
+                                f"({exc})") from exc
         if result.returncode != 0:
             raise CBackendError(
                 f"compiling the C port failed ({shlex.join(cmd)}):\n{result.stderr}")

@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import ctypes
 import math
-from dataclasses import fields
+from dataclasses import fields, replace
 from functools import cache
 
 import numpy as np
 
-from spindle import core
-from spindle.chain.arm import ArmChain, block_inputs
+from spindle import core, number_rule
 from spindle.chain.conditioning import natural_rad_s
 from spindle.chain.config import (
     COUNTERS,
@@ -31,6 +30,7 @@ from spindle.chain.config import (
     real_number,
 )
 from spindle.chain.length_model import LengthFits, load_length_fits
+from spindle.chain.samples import block_inputs, checked_angle, checked_lengths
 from spindle.methods import get_method
 from spindle.native import build
 from spindle.native.abi import Status, params_struct, real_type, status_name
@@ -254,8 +254,10 @@ def _layout(cls: type) -> tuple:
     return (ctypes.sizeof(cls), *fields_)
 
 
-class CArmChain(ArmChain):
-    """:class:`~spindle.chain.arm.ArmChain` computed by ``c/chain.c``.
+class CArmChain:
+    """The one-arm chain computed by ``c/chain.c``: the API, outputs and counters of the numpy
+    :class:`~spindle.chain.arm.ArmChain` (both implement :class:`~spindle.chain.config.Chain`;
+    neither inherits from the other).
 
     Args:
         config, fits: as for :class:`~spindle.chain.arm.ArmChain` (``config.backend`` is not
@@ -264,9 +266,11 @@ class CArmChain(ArmChain):
             microcontroller without an FPU runs; see ``docs/c_chain.md`` for its accuracy).
     """
 
+    backend = "c"
+
     def __init__(self, config: ChainConfig | None = None, fits: LengthFits | None = None,
                  variant: str = "double"):
-        self.config = ChainConfig() if config is None else config
+        self.config = replace(ChainConfig() if config is None else config, backend="c")
         self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
         if self.fits.muscles != MUSCLES:
             raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
@@ -340,10 +344,10 @@ class CArmChain(ArmChain):
         t = real_number(t_s)
         if not math.isfinite(t):
             raise ValueError(f"t_s={t_s!r} must be a finite real number")
-        angle = self._check_angle(angle_deg)
+        angle = checked_angle(angle_deg)
         lengths_p = None
         if length_L0 is not None:
-            L = self._check_lengths(length_L0)
+            L = checked_lengths(length_L0)
             if L is None:
                 raise ValueError(f"length_L0={length_L0!r} must be 2 finite lengths within "
                                  f"{core.LENGTH_RANGE_L0} L0")
@@ -361,12 +365,19 @@ class CArmChain(ArmChain):
         if angle_deg is None:
             self._check(self._lib.ps_chain_set_intended_angle(self._chain_p, None), "switch")
             return
-        self._scalar.value = self._check_angle(angle_deg)
+        self._scalar.value = checked_angle(angle_deg)
         self._check(self._lib.ps_chain_set_intended_angle(self._chain_p, self._scalar_p),
                     "switch")
 
     @property
-    def counters(self) -> dict[str, int]:  # type: ignore[override]
+    def last(self) -> ArmSample:
+        """The latest output."""
+        if self._last is None:
+            raise RuntimeError("call ArmChain.reset before using the chain")
+        return self._last
+
+    @property
+    def counters(self) -> dict[str, int]:
         """Counts of each handling rule since the last reset (as ArmChain.counters)."""
         counted = self._chain.state.counters
         return {name: int(getattr(counted, name)) for name in COUNTERS}
@@ -437,7 +448,9 @@ class CArmChain(ArmChain):
         x = np.ascontiguousarray(x, dtype=self._np_real)
         intended = None
         if intended_angle_deg is not None:
-            intended = np.ascontiguousarray(intended_angle_deg, dtype=self._np_real)
+            intended = np.ascontiguousarray(
+                number_rule.real_array("intended_angle_deg", intended_angle_deg),
+                dtype=self._np_real)
             if intended.shape != t.shape:
                 raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected "
                                  f"{t.shape}")
@@ -482,7 +495,10 @@ class CArmChain(ArmChain):
         if self._sample.accepted:
             self._last = self._sample_out(True)
             return self._last
-        return self._rejected()
+        last = self.last
+        out = object.__new__(ArmSample)
+        out.__dict__.update(last.__dict__, accepted=False)
+        return out
 
     def _check(self, status: int, what: str, t_s: float | None = None) -> None:
         if status == Status.PS_OK:
@@ -555,7 +571,7 @@ def chain_dtype(variant: str = "double") -> np.dtype:
 def _batch_sample_class() -> type:
     # imported on first use: spindle.chain.batch (the numpy batch) owns the class, and a
     # module-level import would make this module need it to load
-    from spindle.chain.batch import BatchSample
+    from spindle.chain.samples import BatchSample
 
     return BatchSample
 
@@ -612,13 +628,15 @@ class CBatchedArmChain:
         variant: ``"double"`` or ``"float"``.
     """
 
+    backend = "c"
+
     def __init__(self, n_arms: int, config: ChainConfig | None = None,
                  fits: LengthFits | None = None, variant: str = "double"):
         if (isinstance(n_arms, bool | np.bool_) or not isinstance(n_arms, int | np.integer)
                 or n_arms < 1):
             raise ValueError(f"n_arms={n_arms!r} must be an integer >= 1")
         self.n_arms = int(n_arms)
-        self.config = ChainConfig() if config is None else config
+        self.config = replace(ChainConfig() if config is None else config, backend="c")
         self.fits = fits if fits is not None else load_length_fits(self.config.fits_path)
         if self.fits.muscles != MUSCLES:
             raise ValueError(f"length fits are for {self.fits.muscles}, the chain needs {MUSCLES}")
@@ -729,12 +747,8 @@ class CBatchedArmChain:
         follow their measured motion (see :meth:`ArmChain.set_intended_angle`)."""
         angle = None
         if angle_deg is not None:
-            if np.iscomplexobj(angle_deg):
-                raise ValueError("angle_deg must be real intended angles (deg)")
-            try:
-                angle = np.ascontiguousarray(angle_deg, dtype=self._np_real)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"angle_deg must be real intended angles (deg): {exc}") from None
+            angle = np.ascontiguousarray(number_rule.real_array("angle_deg", angle_deg),
+                                         dtype=self._np_real)
             _check_shape("angle_deg", angle, (self.n_arms,))
         status = self._lib.ps_chain_batch_set_intended_angle(
             self._addr[0], self.n_arms, None if angle is None else _address(angle),

@@ -166,7 +166,7 @@ def simulate(
     """:func:`spindle.simulate` in C; ``variant="float"`` runs the float32 build. The same
     chunks and sub-step lengths as the numpy path (:func:`spindle.substeps.substep_lengths`),
     then one ``ps_spindle_run`` call per spindle and chunk."""
-    m, L, gd, gs, derivatives, k, h = prepare_inputs(
+    m, L, gd, gs, derivatives, k, h, dt = prepare_inputs(
         length, dt, velocity, acceleration, gamma_dyn, gamma_stat, method, step)
     shape = np.shape(length)
     n = L.shape[1]
