@@ -194,13 +194,13 @@ class Breakdown:
 
 def breakdown(env_id: str, n_envs: int, steps: int, backend: str) -> Breakdown:
     """The vector env's step split into physics (``PhysicsBatch.step``: the rollout call),
-    the chain (``BatchAfferentReadout.push``: sensors, glue, spindles) and, inside it, the
+    the chain (``AfferentReadout.push``: sensors, glue, spindles) and, inside it, the
     numpy spindle step (``spindle.core.advance``), by wrapping those three with timers (a
     separate run: the wrappers cost ~1 us per call)."""
     import gymnasium as gym
 
     import spindle.core
-    from proprio_env.envs.afferents import BatchAfferentReadout
+    from proprio_env.envs.afferents import AfferentReadout
     from proprio_env.envs.physics import PhysicsBatch
 
     spent = {"physics": 0.0, "chain": 0.0, "spindle": 0.0, "calls": 0}
@@ -220,7 +220,7 @@ def breakdown(env_id: str, n_envs: int, steps: int, backend: str) -> Breakdown:
         return original
 
     originals = [(PhysicsBatch, "step", timer(PhysicsBatch, "step", "physics")),
-                 (BatchAfferentReadout, "push", timer(BatchAfferentReadout, "push", "chain")),
+                 (AfferentReadout, "push", timer(AfferentReadout, "push", "chain")),
                  (spindle.core, "advance", timer(spindle.core, "advance", "spindle"))]
     try:
         vec = gym.make_vec(env_id, num_envs=n_envs, vectorization_mode="vector_entry_point",

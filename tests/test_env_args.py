@@ -109,3 +109,41 @@ def test_non_real_actions_are_refused_and_change_nothing(env_id):
     obs_twin, *_, info_twin = twin.step(good)
     np.testing.assert_array_equal(obs, obs_twin)
     assert info["time_s"] == info_twin["time_s"]
+
+
+@pytest.mark.parametrize("env_id", IDS)
+@pytest.mark.parametrize("seed", [1.5, np.float64(2.0), "3", b"3", True, np.True_, -1, [1],
+                                  1 + 0j], ids=_id)
+def test_confused_seeds_are_refused(env_id, seed):
+    """A seed is None or an integer >= 0 (was gymnasium's own Error, or a float accepted)."""
+    env = gym.make(env_id)
+    with pytest.raises(ValueError, match=r"seed=.* must be None or an integer >= 0"):
+        env.reset(seed=seed)
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_refused_reset_changes_nothing(env_id):
+    """A reset refused for its seed or any option leaves the episode and the generator as
+    they were: the env steps on, and resets unseeded, as a twin that never saw it."""
+    env, twin = gym.make(env_id), gym.make(env_id)
+    env.reset(seed=4)
+    twin.reset(seed=4)
+    n = env.action_space.shape[0]
+    refused = [
+        {"seed": 5, "options": {"target_deg": "70"}},  # a good seed with a bad option
+        {"seed": 6, "options": {"angle_deg": 500.0}},
+        {"seed": 7, "options": {"target_deg": 40.0, "angle_deg": np.complex128(40)}},
+        {"seed": 8, "options": {"speed": 1.0}},
+        {"seed": 9, "options": {"angle_deg": [40.0]}},  # one env: a number, not a list
+        {"seed": 10, "options": [("target_deg", 40.0)]},  # options are a dict
+        {"seed": 2.5, "options": {"target_deg": 40.0}},
+    ]
+    for k, call in enumerate(refused):
+        with pytest.raises(ValueError, match=r"seed|options|target_deg|angle_deg"):
+            env.reset(**call)
+        a = np.full(n, 0.1 * k, dtype=np.float32)
+        obs, reward, *_, info = env.step(a)
+        obs_twin, reward_twin, *_, info_twin = twin.step(a)
+        assert obs.tobytes() == obs_twin.tobytes() and reward == reward_twin, call
+        assert info["time_s"] == info_twin["time_s"], call
+    assert env.reset()[0].tobytes() == twin.reset()[0].tobytes()

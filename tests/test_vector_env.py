@@ -3,6 +3,10 @@ with seed s + i and fed the same actions (the single env and its own chain are t
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -13,6 +17,7 @@ import spindle.chain
 from proprio_env.encoder import CHUNK, Encoder, EncoderBank
 from spindle.chain.sensor import AX12
 
+ROOT = Path(__file__).resolve().parents[1]
 IDS = ("proprio_env/ElbowReach-v0", "proprio_env/ProsthesisElbow-v0")
 SOURCES = ("exact", "reduced", "encoder")
 
@@ -232,9 +237,11 @@ def test_batched_chain_does_not_keep_the_callers_block_buffers(backend):
 
 
 def test_fibre_lengths_of_both_muscles_equal_the_one_muscle_function():
-    from proprio_env.muscle_length import FibreLengths, fibre_length_L0
+    from proprio_env.model import MUSCLES
+    from proprio_env.muscle_length import FibreLengths, fibre_length_L0, muscle_geometry
 
-    geometries = gym.make(IDS[0]).unwrapped._geometries
+    model = gym.make(IDS[0]).unwrapped.model
+    geometries = tuple(muscle_geometry(model, m) for m in MUSCLES)
     both = FibreLengths(geometries)
     slack = np.array([g.tendon_slack_length_m for g in geometries])
     mtu = slack + np.random.default_rng(0).uniform(0.01, 0.2, (3, 10, 2))
@@ -245,3 +252,124 @@ def test_fibre_lengths_of_both_muscles_equal_the_one_muscle_function():
         mtu_bad[1, 4, 1] = bad
         with pytest.raises(ValueError, match=f"{geometries[1].name}.*{match}"):
             both(mtu_bad)
+
+
+# -- refused resets and constructors (issue 28, items 2 and 9) ----------------------------------
+BAD_RESETS = [
+    # the number rule, per sub-env (a string, a bool, a complex number, bytes, NaN)
+    ({"options": {"target_deg": [40.0, 50.0, "70"]}}, r"target_deg'\]\[2\] \(sub-env 2\)='70'"),
+    ({"options": {"target_deg": [40.0, True, 50.0]}}, r"target_deg'\]\[1\] \(sub-env 1\)=True"),
+    ({"options": {"angle_deg": [30.0, 40.0, 1 + 0j]}},
+     r"angle_deg'\]\[2\] \(sub-env 2\)=\(1\+0j\)"),
+    ({"options": {"angle_deg": np.array([30.0, 40.0, 50.0], dtype=complex)}}, r"angle_deg'\]\[0\]"),
+    ({"options": {"target_deg": np.array(["40", "50", "60"])}}, r"target_deg'\]\[0\].*'40'"),
+    ({"options": {"target_deg": [40.0, np.nan, 50.0]}}, r"target_deg'\]\[1\] \(sub-env 1\)=nan"),
+    ({"options": {"target_deg": "70"}}, r"target_deg'\]='70'"),
+    ({"options": {"angle_deg": b"70"}}, r"angle_deg'\]=b'70'"),
+    ({"options": {"angle_deg": np.True_}}, r"angle_deg'\]=.*True"),
+    # the joint range, per sub-env; the checks run before the later sub-envs' seeds apply
+    ({"seed": [4, 5, 6], "options": {"angle_deg": [30.0, 40.0, 500.0]}},
+     r"angle_deg'\]\[2\] \(sub-env 2\)=500.0 must lie within the joint range"),
+    ({"options": {"target_deg": np.array([40.0, 50.0, -1.0])}}, r"sub-env 2\)=-1.0"),
+    # lengths name the option
+    ({"options": {"angle_deg": [30.0, 40.0]}},
+     r"options\['angle_deg'\] holds 2 values.*num_envs=3"),
+    ({"options": {"target_deg": np.zeros(4) + 40.0}}, r"target_deg'\] holds 4 values"),
+    # seeds
+    ({"seed": 1.5}, r"seed=1.5 must be None, an integer >= 0 or a sequence of num_envs=3 "
+                    r"such seeds \(got float\)"),
+    ({"seed": np.float64(2.0)}, r"seed=.*2.0\)? must be None, an integer"),
+    ({"seed": "3"}, r"seed='3' must be None, an integer >= 0 or a sequence"),
+    ({"seed": True}, r"seed=True must be None, an integer"),
+    ({"seed": -1}, r"seed=-1 must be None or an integer >= 0"),
+    ({"seed": [1, 2, 2.5]}, r"seed\[2\] \(sub-env 2\)=2.5"),
+    ({"seed": [1, 2]}, r"seed list has length 2, expected num_envs=3"),
+    # a sub-env the mask leaves out is checked too; unknown options; a mask of the wrong kind
+    ({"options": {"reset_mask": np.array([True, False, False]), "target_deg": [40, 50, "x"]}},
+     r"sub-env 2\)='x'"),
+    ({"options": {"speed": 1.0}}, r"unknown reset options \[\"'speed'\"\]"),
+    ({"options": {"reset_mask": [True, False, True]}}, r"reset_mask'\] must be a bool array"),
+    ({"options": "target_deg=40"}, r"options='target_deg=40' must be a dict"),
+]
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_refused_reset_changes_no_sub_env(env_id):
+    """A reset refused for any seed or option leaves every sub-env as it was: the env then
+    steps (through an autoreset) bit for bit as a twin that never saw the refused reset."""
+    kwargs = {"num_envs": 3, "max_episode_steps": 5, "afferent_source": "encoder"}
+    env, twin = gym.make_vec(env_id, **kwargs), gym.make_vec(env_id, **kwargs)
+    env.reset(seed=8)
+    twin.reset(seed=8)
+    actions = random_actions(env.single_action_space, 3, 3 * len(BAD_RESETS))
+    for k, (call, match) in enumerate(BAD_RESETS):
+        with pytest.raises(ValueError, match=match):
+            env.reset(**call)
+        for a in actions[3 * k:3 * k + 3]:
+            out, ref = env.step(a), twin.step(a)
+            assert out[0].tobytes() == ref[0].tobytes(), call
+            assert all(np.array_equal(out[4][key], ref[4][key]) for key in ref[4]), call
+    counters = env.unwrapped.afferents.chain.counters
+    assert not counters["time_backwards"].any() and not counters["gaps"].any()
+    # after all that, the same unseeded reset draws the same episode in both
+    assert env.reset()[0].tobytes() == twin.reset()[0].tobytes()
+    env.close()
+    twin.close()
+
+
+def test_first_reset_must_cover_every_sub_env():
+    env = gym.make_vec(IDS[0], num_envs=2, afferent_source="reduced")
+    with pytest.raises(ValueError, match="first reset must reset every sub-env"):
+        env.reset(options={"reset_mask": np.array([True, False])})
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros((2, 2), np.float32))
+    env.reset(seed=0)  # and a full one works afterwards
+    env.close()
+
+
+REFUSED_CONSTRUCTORS = """
+import gc
+from gymnasium.vector import VectorEnv
+
+
+def __del__(self):  # gymnasium 1.0-1.2's VectorEnv.__del__ (1.3 dropped it)
+    if not getattr(self, "closed", True):
+        self.close()
+
+
+VectorEnv.__del__ = __del__
+import gymnasium as gym
+import proprio_env  # noqa: F401
+from proprio_env.envs.vector import ElbowReachVectorEnv, ProsthesisElbowVectorEnv
+
+bad = [dict(num_envs=0), dict(num_envs=2, num_threads=0), dict(num_envs=2, num_threads=2,
+       max_episode_steps=0), dict(num_envs=2, backend="x"), dict(num_envs=2, width=10**6),
+       dict(num_envs=2, afferent_source="x"), dict(num_envs=2, control_hz=33.0),
+       dict(num_envs=2, num_threads=2, target_ranges_deg=((1, 500),)), dict(num_envs=2, bogus=1),
+       dict(num_envs=2, include_fusimotor="yes")]
+for env_id, cls in (("proprio_env/ElbowReach-v0", ElbowReachVectorEnv),
+                    ("proprio_env/ProsthesisElbow-v0", ProsthesisElbowVectorEnv)):
+    for kwargs in bad:
+        for make in (lambda: cls(**kwargs), lambda: gym.make_vec(env_id, **kwargs)):
+            try:
+                make()
+            except (ValueError, TypeError):
+                pass
+            else:
+                raise SystemExit(f"{cls.__name__} accepted {kwargs}")
+            gc.collect()
+    half = cls.__new__(cls)  # what a refused constructor leaves: closing it is safe
+    half.close()
+    assert half.closed
+print("clean")
+"""
+
+
+def test_refused_constructor_leaves_nothing_to_close():
+    """A refused vector-env argument is the last thing the user sees: no "Exception ignored in
+    VectorEnv.__del__" from closing a half-built env (gymnasium < 1.3 closes in __del__)."""
+    out = subprocess.run([sys.executable, "-c", REFUSED_CONSTRUCTORS], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "clean"
+    assert "Exception ignored" not in out.stderr and "Error" not in out.stderr, out.stderr

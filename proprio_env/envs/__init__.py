@@ -3,12 +3,17 @@
 - :class:`ElbowReachEnv` (``proprio_env/ElbowReach-v0``): muscle-driven;
 - :class:`ProsthesisElbowEnv` (``proprio_env/ProsthesisElbow-v0``): servo-driven prosthesis
   with the encoder chain.
+
+Both are one env of :class:`~proprio_env.envs.core.EnvCore`, the one implementation of the
+env step over n envs; ``gymnasium.make_vec`` builds its n-env view
+(:mod:`proprio_env.envs.vector`).
 """
 
 from proprio_env.envs.afferents import SOURCES, AfferentReadout
-from proprio_env.envs.base import RATE_SCALE_PPS, ElbowProprioEnv
+from proprio_env.envs.base import ElbowProprioEnv
+from proprio_env.envs.core import RATE_SCALE_PPS, EnvCore
 from proprio_env.envs.elbow_reach import ElbowReachEnv
 from proprio_env.envs.prosthesis_elbow import ProsthesisElbowEnv
 
 __all__ = ["RATE_SCALE_PPS", "SOURCES", "AfferentReadout", "ElbowProprioEnv", "ElbowReachEnv",
-           "ProsthesisElbowEnv"]
+           "EnvCore", "ProsthesisElbowEnv"]

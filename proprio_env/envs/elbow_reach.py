@@ -8,8 +8,27 @@ from typing import Any, ClassVar
 import numpy as np
 from gymnasium import spaces
 
-from proprio_env.envs.base import SERVO_GROUP_BIT, ElbowProprioEnv
+from proprio_env.envs.base import ElbowProprioEnv
+from proprio_env.envs.core import SERVO_GROUP_BIT, Drive
 from proprio_env.model import MUSCLES
+
+
+class MuscleDrive(Drive):
+    """BRA and TRImed excitations (``Box(0, 1, (2,))``), the servo disabled."""
+
+    disabled_groups: ClassVar[int] = SERVO_GROUP_BIT
+    default_source: ClassVar[str] = "exact"
+    default_control_cost_weight: ClassVar[float] = 0.05
+
+    def __init__(self, model: Any, joint_range_deg: tuple[float, float]) -> None:
+        super().__init__(model, joint_range_deg)
+        self._muscle_ids = np.array([model.actuator(m).id for m in MUSCLES])
+
+    def action_space(self) -> spaces.Box:
+        return spaces.Box(0.0, 1.0, (2,), dtype=np.float32)
+
+    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
+        ctrl[:, self._muscle_ids] = actions
 
 
 class ElbowReachEnv(ElbowProprioEnv):
@@ -126,17 +145,10 @@ class ElbowReachEnv(ElbowProprioEnv):
       64 readings from two streams spawned from the env's generator, which changes the
       encoder's random numbers (and the target/angle draws after the first episode) for a
       given seed.
+      Later in v0: the single and the vector env are one env core (n = 1 and n envs);
+      ``reset`` refuses a seed that is not ``None`` or an integer >= 0 and checks every
+      option before it changes anything (``ValueError``); the chain behind
+      ``env.unwrapped.afferents.chain`` is the batched chain of one arm (counters (1,)).
     """
 
-    disabled_groups: ClassVar[int] = SERVO_GROUP_BIT
-    default_source: ClassVar[str] = "exact"
-
-    def __init__(self, *, control_cost_weight: float = 0.05, **kwargs: Any) -> None:
-        super().__init__(control_cost_weight=control_cost_weight, **kwargs)
-        self._muscle_ids = np.array([self.model.actuator(m).id for m in MUSCLES])
-
-    def _make_action_space(self) -> spaces.Box:
-        return spaces.Box(0.0, 1.0, (2,), dtype=np.float32)
-
-    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
-        ctrl[:, self._muscle_ids] = actions
+    drive = MuscleDrive

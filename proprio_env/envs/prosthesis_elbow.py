@@ -4,14 +4,47 @@ proprioception through its encoder, as in the seed paper."""
 
 from __future__ import annotations
 
-import math
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium import spaces
 
-from proprio_env.envs.base import MUSCLE_GROUP_BIT, ElbowProprioEnv
+from proprio_env.envs.base import ElbowProprioEnv
+from proprio_env.envs.core import MUSCLE_GROUP_BIT, Drive
 from proprio_env.model import SERVO
+
+
+class ServoDrive(Drive):
+    """The position servo's command, normalised over the joint range (``Box(-1, 1, (1,))``),
+    the muscles disabled (passive)."""
+
+    disabled_groups: ClassVar[int] = MUSCLE_GROUP_BIT
+    default_source: ClassVar[str] = "encoder"
+    default_control_cost_weight: ClassVar[float] = 0.0
+
+    def __init__(self, model: Any, joint_range_deg: tuple[float, float]) -> None:
+        super().__init__(model, joint_range_deg)
+        self._servo_id = model.actuator(SERVO).id
+        lo, hi = joint_range_deg
+        self._command_mid_deg = 0.5 * (lo + hi)
+        self._command_half_deg = 0.5 * (hi - lo)
+
+    def action_space(self) -> spaces.Box:
+        return spaces.Box(-1.0, 1.0, (1,), dtype=np.float32)
+
+    def commands_deg(self, actions: np.ndarray) -> np.ndarray:
+        """The servo commands (deg) of (valid) actions (n, 1)."""
+        return self._command_mid_deg + self._command_half_deg * actions[:, 0]
+
+    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
+        ctrl[:, self._servo_id] = np.radians(self.commands_deg(actions))
+
+    def rest_controls(self, ctrl: np.ndarray, angle_deg: float) -> None:
+        super().rest_controls(ctrl, angle_deg)
+        ctrl[self._servo_id] = np.radians(angle_deg)
+
+    def info(self, ctrl: np.ndarray) -> dict[str, np.ndarray]:
+        return {"command_deg": np.degrees(ctrl[:, self._servo_id])}
 
 
 class ProsthesisElbowEnv(ElbowProprioEnv):
@@ -99,36 +132,14 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
       ``mujoco.rollout`` (shared with the native vector env of ``gymnasium.make_vec``); the
       encoder draws its jitter, noise and glitches in chunks of 64 readings from two streams
       spawned from the env's generator: the random numbers for a given seed changed.
+      Later in v0: the single and the vector env are one env core (n = 1 and n envs);
+      ``reset`` refuses a seed that is not ``None`` or an integer >= 0 and checks every
+      option before it changes anything (``ValueError``); the chain behind
+      ``env.unwrapped.afferents.chain`` is the batched chain of one arm (counters (1,)).
     """
 
-    disabled_groups: ClassVar[int] = MUSCLE_GROUP_BIT
-    default_source: ClassVar[str] = "encoder"
-
-    def __init__(self, **kwargs) -> None:
-        super().__init__(**kwargs)
-        self._servo_id = self.model.actuator(SERVO).id
-        lo, hi = self.joint_range_deg
-        self._command_mid_deg = 0.5 * (lo + hi)
-        self._command_half_deg = 0.5 * (hi - lo)
-
-    def _make_action_space(self) -> spaces.Box:
-        return spaces.Box(-1.0, 1.0, (1,), dtype=np.float32)
+    drive = ServoDrive
 
     def command_deg(self, action: np.ndarray) -> float:
         """The servo command (deg) of a (valid) action."""
-        return float(self.commands_deg(np.asarray(action, dtype=float)[None, :])[0])
-
-    def commands_deg(self, actions: np.ndarray) -> np.ndarray:
-        """The servo commands (deg) of (valid) actions (n, 1)."""
-        return self._command_mid_deg + self._command_half_deg * actions[:, 0]
-
-    def write_controls(self, ctrl: np.ndarray, actions: np.ndarray) -> None:
-        ctrl[:, self._servo_id] = np.radians(self.commands_deg(actions))
-
-    def _reset_controls(self, data, angle_deg: float) -> None:
-        super()._reset_controls(data, angle_deg)
-        data.ctrl[self.model.actuator(SERVO).id] = math.radians(angle_deg)
-
-    def _add_info(self, info):
-        info["command_deg"] = math.degrees(float(self.data.ctrl[self._servo_id]))
-        return info
+        return float(self.core.drive.commands_deg(np.asarray(action, dtype=float)[None, :])[0])

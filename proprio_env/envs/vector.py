@@ -11,9 +11,14 @@ pushes all the arms through one batched spindle chain
 
 Conventions (Gymnasium 1.x):
 
-- ``reset(seed=s)`` seeds sub-env i with ``s + i`` (a list of n seeds is accepted too); sub-env
-  i then gives the same observations as a single env ``gymnasium.make(id)`` reset with seed
-  ``s + i`` and fed the same actions, through autoresets too.
+- Sub-env i and a single env are one arithmetic (:class:`~proprio_env.envs.core.EnvCore`
+  over n envs, of which the single env is n = 1): ``reset(seed=s)`` seeds sub-env i with
+  ``s + i`` (a list of n seeds is accepted too); sub-env i then gives the same observations
+  as a single env ``gymnasium.make(id)`` reset with seed ``s + i`` and fed the same actions,
+  through autoresets too.
+- ``reset`` checks every seed and option of every sub-env before it changes anything: a
+  refused reset (ValueError naming the option, the sub-env and the value) leaves every
+  sub-env as it was.
 - Autoreset mode ``NEXT_STEP`` (``metadata["autoreset_mode"]``): after a step that truncates
   sub-env i, the next ``step`` resets it (its action is ignored) and returns its first
   observation with reward 0 and ``terminated = truncated = False``; the reset draws from the
@@ -33,25 +38,17 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from proprio_env.envs.afferents import BatchAfferentReadout
-from proprio_env.envs.arguments import check_positive_int
-from proprio_env.envs.base import (
-    ElbowProprioEnv,
-    check_actions,
-    check_observations,
-    observations,
-    rewards,
-    step_info,
-)
-from proprio_env.envs.elbow_reach import ElbowReachEnv
-from proprio_env.envs.physics import PhysicsBatch, check_threads
-from proprio_env.envs.prosthesis_elbow import ProsthesisElbowEnv
+from proprio_env.envs.arguments import check_positive_int, check_reset_options, check_seeds
+from proprio_env.envs.core import CoreSettings, Drive, EnvCore
+from proprio_env.envs.elbow_reach import MuscleDrive
+from proprio_env.envs.physics import PhysicsBatch
+from proprio_env.envs.prosthesis_elbow import ServoDrive
 
 __all__ = ["ElbowProprioVectorEnv", "ElbowReachVectorEnv", "ProsthesisElbowVectorEnv"]
 
 
-class ElbowProprioVectorEnv(VectorEnv):
-    """``num_envs`` copies of a single elbow env stepped together (see the module docstring).
+class ElbowProprioVectorEnv(CoreSettings, VectorEnv):
+    """``num_envs`` elbow envs stepped together (see the module docstring).
 
     Args:
         num_envs: number of sub-envs (>= 1).
@@ -61,193 +58,118 @@ class ElbowProprioVectorEnv(VectorEnv):
             200).
         **kwargs: the single env's arguments (``afferent_source``, ``backend``,
             ``control_hz``, ... ; see :class:`~proprio_env.envs.ElbowReachEnv`), checked the
-            same way; ``render_mode="rgb_array"`` renders sub-env 0.
+            same way, all before anything is built; ``render_mode="rgb_array"`` renders
+            sub-env 0.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 50,
                                           "autoreset_mode": AutoresetMode.NEXT_STEP}
-    single_env_class: ClassVar[type[ElbowProprioEnv]] = ElbowProprioEnv
+    #: what moves the elbows (set by subclasses)
+    drive: ClassVar[type[Drive]] = Drive
 
     def __init__(self, num_envs: int = 1, *, num_threads: int = 1,
                  max_episode_steps: int | None = None, **kwargs: Any) -> None:
         n = check_positive_int("num_envs", num_envs)
-        num_threads = check_threads(num_threads)
         if max_episode_steps is not None:
             max_episode_steps = check_positive_int("max_episode_steps", max_episode_steps)
-        # One single env holds the checked settings, the model, the spaces and the fits;
-        # its MjData serves for resets and rendering.
-        self.env = env = self.single_env_class(**kwargs)
+        self.core = core = EnvCore(self.drive, n, num_threads, **kwargs)
         self.num_envs = n
         self.max_episode_steps = max_episode_steps
-        self.render_mode = env.render_mode
-        self.metadata = {**self.metadata, "render_fps": env.control_hz}
-        self.single_observation_space = env.observation_space
-        self.single_action_space = env.action_space
-        self.observation_space = batch_space(env.observation_space, n)
-        self.action_space = batch_space(env.action_space, n)
-        self.afferent_source = env.afferent_source
-        self.backend = env.backend
-        self.num_threads = num_threads
-        self.physics = PhysicsBatch(env.model, n, env.frame_skip, num_threads,
-                                    qadr=env._qadr, vadr=env._vadr)
-        self.afferents = BatchAfferentReadout(n, env.afferent_source,
-                                              env.afferents.chain.config,
-                                              env.afferents.encoder_params, env.length_fits,
-                                              step_s=env.dt)
+        self.render_mode = core.render_mode
+        self.metadata = {**self.metadata, "render_fps": core.control_hz}
+        self.single_observation_space = core.observation_space
+        self.single_action_space = core.action_space
+        self.observation_space = batch_space(core.observation_space, n)
+        self.action_space = batch_space(core.action_space, n)
         self.rngs: list[np.random.Generator | None] = [None] * n
-        self.target_deg = np.zeros(n)
         self.episode_steps = np.zeros(n, dtype=np.int64)
         self._autoreset = np.zeros(n, dtype=bool)
-        self._sample = None
+        self._ready = False
+
+    @property
+    def physics(self) -> PhysicsBatch:
+        """Every sub-env's physics (states, controls)."""
+        return self.core.physics
+
+    @property
+    def num_threads(self) -> int:
+        return self.core.physics.num_threads
+
+    @property
+    def target_deg(self) -> np.ndarray:
+        """Each sub-env's target elbow flexion (deg), (n,)."""
+        return self.core.target_deg
 
     # -- gymnasium API ----------------------------------------------------------------------
     def reset(self, *, seed: int | list[int | None] | None = None,
               options: dict[str, Any] | None = None):
         """Reset every sub-env (or those of ``options["reset_mask"]``, a (n,) bool array);
-        ``options`` may fix ``"target_deg"`` / ``"angle_deg"`` (a scalar or (n,) array) as
-        the single env's do."""
+        ``options`` may fix ``"target_deg"`` / ``"angle_deg"`` (a number or one per
+        sub-env) as the single env's do. Every seed and option value is checked first (also
+        those of sub-envs the mask leaves out); a refusal changes nothing."""
         n = self.num_envs
-        if seed is None:
-            seeds: list[int | None] = [None] * n
-        elif isinstance(seed, int | np.integer) and not isinstance(seed, bool):
-            seeds = [int(seed) + i for i in range(n)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != n:
-                raise ValueError(f"seed list has length {len(seeds)}, expected num_envs={n}")
-        options = {} if options is None else dict(options)
-        mask = options.pop("reset_mask", None)
-        if mask is None:
-            mask = np.ones(n, dtype=bool)
-        elif not (isinstance(mask, np.ndarray) and mask.dtype == bool and mask.shape == (n,)
-                  and mask.any()):
-            raise ValueError(f"options['reset_mask'] must be a bool array of shape ({n},) "
-                             "with at least one True")
-        fixed = {}
-        for key, value in options.items():
-            arr = np.broadcast_to(np.asarray(value), (n,)) if key in (
-                "target_deg", "angle_deg") else value
-            fixed[key] = arr
-        envs = np.flatnonzero(mask)
-        for i in envs.tolist():
-            if seeds[i] is not None or self.rngs[i] is None:
-                self.rngs[i], _ = seeding.np_random(seeds[i])
-        self._reset_envs(envs, {k: (v[envs] if isinstance(v, np.ndarray) else v)
-                                for k, v in fixed.items()})
+        seeds = check_seeds(seed, n)
+        mask, fixed = check_reset_options(options, self.core.joint_range_deg, n)
+        envs = np.arange(n) if mask is None else np.flatnonzero(mask)
+        if not self._ready and envs.size < n:
+            raise ValueError("the first reset must reset every sub-env (options['reset_mask'] "
+                             f"selects {envs.size} of {n})")
+        rngs = [self.rngs[i] if seeds[i] is None and self.rngs[i] is not None
+                else seeding.np_random(seeds[i])[0] for i in envs.tolist()]
+        self.core.reset(envs, rngs, *(None if name not in fixed else fixed[name][envs]
+                                      for name in ("target_deg", "angle_deg")))
+        for i, rng in zip(envs.tolist(), rngs, strict=True):
+            self.rngs[i] = rng
+        self.episode_steps[envs] = 0
         self._autoreset[envs] = False
-        obs = self._observations()
+        self._ready = True
         zeros = np.zeros(n)
-        return obs, self._info(np.zeros(n, dtype=np.int64), zeros, zeros)
+        return self.core.observations(), self.core.info(np.zeros(n, np.int64), zeros, zeros)
 
     def step(self, actions):
         """Step every sub-env; the sub-envs that ended at the previous step are reset
         instead (NEXT_STEP autoreset)."""
-        if self._sample is None:
+        if not self._ready:
             raise RuntimeError("call reset() before step()")
-        env, n = self.env, self.num_envs
-        actions = check_actions(actions, env.action_space, (n, *env.action_space.shape),
-                                env.clip_actions, env._action_bounds)
-        resetting = self._autoreset.copy()
-        active = ~resetting
-        physics = self.physics
-        env.write_controls(physics.ctrl, actions)
-        physics.step()
-        angle_deg = np.degrees(physics.angle_rad())
-        final = physics.state
-        q, v = final[:, physics.qpos_index], final[:, physics.qvel_index]
-        bad = active & ~(np.isfinite(q) & np.isfinite(v))
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise RuntimeError(f"physics diverged in env {i}: elbow angle {q[i]!r} rad, "
-                               f"velocity {v[i]!r} rad/s")
-        lengths = None
-        if self.afferent_source == "exact":
-            mtu = physics.tendon_lengths_m(env.data)
-            lengths = env._fibre_lengths(mtu.reshape(-1, 2)).reshape(mtu.shape)
-        self._sample, pushed = self.afferents.push(physics.time_s(), angle_deg, lengths,
-                                                   active)
-        reward, distance, control = rewards(angle_deg[:, -1], self.target_deg, actions,
-                                            env.distance_reward_weight,
-                                            env.control_cost_weight)
+        core, n = self.core, self.num_envs
+        actions = core.check_actions(actions, (n, *self.single_action_space.shape))
+        resetting = self._autoreset
+        active = ~resetting if resetting.any() else None
+        distance, control, pushed = core.step(actions, active)
         self.episode_steps += 1
-        if resetting.any():
+        if active is not None:
             envs = np.flatnonzero(resetting)
-            self._reset_envs(envs, {})
-            reward[envs] = distance[envs] = control[envs] = 0.0
+            core.reset(envs, [self.rngs[i] for i in envs.tolist()])
+            self.episode_steps[envs] = 0
+            distance[envs] = control[envs] = 0.0
             pushed[envs] = 0
         truncated = np.zeros(n, dtype=bool)
         if self.max_episode_steps is not None:
             truncated = self.episode_steps >= self.max_episode_steps
         terminated = np.zeros(n, dtype=bool)
         self._autoreset = terminated | truncated
-        obs = self._observations()
-        return obs, reward, terminated, truncated, self._info(pushed, distance, control)
+        return (core.observations(), distance + control, terminated, truncated,
+                core.info(pushed, distance, control))
 
     def render(self):
         """The first sub-env's image (``render_mode="rgb_array"``), else ``None``."""
-        if self.render_mode != "rgb_array":
-            return None
-        self.physics.load(0, self.env.data)
-        self.env._target_deg = float(self.target_deg[0])
-        return self.env.render()
+        return self.core.render(0)
 
     def close_extras(self, **kwargs: Any) -> None:
-        self.physics.close()
-        self.env.close()
-
-    # -- helpers ------------------------------------------------------------------------------
-    def _reset_envs(self, envs: np.ndarray, options: dict[str, Any]) -> None:
-        """Reset the sub-envs ``envs`` (their generators continue), as a single env's
-        ``reset`` does: target, initial angle, physics at rest, chain, encoder."""
-        env, physics = self.env, self.physics
-        m = envs.size
-        angles, lengths, times = np.empty(m), np.empty((m, 2)), np.empty(m)
-        rngs = []
-        for j, i in enumerate(envs.tolist()):
-            opts = {k: float(v[j]) if isinstance(v, np.ndarray) else v
-                    for k, v in options.items()}
-            rng = self.rngs[i]
-            target, angle = env.draw_start(rng, opts)
-            self.target_deg[i] = target
-            angles[j] = angle
-            lengths[j] = env.reset_physics(env.data, angle)
-            times[j] = env.data.time
-            physics.store(i, env.data)
-            rngs.append(rng)
-        self.afferents.reset(envs, times, angles, lengths, rngs)
-        self._sample = self.afferents.chain.last
-        self.episode_steps[envs] = 0
-
-    def _observations(self) -> np.ndarray:
-        s = self._sample = self.afferents.chain.last
-        obs = observations(s.ia_pps, s.ii_pps, s.gamma_static_pps, s.gamma_dynamic_pps,
-                           np.radians(self.target_deg), self.env.include_fusimotor)
-        check_observations(obs, s.t_s)
-        return obs
-
-    def _info(self, pushed: np.ndarray, distance: np.ndarray, control: np.ndarray
-              ) -> dict[str, Any]:
-        state, physics = self.physics.state, self.physics
-        angle = np.degrees(state[:, physics.qpos_index])
-        info = step_info(self._sample, state[:, 0].copy(), angle,
-                         np.degrees(state[:, physics.qvel_index]), self.target_deg.copy(),
-                         pushed, distance, control)
-        return info
+        # safe on an object whose constructor refused its arguments: nothing was built
+        core = self.__dict__.get("core")
+        if core is not None:
+            core.close()
 
 
 class ElbowReachVectorEnv(ElbowProprioVectorEnv):
     """Vector env of :class:`~proprio_env.envs.ElbowReachEnv` (``ElbowReach-v0``)."""
 
-    single_env_class = ElbowReachEnv
+    drive = MuscleDrive
 
 
 class ProsthesisElbowVectorEnv(ElbowProprioVectorEnv):
     """Vector env of :class:`~proprio_env.envs.ProsthesisElbowEnv` (``ProsthesisElbow-v0``);
     ``info["command_deg"]`` is each servo's command (deg)."""
 
-    single_env_class = ProsthesisElbowEnv
-
-    def _info(self, pushed, distance, control):
-        info = super()._info(pushed, distance, control)
-        info["command_deg"] = np.degrees(self.physics.ctrl[:, self.env._servo_id])
-        return info
+    drive = ServoDrive

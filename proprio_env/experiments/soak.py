@@ -119,7 +119,7 @@ def soak_vector(env_id: str, env_steps: int, num_envs: int = 64, seed: int = 0,
     space = env.single_action_space
     rng = np.random.default_rng(seed)
     obs, _ = env.reset(seed=seed)
-    joint_range = base.env.joint_range_deg
+    joint_range = base.joint_range_deg
     extremes = {"angle_deg": [math.inf, -math.inf], "ia_pps": [math.inf, -math.inf],
                 "ii_pps": [math.inf, -math.inf]}
     episodes, done, vstep = num_envs, 0, 0
