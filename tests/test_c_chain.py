@@ -1,7 +1,7 @@
 """The C chain (spindle/native/c/chain.c, backend="c") against the numpy chain, sample by sample.
 
 The numpy chain is the reference: it is tested against scipy references in test_chain.py.
-Every ArmSample field of the double build must agree within 1e-6 (rates in pps), and the
+Every ArmSample field of the double build must agree to round-off (TOL), and the
 counters exactly, on realistic traces full of the bad samples each handling rule is for.
 """
 
@@ -35,7 +35,10 @@ except build.CBackendError:  # pragma: no cover - CI has a compiler
 
 from spindle.native import chain as native_chain
 
-TOL = 1e-6
+TOL = 5e-12
+"""Double C chain vs numpy chain, any ArmSample field. Measured (2026-12-02) at most 1.7e-12
+(TRImed acceleration, L0/s^2), 1.05e-12 pps (Ia), 2.4e-13 pps (II), 6.7e-15 L0/s (velocity);
+angles, lengths, templates, counts and drives bit for bit or within 1.1e-16."""
 C = ChainConfig(backend="c")
 
 
