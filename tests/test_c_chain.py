@@ -383,6 +383,20 @@ def test_float_build_stays_within_its_documented_tolerance():
         assert dev[name] <= tol, (name, dev[name])
 
 
+def test_float_build_counts_an_interval_below_flt_min_as_a_repeated_time():
+    """docs/faults.md: in the float build a time less than FLT_MIN after the last accepted one
+    is a repeated time (its interval would be a zero or denormal float step); the double
+    build accepts it."""
+    flt_min = float(np.finfo(np.float32).tiny)
+    for variant, accepted in (("float", False), ("double", True)):
+        chain = native_chain.CArmChain(ChainConfig(), variant=variant)
+        chain.reset(40.0, 0.0)
+        out = chain.push_angle(flt_min / 2, 40.5)
+        assert out.accepted is accepted, variant
+        assert chain.counters["repeated_time"] == (0 if accepted else 1), variant
+        assert chain.push_angle(2e-3, 41.0).accepted, variant  # and the chain goes on
+
+
 # -- the C-only path a microcontroller build takes -----------------------------------------------
 DEVICE_MAIN = r"""
 #include <stdio.h>

@@ -421,3 +421,48 @@ def test_run_chain_refuses_intended_angles_that_are_not_real(backend, bad):
     with pytest.raises(ValueError, match="intended_angle_deg must hold real angles"):
         run_chain(t, angle_deg=np.full(3, 60.0), intended_angle_deg=bad,
                   config=ChainConfig(backend=backend))
+
+
+# -- docs/faults.md rows without a test of their own ----------------------------------------
+@pytest.mark.parametrize("backend", BACKEND_PARAMS)
+def test_a_length_jump_is_slew_limited_to_max_speed_L0_s(backend):
+    """"A faster change than max_speed_L0_s (8 L0/s): limited to that speed", counted: a jump
+    of +0.3 / -0.2 L0 held from one sample on moves 8 L0/s x 2 ms = 0.016 L0 per sample until
+    it gets there (unfiltered, so the output is the limited length itself)."""
+    chain = chain_for(backend, lowpass_hz=None)
+    chain.reset(40.0, 0.0, length_L0=[1.0, 1.0])
+    limit_L0 = chain.config.max_speed_L0_s * DT
+    lengths = [chain.push_lengths(k * DT, [1.3, 0.8]).length_L0.copy() for k in range(1, 30)]
+    steps = np.diff(np.vstack([[1.0, 1.0], lengths]), axis=0)
+    assert np.abs(steps).max() <= limit_L0 + 1e-12
+    # BRA: 18 full steps and a last 0.012 L0; TRImed 12 full steps and a last 0.008 L0
+    np.testing.assert_allclose(steps[:18, 0], limit_L0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(steps[:12, 1], -limit_L0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lengths[-1], [1.3, 0.8], rtol=0, atol=1e-12)
+    assert chain.counters["slew_limited"] == 18  # the samples where a muscle was limited
+    assert chain.counters["accepted"] == 29
+
+
+@pytest.mark.parametrize("backend", BACKEND_PARAMS)
+def test_reset_refuses_bad_angles_times_and_lengths_and_changes_nothing(backend):
+    """"reset with a non-finite or non-real angle, time or length, or lengths outside the
+    range: ValueError"; the chain then goes on as if the call had never come."""
+    chain, reference = chain_for(backend), chain_for(backend)
+    for c in (chain, reference):
+        c.reset(40.0, 0.0)
+        moving(c, 0.0, 0.1, lambda t: 40.0 + 50.0 * t)
+    bad_calls = [((math.nan, 1.0), {}), ((math.inf, 1.0), {}), ((40.0 + 1j, 1.0), {}),
+                 ((10**400, 1.0), {}), ((40.0, math.nan), {}), ((40.0, -math.inf), {}),
+                 ((40.0, 1.0), {"length_L0": [math.nan, 1.0]}),
+                 ((40.0, 1.0), {"length_L0": [1.0, math.inf]}),
+                 ((40.0, 1.0), {"length_L0": [1.0 + 0.5j, 1.0]}),
+                 ((40.0, 1.0), {"length_L0": [0.49, 1.0]}),
+                 ((40.0, 1.0), {"length_L0": [1.0, 1.51]})]
+    for args, kwargs in bad_calls:
+        with pytest.raises(ValueError):
+            chain.reset(*args, **kwargs)
+    assert chain.counters == reference.counters
+    assert_same_outputs(chain.last, reference.last, 0.0, "after the refused resets")
+    moving(chain, 0.1, 0.1, lambda t: 45.0 + 50.0 * (t - 0.1))
+    moving(reference, 0.1, 0.1, lambda t: 45.0 + 50.0 * (t - 0.1))
+    assert_same_outputs(chain.last, reference.last, 0.0, "0.1 s later")
