@@ -14,9 +14,12 @@ pytest.importorskip("imageio", reason="gymnasium.envs.mujoco needs imageio")
 from proprio_env.wrappers import SpindleAfferents, SpindleAfferentsVector
 from proprio_env.wrappers.mjcf_env import MuscleModelEnv, myo_sim_model_path
 
-MAX_RATE_PPS = 1000.0
-"""Physiological bound of the soak (as the fault soak's): human afferents fire below
-~300 pps."""
+MAX_RATE_PPS = {"elbow": 120.0, "legs_osl": 520.0}
+"""Bound of the soak's rates, per model, just above the highest measured (2026-12-02, seeded
+controls, 10^5 env steps): elbow 109.5 pps (numpy) / 109.7 (C lagged), legs 478.2 / 499.8
+(unseeded runs reached 640). Human afferents fire below ~300 pps in recordings; the legs'
+random maximal controls lengthen fibres at up to the 8 L0/s limit and drive the model above
+that, so the legs' bound is the model's, not physiology's."""
 
 MODELS = {"elbow": 6, "legs_osl": 54}
 
@@ -34,6 +37,7 @@ def soak(name: str, steps: int, n_envs: int, **wrapper_args) -> dict[str, float]
                                  **wrapper_args)
     assert vec.muscles.n == MODELS[name]
     obs, _ = vec.reset(seed=0)
+    vec.action_space.seed(0)  # the same controls every run: the highest rate is reproducible
     space = vec.single_observation_space
     highest = 0.0
     for _ in range(steps // n_envs):
@@ -42,7 +46,7 @@ def soak(name: str, steps: int, n_envs: int, **wrapper_args) -> dict[str, float]
         assert np.all(np.isfinite(obs))
         assert ia.min() >= 0 and ii.min() >= 0
         highest = max(highest, ia.max(), ii.max())
-        assert highest <= MAX_RATE_PPS
+        assert highest <= MAX_RATE_PPS[name]
         lengths = info["spindle_length_L0"]
         assert lengths.min() >= 0.5 and lengths.max() <= 1.5
     assert all(space.contains(o) for o in obs)
