@@ -1,8 +1,14 @@
 """A tight-tolerance stiff reference solution of the spindle model (needs scipy).
 
-It integrates the model in its published second-order form -- state (T, dT/dt) per fibre plus
-the bag1 and bag2 activations, with the M * d2L/dt2 input term -- with scipy's Radau method at
-rtol = 1e-10, independently of the (T, v) form and theta-method of :mod:`spindle.core`.
+Independent of the code it checks: it imports nothing from :mod:`spindle`. It restates the
+model from the published equations (``../shared/spec/mileusnic2006.md``, Mileusnic et al. 2006)
+with its own copy of Table 1 (:data:`TABLE_1`, transcribed from the paper's table, the human
+preset its gains x 1/5 as in the seed paper), its own right-hand side and its own afferent-rate
+function. It integrates the published second-order form -- state (T, dT/dt) per fibre plus the
+bag1 and bag2 activations, with the M * d2L/dt2 input term -- with scipy's Radau method at
+rtol = 1e-10, where :mod:`spindle.core` uses the (T, v) form and a theta-method. The modelling
+choices the spec leaves open are taken as the code documents them: the polar-region velocity v
+picks CL or CS, and each fibre's potential is clipped at 0 before the endings combine.
 
 The one change to the equations: sgn(v)|v|^a, whose slope is infinite at v = 0, is replaced by
 v * (v^2 + eps^2)^((a-1)/2) with eps = 1e-7 L0/s by default. Its effect on the rates falls as
@@ -25,15 +31,163 @@ scipy is imported only when a reference solution is asked for (extra ``reference
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from spindle.core import afferents_from_tension, columns
-from spindle.params import CAT, SpindleParams
+# -- the published constants ------------------------------------------------------------------
 
+TABLE_1: dict[str, tuple[float | None, float | None, float | None]] = {
+    # Mileusnic et al. (2006) Table 1, cat, as (bag1, bag2, chain); None where the table has
+    # "-" (the fibre has no such term). Units: FU, L0, s, pps as in the spec's table.
+    "KSR": (10.4649, 10.4649, 10.4649),
+    "KPR": (0.15, 0.15, 0.15),
+    "M": (0.0002, 0.0002, 0.0002),
+    "beta0": (0.0605, 0.0822, 0.0822),
+    "beta1": (0.2592, None, None),
+    "beta2": (None, -0.046, -0.069),
+    "Gamma1": (0.0289, None, None),
+    "Gamma2": (None, 0.0636, 0.0954),
+    "CL": (1.0, 1.0, 1.0),
+    "CS": (0.42, 0.42, 0.42),
+    "R": (0.46, 0.46, 0.46),
+    "a": (0.3, 0.3, 0.3),
+    "LSR0": (0.04, 0.04, 0.04),
+    "LPR0": (0.76, 0.76, 0.76),
+    "LNSR": (0.0423, 0.0423, 0.0423),
+    "LNPR": (None, 0.89, 0.89),
+    "X": (None, 0.7, 0.7),
+    "Lsec": (None, 0.04, 0.04),
+    "G_primary": (20000.0, 10000.0, 10000.0),
+    "G_secondary": (None, 7250.0, 7250.0),
+    "freq": (60.0, 60.0, 90.0),
+    "p": (2.0, 2.0, 2.0),
+    "tau": (0.149, 0.205, None),  # chain: no lag (its activation is its target)
+}
+S_OCCLUSION = 0.156
+"""Partial occlusion factor S of the primary ending (Table 1)."""
+HUMAN_GAIN_SCALE = 1 / 5
+"""The seed paper's human spindle: every afferent gain G of Table 1 x 1/5, all else as cat."""
+
+
+@dataclass(frozen=True)
+class Fibre:
+    """One fibre's constants, named as in the paper. ``beta_drive`` and ``Gamma_drive`` are
+    beta1 / Gamma1 (bag1, driven by gamma_dyn) or beta2 / Gamma2 (bag2, chain: gamma_stat);
+    ``tau = 0`` means no activation lag; a fibre without a secondary ending has
+    ``G_secondary = 0`` (its LNPR, X, Lsec are then unused)."""
+
+    KSR: float
+    KPR: float
+    M: float
+    beta0: float
+    beta_drive: float
+    Gamma_drive: float
+    CL: float
+    CS: float
+    R: float
+    a: float
+    LSR0: float
+    LPR0: float
+    LNSR: float
+    LNPR: float
+    X: float
+    Lsec: float
+    G_primary: float
+    G_secondary: float
+    freq: float
+    p: float
+    tau: float
+
+
+@dataclass(frozen=True)
+class ReferenceParams:
+    """The three fibres (bag1, bag2, chain) and the occlusion factor S."""
+
+    fibres: tuple[Fibre, Fibre, Fibre]
+    S: float
+
+    def scale_gains(self, factor: float) -> ReferenceParams:
+        return ReferenceParams(tuple(dataclasses.replace(
+            f, G_primary=f.G_primary * factor, G_secondary=f.G_secondary * factor)
+            for f in self.fibres), self.S)
+
+
+def _fibre_from_table(i: int) -> Fibre:
+    row = {name: values[i] for name, values in TABLE_1.items()}
+    drive = "1" if i == 0 else "2"
+
+    def value(name: str) -> float:
+        return 0.0 if row[name] is None else row[name]
+
+    return Fibre(
+        KSR=row["KSR"], KPR=row["KPR"], M=row["M"], beta0=row["beta0"],
+        beta_drive=row["beta" + drive], Gamma_drive=row["Gamma" + drive],
+        CL=row["CL"], CS=row["CS"], R=row["R"], a=row["a"], LSR0=row["LSR0"],
+        LPR0=row["LPR0"], LNSR=row["LNSR"], LNPR=value("LNPR"), X=value("X"),
+        Lsec=value("Lsec"), G_primary=row["G_primary"], G_secondary=value("G_secondary"),
+        freq=row["freq"], p=row["p"], tau=value("tau"),
+    )
+
+
+PUBLISHED_CAT = ReferenceParams(tuple(_fibre_from_table(i) for i in range(3)), S_OCCLUSION)
+"""Cat spindle, Table 1 as published."""
+PUBLISHED_HUMAN = PUBLISHED_CAT.scale_gains(HUMAN_GAIN_SCALE)
+"""Human spindle of the seed paper."""
+
+_CODE_NAMES = {  # the code's parameter names (spindle.params.FibreParams), for conversion
+    "KSR": "KSR_FU_L0", "KPR": "KPR_FU_L0", "M": "M_FU_s2_L0", "beta0": "beta0_FU_s_L0",
+    "beta_drive": "beta_drive_FU_s_L0", "Gamma_drive": "Gamma_drive_FU", "CL": "CL",
+    "CS": "CS", "R": "R_L0", "a": "a", "LSR0": "LSR0_L0", "LPR0": "LPR0_L0", "LNSR": "LNSR_L0",
+    "LNPR": "LNPR_L0", "X": "X", "Lsec": "Lsec_L0", "G_primary": "G_primary_pps_L0",
+    "G_secondary": "G_secondary_pps_L0", "freq": "freq_pps", "p": "p", "tau": "tau_s",
+}
+
+
+def as_reference_params(params) -> ReferenceParams:
+    """``params`` as :class:`ReferenceParams`. A :class:`spindle.SpindleParams` (a custom model
+    of the code's) is read attribute by attribute; checks that use the published values pass
+    :data:`PUBLISHED_CAT` / :data:`PUBLISHED_HUMAN`, which do not come from the code."""
+    if isinstance(params, ReferenceParams):
+        return params
+    try:
+        fibres = tuple(Fibre(**{ours: float(getattr(f, theirs))
+                                for ours, theirs in _CODE_NAMES.items()})
+                       for f in params.fibres)
+        return ReferenceParams(fibres, float(params.S))
+    except AttributeError as exc:
+        raise TypeError(f"params={params!r} is neither ReferenceParams nor SpindleParams") \
+            from exc
+
+
+def afferent_rates(tension_FU: np.ndarray, length_L0, params: ReferenceParams = PUBLISHED_CAT
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Ia and II (pps), each (n,), of fibre tensions (n, 3) at fascicle lengths (n,).
+
+    The spec's section 4-5: stretch of the sensory region beyond threshold s = T/KSR - (LNSR -
+    LSR0); primary G_pri s; secondary G_sec [X (Lsec/LSR0) s + (1 - X)(Lsec/LPR0)(L - T/KSR -
+    LSR0 - LNPR)]; each fibre's potential clipped at 0; Ia = max(A, B) + S min(A, B) with A the
+    bag1 primary and B the bag2 + chain primaries; II the sum of the secondaries."""
+    T = np.atleast_2d(np.asarray(tension_FU, dtype=float))
+    L = np.broadcast_to(np.asarray(length_L0, dtype=float), T.shape[:1])
+    primary, secondary = [], []
+    for i, f in enumerate(params.fibres):
+        sensory_L0 = T[:, i] / f.KSR
+        s = sensory_L0 - (f.LNSR - f.LSR0)
+        primary.append(np.maximum(f.G_primary * s, 0.0))
+        polar_beyond_L0 = L - sensory_L0 - f.LSR0 - f.LNPR
+        secondary.append(np.maximum(f.G_secondary * (
+            f.X * (f.Lsec / f.LSR0) * s + (1 - f.X) * (f.Lsec / f.LPR0) * polar_beyond_L0), 0.0))
+    A, B = primary[0], primary[1] + primary[2]
+    ia = np.maximum(np.maximum(A, B) + params.S * np.minimum(A, B), 0.0)
+    ii = np.maximum(secondary[1] + secondary[2], 0.0)
+    return ia, ii
+
+
+# -- the stimulus and the solver --------------------------------------------------------------
 
 @dataclass(frozen=True)
 class Stimulus:
@@ -79,18 +233,20 @@ class ReferenceSolution:
 def solve_reference(
     stimulus: Stimulus,
     t_eval_s: np.ndarray,
-    params: SpindleParams = CAT,
+    params=PUBLISHED_CAT,
     rtol: float = 1e-10,
     atol: float = 1e-12,
     eps_L0_s: float = 1e-7,
 ) -> ReferenceSolution:
     """Ia and II (pps) of one spindle at ``t_eval_s``, from a stiff solver at tight tolerance.
 
-    The spindle starts at rest at the stimulus' initial length and drive (as
-    :func:`spindle.core.equilibrium_state` does).
+    The spindle starts at rest at the stimulus' initial length and drive (polar velocity 0,
+    tension in closed form). ``params``: :class:`ReferenceParams` (default: Table 1, cat) or a
+    :class:`spindle.SpindleParams`, converted by :func:`as_reference_params`.
     """
     solve_ivp = _require_scipy()
     t_eval_s = _checked_eval_times(t_eval_s, stimulus.duration_s)
+    params = as_reference_params(params)
     model = _SecondOrderModel(stimulus, params, eps_L0_s)
     y = model.rest_state()
     edges = sorted({0.0, stimulus.duration_s, *(b for b in stimulus.breakpoints_s
@@ -118,7 +274,7 @@ def solve_reference(
     t = np.concatenate(ts)
     T = np.concatenate(Ts)
     L = np.array([stimulus.length_L0(ti) for ti in t])
-    ia, ii = afferents_from_tension(np.ascontiguousarray(T.T), L, columns(params))
+    ia, ii = afferent_rates(T, L, params)
     return ReferenceSolution(t, ia, ii, T, nfev)
 
 
@@ -138,20 +294,20 @@ class _SecondOrderModel:
     """The published second-order form: y = (T of each fibre, dT/dt of each fibre, bag1 and
     bag2 activation); the chain fibre's activation sits at its target."""
 
-    def __init__(self, stimulus: Stimulus, params: SpindleParams, eps_L0_s: float):
+    def __init__(self, stimulus: Stimulus, params: ReferenceParams, eps_L0_s: float):
         fib = params.fibres
         drive = (stimulus.gamma_dyn_pps, stimulus.gamma_stat_pps, stimulus.gamma_stat_pps)
         self.stimulus = stimulus
-        self.target = [g**f.p / (g**f.p + f.freq_pps**f.p)
+        self.target = [g**f.p / (g**f.p + f.freq**f.p)
                        for g, f in zip(drive, fib, strict=True)]
         # Plain floats: the solver calls rhs ~1e5 times with 8 states, where numpy's
         # per-call overhead would dominate.
         self.consts = [
-            (f.KSR_FU_L0, f.KPR_FU_L0, f.M_FU_s2_L0, f.beta0_FU_s_L0, f.beta_drive_FU_s_L0,
-             f.Gamma_drive_FU, f.CL, f.CS, f.R_L0, f.a, f.LSR0_L0, f.LPR0_L0)
+            (f.KSR, f.KPR, f.M, f.beta0, f.beta_drive, f.Gamma_drive, f.CL, f.CS, f.R, f.a,
+             f.LSR0, f.LPR0)
             for f in fib
         ]
-        self.tau = (fib[0].tau_s, fib[1].tau_s)
+        self.tau = (fib[0].tau, fib[1].tau)
         self.eps2 = eps_L0_s * eps_L0_s
 
     def rest_state(self) -> np.ndarray:

@@ -365,7 +365,8 @@ def test_auto_backend_uses_c_when_it_can_and_falls_back_to_numpy(tmp_path):
     assert ChainConfig(backend="auto").backend == "auto"  # resolved when a chain is built
     with pytest.raises(ValueError, match="fortran"):
         resolve_backend("fortran")
-    assert make_batched_chain(2, ChainConfig(backend="auto")).config.backend in ("c", "numpy")
+    # this module runs only where a compiler is (see its top), so "auto" must mean C here
+    assert make_batched_chain(2, ChainConfig(backend="auto")).config.backend == "c"
     # a valid cached library, copied from this run's cache (made by the tests above)
     library = build.library_path("double")
     valid = tmp_path / "valid"

@@ -379,3 +379,46 @@ def test_fits_path_is_checked_against_the_env_model(tmp_path):
                              afferent_source="reduced", chain_config=ChainConfig(fits_path=js))
     np.testing.assert_array_equal(lengths, load_length_fits(js, model_xml=xml).length_L0(
         np.radians(ANGLES_DEG)))
+
+
+def test_fits_of_an_edited_model_are_made_once_per_process_by_its_sha256(tmp_path, monkeypatch):
+    """docs/envs.md: a fit made on load, cached per process by the file's sha256. Counted:
+    one fit per distinct file content, whatever the path, env id or number of envs; none for
+    the bundled model or its byte-identical copy (the committed fits)."""
+    import gymnasium as gym
+
+    import proprio_env  # noqa: F401
+    from proprio_env import length_fitting
+
+    monkeypatch.setattr(length_fitting, "_FITTED", {})  # this test's own process cache
+    fitted = []
+    fit_document = length_fitting.fit_document
+
+    def counting(model, path, *args, **kwargs):
+        fitted.append(Path(path).name)
+        return fit_document(model, path, *args, **kwargs)
+
+    monkeypatch.setattr(length_fitting, "fit_document", counting)
+    a = _edited_model(tmp_path, 0.025)
+    (tmp_path / "elsewhere").mkdir()
+    a_copy = tmp_path / "elsewhere" / "renamed.xml"
+    shutil.copy(a, a_copy)
+    b = _edited_model(tmp_path, 0.02)
+    bundled_copy = tmp_path / "my_elbow.xml"
+    shutil.copy(model_path(), bundled_copy)
+
+    def make(env_id, xml):
+        gym.make(env_id, xml_file=str(xml), afferent_source="reduced", backend="numpy").close()
+
+    make(ENV_IDS[0], a)
+    assert fitted == [a.name]
+    for env_id in ENV_IDS:
+        make(env_id, a)
+        make(env_id, a_copy)  # the same bytes: the same fits, not fitted again
+    assert fitted == [a.name]
+    make(ENV_IDS[1], b)
+    make(ENV_IDS[0], b)
+    assert fitted == [a.name, b.name]
+    make(ENV_IDS[0], bundled_copy)
+    assert fitted == [a.name, b.name]  # the committed fits: loaded, not fitted
+    assert len(length_fitting._FITTED) == 3

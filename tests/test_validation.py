@@ -32,7 +32,7 @@ def _shared_ecrb() -> dict[str, np.ndarray]:
 
 def test_static_rates_match_the_stiff_reference_solver():
     pytest.importorskip("scipy")
-    from spindle.reference import Stimulus, solve_reference
+    from spindle.reference import PUBLISHED_HUMAN, Stimulus, solve_reference
 
     for L in (0.9, 1.05, 1.2):
         for gs, gd in ((0.0, 0.0), (20.0, 0.0), (150.0, 100.0)):
@@ -40,7 +40,7 @@ def test_static_rates_match_the_stiff_reference_solver():
                                               spindle.HUMAN)
             stim = Stimulus(lambda t, L=L: L, lambda t: 0.0, lambda t: 0.0, 0.5,
                             gamma_dyn_pps=gd, gamma_stat_pps=gs)
-            ref = solve_reference(stim, np.array([0.0, 0.5]), params=spindle.HUMAN)
+            ref = solve_reference(stim, np.array([0.0, 0.5]), params=PUBLISHED_HUMAN)
             assert ia[0, 0] == pytest.approx(ref.ia[-1], abs=1e-6)
             assert ii[0, 0] == pytest.approx(ref.ii[-1], abs=1e-6)
 

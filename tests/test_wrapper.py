@@ -135,7 +135,7 @@ def test_wrapper_equals_the_chain_fed_the_same_lengths():
     _, info = env.reset(seed=1)
     data = env.unwrapped.data
     chain.reset(0.0, data.time, length_L0=info["spindle_length_L0"])
-    worst = np.zeros(2)
+    worst_ia, worst_ii = np.zeros(2), np.zeros(2)
     for i in range(60):
         ctrl = bang_bang(i, period=7)
         # the same physics on a copy, to read every physics step's lengths
@@ -151,11 +151,14 @@ def test_wrapper_equals_the_chain_fed_the_same_lengths():
         sample = chain.push_lengths_block(np.array(t), np.array(L))
         _, _, _, _, info = env.step(ctrl)
         np.testing.assert_array_equal(info["spindle_measured_length_L0"], L[-1])
-        worst = np.maximum(worst, np.abs(info["spindle_ia_pps"] - sample.ia_pps))
-        np.testing.assert_allclose(info["spindle_ii_pps"], sample.ii_pps, atol=0.2)
+        worst_ia = np.maximum(worst_ia, np.abs(info["spindle_ia_pps"] - sample.ia_pps))
+        worst_ii = np.maximum(worst_ii, np.abs(info["spindle_ii_pps"] - sample.ii_pps))
         np.testing.assert_array_equal(info["spindle_gamma_dynamic_pps"],
                                       sample.gamma_dynamic_pps)
-    assert worst.max() < 0.02, worst  # measured 0.0037 pps
+    # measured (2026-12-02) Ia 0.0037 / 0.0033 pps, II 0.0012 / 0.0023 pps (BRA / TRImed):
+    # the Hermite slopes' difference only
+    assert worst_ia.max() < 0.005, worst_ia
+    assert worst_ii.max() < 0.003, worst_ii
 
 
 def test_wrapper_on_elbow_reach_agrees_with_the_exact_length_chain():
