@@ -9,6 +9,8 @@ import pytest
 from proprio_env.wrappers import SpindleAfferents
 from proprio_env.wrappers.muscles import find_muscles
 
+pytest.importorskip("imageio", reason="gymnasium.envs.mujoco needs imageio")
+
 # one tendon from a world site to a swinging body, driven by a <general> actuator with
 # MuJoCo's muscle gain, beside a plain motor on the joint
 _GENERAL_MUSCLE_XML = """
