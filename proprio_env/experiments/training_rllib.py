@@ -335,7 +335,6 @@ def run(out_dir: Path, quick: bool = False, config: TrainConfig | None = None,
           f"envs, {where}) on {config.env_id} for up to {config.timesteps} steps or "
           f"{config.max_minutes:g} min (held-out bands {HELD_OUT_BANDS} deg)"
           + (f", resumed at {rows[-1][0]} steps" if rows else ""), flush=True)
-    # the loop stops after the train batch that reaches config.timesteps
     total = whole_rollouts(config.timesteps, SMOKE_ROLLOUT_STEPS if quick else ROLLOUT_STEPS)
     start = time.perf_counter()
     steps = rows[-1][0] if rows else 0
