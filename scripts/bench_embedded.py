@@ -42,7 +42,7 @@ line `demo_mips_per_muscle=... demo_peak_mips=... demo_rms_vs_double_pps=...` pr
 last line, which stays the Fig. 3 figure.
 
 Usage:
-    PYTHONPATH=. python scripts/bench_embedded.py            # all levers, all 9 runs (~10 min)
+    PYTHONPATH=. python scripts/bench_embedded.py            # all levers, 9 runs (10-16 min)
     PYTHONPATH=. python scripts/bench_embedded.py --quick    # final configuration, 2 runs
 Needs: gcc-arm-none-eabi, libnewlib-arm-none-eabi, a host C compiler, unicorn, scipy.
 The last line reads

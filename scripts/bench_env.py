@@ -26,9 +26,10 @@ from CPU time of this process. What each line measures:
 Absolute figures move 2-5x between machines and with load: compare the ratios, which are
 measured side by side. The last line is
 
-    vector_env_steps_per_s=<ElbowReach-v0, 64 envs, numpy, 1 thread>
+    vector_env_steps_per_s=<ElbowReach-v0, 64 envs, the default backend, first --threads>
     vs_physics_limit=<that / its physics-only limit> single_env_vs_myosuite=<default
     ElbowReach-v0 / MyoSuite, steps per CPU-second, or nan when not measured>
+    backend=<the default backend here: c, or numpy without a C compiler> threads=<n>
 """
 
 from __future__ import annotations
@@ -367,11 +368,20 @@ def report(results: Results, args: argparse.Namespace) -> None:
                     print(f"{label} / single-thread physics limit: "
                           f"{results.wall(label) / limit:.3f}")
     report_breakdowns(results)
-    target = f"{REACH} vector numpy n={TARGET_SIZE} threads=1"
+    # what a user gets without choosing: the default backend ("auto"), as the single env
+    # picked it on this machine, in the vector env of TARGET_SIZE on the first thread count
+    default = results.notes[f"{REACH} single default"]
+    threads = args.threads[0]
+    target = f"{REACH} vector {default} n={TARGET_SIZE} threads={threads}"
     rate = results.wall(target) if target in results.rates else math.nan
-    print(f"vector_env_steps_per_s={rate:.1f} "
-          f"vs_physics_limit={rate / results.wall(f'{REACH} physics'):.3f} "
-          f"single_env_vs_myosuite={vs_myo:.3f}")
+    vs_limit = rate / results.wall(f"{REACH} physics")
+    myo_text = (f"{vs_myo:.2f}x MyoSuite's {MYOSUITE_ENV_ID} steps per CPU-second"
+                if math.isfinite(vs_myo) else "MyoSuite not measured")
+    print(f"default backend here: {default}. Single {REACH}: {myo_text}. Vector env of "
+          f"{TARGET_SIZE} on {threads} thread(s): {rate:.0f} env steps/s, {vs_limit:.2f}x the "
+          "single-thread physics-only limit measured beside it")
+    print(f"vector_env_steps_per_s={rate:.1f} vs_physics_limit={vs_limit:.3f} "
+          f"single_env_vs_myosuite={vs_myo:.3f} backend={default} threads={threads}")
 
 
 TARGET_RATIO = {REACH: 0.6, PROSTHESIS: 0.4}
@@ -406,7 +416,7 @@ def report_breakdowns(results: Results) -> None:
 def main(argv: list[str] | None = None) -> None:
     import proprio_env  # noqa: F401  (registers the envs)
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=2000, help="env steps per measurement")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sizes", default="1,8,64,256,1024",

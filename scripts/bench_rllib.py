@@ -54,7 +54,7 @@ def measure(num_runners: int, num_envs: int, iterations: int, backend: str) -> d
 
 
 def main(argv: list[str] | None = None) -> dict[int, list[dict[str, float]]]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--num-envs-per-runner", type=int, default=8)

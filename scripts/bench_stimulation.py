@@ -69,7 +69,7 @@ def spindle_cost(n: int, samples: int, backend: str, repeats: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per run")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--m0plus", action="store_true", help="also the Cortex-M0+ firmware")

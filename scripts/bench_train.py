@@ -52,7 +52,7 @@ def train_steps_per_s(num_envs: int | None, timesteps: int, backend: str) -> flo
 
 
 def main(argv: list[str] | None = None) -> dict[str, list[float]]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--timesteps", type=int, default=20 * ROLLOUT_STEPS)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 8])

@@ -17,7 +17,7 @@ from proprio_env.experiments import chain_figures
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/chain"))
     parser.add_argument("--duration", type=float, default=3.0)
     args = parser.parse_args(argv)

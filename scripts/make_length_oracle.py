@@ -3,8 +3,13 @@
 Needs the optional ``opensim`` package (``pip install -e .[opensim]``); nothing else in the
 project does. Run from anywhere::
 
-    python scripts/make_length_oracle.py                 # default --osim ../shared/...
+    git clone --depth 1 https://github.com/opensim-org/opensim-models
+    python scripts/make_length_oracle.py --osim opensim-models/Models/Arm26/arm26.osim
     python scripts/make_length_oracle.py --osim path/to/arm26.osim --out other.csv
+
+The model is OpenSim's ``Models/Arm26/arm26.osim`` of
+https://github.com/opensim-org/opensim-models;
+without ``--osim`` the maintainers' copy in ../shared/reference/opensim/ is used.
 
 For every elbow angle 0..130 deg (1 deg steps, shoulder elevation 0) it writes, per muscle:
 
@@ -29,10 +34,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from oracle_csv import write_table
+from oracle_csv import missing_osim, osim_help, write_table
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OSIM = REPO_ROOT / ".." / "shared" / "reference" / "opensim" / "arm26.osim"
+OSIM_REPO_PATH = "Models/Arm26/arm26.osim"  # of oracle_csv.OPENSIM_MODELS
 DEFAULT_OUT = REPO_ROOT / "tests" / "data" / "arm26_elbow_oracle.csv"
 
 MUSCLES = ("BRA", "TRImed")
@@ -93,17 +99,19 @@ def write_csv(path: Path, angles_deg: np.ndarray, data: dict[str, np.ndarray], h
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--osim", type=Path, default=DEFAULT_OSIM, help="path to arm26.osim")
+    p.add_argument("--osim", type=Path, default=DEFAULT_OSIM,
+                   help=osim_help(OSIM_REPO_PATH, DEFAULT_OSIM))
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="CSV to write")
     p.add_argument("--step-deg", type=float, default=1.0, help="angle step, deg")
     args = p.parse_args(argv)
+    missing = missing_osim(args.osim, OSIM_REPO_PATH)
+    if missing:
+        print(missing, file=sys.stderr)
+        return 2
     try:
         import opensim as osim
     except ImportError:
         print("needs the optional opensim package: pip install -e '.[opensim]'", file=sys.stderr)
-        return 2
-    if not args.osim.is_file():
-        print(f"no such .osim file: {args.osim}", file=sys.stderr)
         return 2
     angles_deg = np.arange(0.0, 130.0 + 1e-9, args.step_deg)
     data = sweep(args.osim, angles_deg)

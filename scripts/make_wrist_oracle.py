@@ -3,8 +3,13 @@
 Needs the optional ``opensim`` package (``pip install -e .[opensim]``); nothing at run time
 does: the table is committed and :mod:`proprio_env.experiments.ecrb` reads it. Run::
 
-    python scripts/make_wrist_oracle.py                  # default --osim ../shared/...
+    git clone --depth 1 https://github.com/opensim-org/opensim-models
+    python scripts/make_wrist_oracle.py --osim opensim-models/Models/WristModel/wrist.osim
     python scripts/make_wrist_oracle.py --osim path/to/wrist.osim --out other.csv
+
+The model is OpenSim's ``Models/WristModel/wrist.osim`` of
+https://github.com/opensim-org/opensim-models;
+without ``--osim`` the maintainers' copy in ../shared/reference/opensim/ is used.
 
 Model: OpenSim's wrist model (Gonzalez, Buchanan & Delp 1997). For every wrist flexion
 angle -70..70 deg (1 deg steps; positive = flexion, deviation 0, elbow and forearm at their
@@ -30,10 +35,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from oracle_csv import write_table
+from oracle_csv import missing_osim, osim_help, write_table
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OSIM = REPO_ROOT / ".." / "shared" / "reference" / "opensim" / "wrist.osim"
+OSIM_REPO_PATH = "Models/WristModel/wrist.osim"  # of oracle_csv.OPENSIM_MODELS
 DEFAULT_OUT = REPO_ROOT / "models" / "wrist_ecrb.csv"
 
 MUSCLE = "ECRB"
@@ -86,17 +92,19 @@ def write_csv(path: Path, angles_deg: np.ndarray, data: dict[str, np.ndarray], h
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--osim", type=Path, default=DEFAULT_OSIM, help="path to wrist.osim")
+    p.add_argument("--osim", type=Path, default=DEFAULT_OSIM,
+                   help=osim_help(OSIM_REPO_PATH, DEFAULT_OSIM))
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="CSV to write")
     p.add_argument("--step-deg", type=float, default=1.0, help="angle step, deg")
     args = p.parse_args(argv)
+    missing = missing_osim(args.osim, OSIM_REPO_PATH)
+    if missing:
+        print(missing, file=sys.stderr)
+        return 2
     try:
         import opensim as osim
     except ImportError:
         print("needs the optional opensim package: pip install -e '.[opensim]'", file=sys.stderr)
-        return 2
-    if not args.osim.is_file():
-        print(f"no such .osim file: {args.osim}", file=sys.stderr)
         return 2
     angles_deg = np.arange(-70.0, 70.0 + 1e-9, args.step_deg)
     data = sweep(args.osim, angles_deg)

@@ -11,6 +11,9 @@ import resource
 import sys
 import time
 
+if len(sys.argv) != 4 or sys.argv[1] in ("-h", "--help"):
+    print(__doc__)
+    sys.exit(0 if sys.argv[1:2] in (["-h"], ["--help"]) else 2)
 sys.path.insert(0, sys.argv[1])
 import numpy as np
 

@@ -68,7 +68,7 @@ def checked_run(args: argparse.Namespace) -> tuple[TrainConfig, RLlibOptions | N
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--engine", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--env", default="proprio_env/ElbowReach-v0")
     parser.add_argument("--backend", choices=BACKEND_CHOICES, default=DEFAULT_BACKEND,

@@ -58,8 +58,21 @@ def test_smoke_run_trains_evaluates_and_plots(tmp_path):
     with (tmp_path / "curve.csv").open(newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [int(r["timesteps"]) for r in rows] == [128, 256]  # one row per 128-step rollout
+    progress = [line.split()[1] for line in run.stdout.splitlines() if line.startswith("steps")]
+    assert progress == ["128/256", "256/256"]
     assert all(float(r["elapsed_s"]) > 0 and np.isfinite(float(r["train_abs_err_deg"]))
                for r in rows)
+
+
+def test_the_total_is_the_whole_rollouts_a_run_takes():
+    # SB3 and RLlib stop after the rollout that reaches the requested steps: 250,000 at
+    # 2048 per rollout runs 123 rollouts (122 make 249,856)
+    assert train.whole_rollouts(250_000, 2048) == 123 * 2048 == 251_904
+    assert train.whole_rollouts(2048, 2048) == 2048
+    assert train.whole_rollouts(1, 128) == 128
+    line = train.progress_line(251_904, train.whole_rollouts(250_000, 2048), 60.0, 3.0,
+                               float("nan"))
+    assert line.startswith("steps  251904/251904 |")
 
 
 def test_options_refuse_bad_values():

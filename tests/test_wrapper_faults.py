@@ -458,7 +458,8 @@ def test_myo_copy_of_stacked_wrappers_continues_bit_for_bit(name, backend):
     wrappers stacked (half the muscles inside, the rest outside), pickled mid-episode: the
     copy, the original and an uncopied pair of wrappers agree bit for bit, all on recorded
     frames."""
-    pytest.importorskip("myo_sim", reason="myo-sim is not installed (the 'myo' extra)")
+    pytest.importorskip("myo_sim", reason="myo-sim is not installed: "
+                        "pip install --no-deps myo-sim==0.2.4")
 
     def stacked():
         base = myo_env(name)

@@ -160,6 +160,13 @@ def random_policy(obs, env):
     return env.action_space.sample()
 
 
+def whole_rollouts(timesteps: int, rollout_steps: int) -> int:
+    """The env steps a run of ``timesteps`` really takes: both engines only stop after a
+    whole rollout (train batch), so ``timesteps`` rounded up to a multiple of
+    ``rollout_steps`` (250,000 at 2048 per rollout: 123 rollouts, 251,904 steps)."""
+    return -(-int(timesteps) // int(rollout_steps)) * int(rollout_steps)
+
+
 def progress_line(steps: int, total: int, elapsed_s: float, train_err: float,
                   held: float) -> str:
     """One progress line (both engines print the same)."""
@@ -171,8 +178,10 @@ def progress_line(steps: int, total: int, elapsed_s: float, train_err: float,
 
 
 def build_callback(config: TrainConfig, env_kwargs: dict[str, Any], curve_rows: list,
-                   start: float):
+                   start: float, rollout_steps: int):
     from stable_baselines3.common.callbacks import BaseCallback
+
+    total = whole_rollouts(config.timesteps, rollout_steps)
 
     class Progress(BaseCallback):
         """Progress lines, a wall-clock stop and the learning curve."""
@@ -200,7 +209,7 @@ def build_callback(config: TrainConfig, env_kwargs: dict[str, Any], curve_rows: 
                                 seed=CURVE_SEED)["mean_abs_err_deg"]
                 self._next_eval = steps + config.eval_every
             curve_rows.append((steps, elapsed, train_err, held))
-            print(progress_line(steps, config.timesteps, elapsed, train_err, held), flush=True)
+            print(progress_line(steps, total, elapsed, train_err, held), flush=True)
 
     return Progress()
 
@@ -361,10 +370,13 @@ def run(out_dir: Path, quick: bool = False, config: TrainConfig | None = None,
     model = PPO("MlpPolicy", env, seed=config.seed, verbose=0, device="cpu", **ppo_kwargs)
     rows: list[tuple[int, float, float, float]] = []
     start = time.perf_counter()
+    rollout_steps = ppo_kwargs["n_steps"] * config.num_envs
     print(f"training PPO (stable-baselines3, {config.num_envs} envs x {ppo_kwargs['n_steps']} "
-          f"steps per rollout) on {config.env_id} for up to {config.timesteps} steps or "
+          f"steps per rollout) on {config.env_id} for up to {config.timesteps} steps "
+          f"({whole_rollouts(config.timesteps, rollout_steps)}: whole rollouts) or "
           f"{config.max_minutes:g} min (held-out bands {HELD_OUT_BANDS} deg)", flush=True)
-    model.learn(config.timesteps, callback=build_callback(config, env_kwargs, rows, start))
+    model.learn(config.timesteps,
+                callback=build_callback(config, env_kwargs, rows, start, rollout_steps))
     train_s = time.perf_counter() - start
     model.save(out_dir / "policy.zip")
     env.close()

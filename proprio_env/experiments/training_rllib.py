@@ -50,6 +50,7 @@ from proprio_env.experiments.training import (
     quick_config,
     train_record,
     training_ranges,
+    whole_rollouts,
     write_results,
 )
 
@@ -334,6 +335,7 @@ def run(out_dir: Path, quick: bool = False, config: TrainConfig | None = None,
           f"envs, {where}) on {config.env_id} for up to {config.timesteps} steps or "
           f"{config.max_minutes:g} min (held-out bands {HELD_OUT_BANDS} deg)"
           + (f", resumed at {rows[-1][0]} steps" if rows else ""), flush=True)
+    total = whole_rollouts(config.timesteps, SMOKE_ROLLOUT_STEPS if quick else ROLLOUT_STEPS)
     start = time.perf_counter()
     steps = rows[-1][0] if rows else 0
     next_eval = (steps // config.eval_every + 1) * config.eval_every if rows else 0
@@ -357,8 +359,7 @@ def run(out_dir: Path, quick: bool = False, config: TrainConfig | None = None,
                                 seed=CURVE_SEED)["mean_abs_err_deg"]
                 next_eval = steps + config.eval_every
             rows.append((steps, elapsed, training_error(result), held))
-            print(progress_line(steps, config.timesteps, elapsed, rows[-1][2], held),
-                  flush=True)
+            print(progress_line(steps, total, elapsed, rows[-1][2], held), flush=True)
             if options.checkpoint_dir is not None and iteration % options.checkpoint_every == 0:
                 save_checkpoint(algo, options.checkpoint_dir, rows, elapsed, config.env_id)
         train_s = elapsed_before + time.perf_counter() - start

@@ -32,8 +32,9 @@ def myo_sim_model_path(name: str) -> Path:
     try:
         import myo_sim
     except ImportError as exc:
-        raise ImportError("myo-sim is not installed: pip install 'proprio-elbow[myo]' (or "
-                          "pip install --no-deps myo-sim==0.2.4 to keep MuJoCo 4)") from exc
+        raise ImportError("myo-sim is not installed: pip install --no-deps myo-sim==0.2.4 "
+                          "(--no-deps: it declares mujoco<4 but loads in MuJoCo 4, which "
+                          "it would otherwise replace), with the 'myo' extra") from exc
     return Path(myo_sim.MODELS_DIR) / MYO_SIM_MODELS[name]
 
 

@@ -80,8 +80,12 @@ def find_muscles(model: mujoco.MjModel, names: Sequence[str] | None = None) -> M
     if names is None:
         ids = np.flatnonzero(muscle)
         if ids.size == 0:
-            raise ValueError("the model has no muscle actuators (actuator_dyntype mjDYN_MUSCLE "
-                             "or actuator_gaintype mjGAIN_MUSCLE); name the actuators to use")
+            raise ValueError(
+                f"the model has no muscle actuators: none of its {model.nu} actuators has "
+                "muscle dynamics or a muscle gain (MJCF <muscle>, or <general> with "
+                "gaintype=\"muscle\"). Spindle afferents need muscles, as in "
+                "models/elbow.xml or myo-sim's models; motor-driven models such as "
+                "Gymnasium's Humanoid-v5 or Ant-v5 have none (docs/wrapper.md)")
     else:
         if isinstance(names, str):
             names = [names]
@@ -92,7 +96,9 @@ def find_muscles(model: mujoco.MjModel, names: Sequence[str] | None = None) -> M
                 raise ValueError(f"muscles: {name!r} is not an actuator of the model")
             if model.actuator_gaintype[i] != mujoco.mjtGain.mjGAIN_MUSCLE:
                 raise ValueError(f"muscles: actuator {name!r} has no muscle gain, so no "
-                                 "normalised length (gainprm range, lengthrange)")
+                                 "normalised length (gainprm range, lengthrange); only "
+                                 "muscle actuators (MJCF <muscle>, or <general> with "
+                                 "gaintype=\"muscle\") can be named")
             ids_list.append(i)
         if not ids_list:
             raise ValueError("muscles is empty; pass None for every muscle actuator")
