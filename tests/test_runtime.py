@@ -15,7 +15,7 @@ pytest.importorskip("dynamixel_sdk")
 from proprio_env.runtime import protocol as p
 from proprio_env.runtime.cli import start_virtual_servo
 from proprio_env.runtime.loop import Runtime
-from proprio_env.runtime.sinks import CsvLog
+from proprio_env.runtime.sinks import CallbackSink, CsvLog
 from proprio_env.runtime.sources import DynamixelSource
 from spindle.chain import MUSCLES, ChainConfig, run_chain
 
@@ -171,9 +171,17 @@ def test_sigterm_flushes_and_closes_the_log(tmp_path):
 
     from proprio_env.runtime.sources import SimulatedElbowSource
 
+    published = []
+
+    def terminate_after_150(row):
+        # the signal once 150 samples are out (a fixed delay may see few on a busy machine)
+        published.append(row)
+        if len(published) == 150:
+            threading.Thread(target=os.kill, args=(os.getpid(), signal.SIGTERM)).start()
+
     runtime = Runtime(SimulatedElbowSource("scripted"), backend="c",
-                      log=CsvLog(tmp_path / "log.csv", flush_every=10**9))
-    threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM)).start()
+                      log=CsvLog(tmp_path / "log.csv", flush_every=10**9),
+                      sinks=[CallbackSink(terminate_after_150)])
     summary = runtime.run()  # returns on SIGTERM instead of running forever
     with open(tmp_path / "log.csv", newline="") as f:
         log = list(csv.DictReader(f))

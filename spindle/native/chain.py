@@ -30,7 +30,7 @@ from spindle.chain.config import (
     real_number,
 )
 from spindle.chain.length_model import LengthFits, load_length_fits
-from spindle.chain.samples import block_inputs, checked_angle, checked_lengths
+from spindle.chain.samples import BatchSample, block_inputs, checked_angle, checked_lengths
 from spindle.methods import get_method
 from spindle.native import build
 from spindle.native.abi import Status, params_struct, real_type, status_name
@@ -568,14 +568,6 @@ def chain_dtype(variant: str = "double") -> np.dtype:
 
 
 @cache
-def _batch_sample_class() -> type:
-    # imported on first use: spindle.chain.batch (the numpy batch) owns the class, and a
-    # module-level import would make this module need it to load
-    from spindle.chain.samples import BatchSample
-
-    return BatchSample
-
-
 def _sample_columns(variant: str) -> tuple[int, int] | None:
     """(columns, column of counts) of ``ps_arm_sample`` read as rows of doubles, if the double
     build lays it out as t_s, accepted (+ padding), then every real field in ArmSample's order
@@ -608,7 +600,10 @@ def _batch_sample(table: np.ndarray, rows: np.ndarray | None, accepted: np.ndarr
                   "angle_deg": block[:, c + 2],
                   **{name: per_muscle[:, j] for j, name in enumerate(PER_MUSCLE)}}
     values["accepted"] = accepted
-    return _batch_sample_class()(**values)
+    out = object.__new__(BatchSample)
+    # what the frozen dataclass's __init__ does, without a per-field object.__setattr__
+    out.__dict__.update(values)
+    return out
 
 
 class CBatchedArmChain:
