@@ -22,8 +22,8 @@ difference in Ia/II between the two (same inputs).
 
 With ``--paths`` it instead times this tree's implementations of the step side by side, CPU
 time per step (advance + commit) on the same trajectories, best of 5:
-``spindle.core.plain_advance`` (the step written plainly), ``spindle.scalar.advance_small``
-(Python floats) and ``spindle.batched.advance_batched`` (numpy blocks), and the afferent
+``spindle.core.plain_advance`` (the step written plainly), ``spindle.float_step.advance_small``
+(Python floats) and ``spindle.batch_step.advance_batched`` (numpy blocks), and the afferent
 rates on numpy and on floats for a few spindles. These figures back the comments that keep
 the second implementations (``spindle.core.advance``, ``spindle.core.afferents_from_tension``).
 
@@ -57,7 +57,7 @@ import numpy as np
 
 import spindle
 import spindle.simulate  # the module (the package attribute is the function)
-from spindle import batched, core, scalar
+from spindle import batch_step, core, float_step
 from spindle.fibre_constants import step_constants
 
 STEP_S = 1e-3
@@ -163,16 +163,16 @@ def compare_paths() -> None:
     k = step_constants(c, STEP_S, theta)
     paths = {
         "plain": lambda st, L, d, s: core.plain_advance(st, L, d, s, STEP_S, theta, c),
-        "scalar": lambda st, L, d, s: scalar.advance_small(st, L, d, s, k),
-        "batched": lambda st, L, d, s: batched.advance_batched(st, L, d, s, k),
+        "scalar": lambda st, L, d, s: float_step.advance_small(st, L, d, s, k),
+        "batched": lambda st, L, d, s: batch_step.advance_batched(st, L, d, s, k),
     }
     for n, steps in ((1, 400), (2, 400), (8, 400), (64, 300), (4096, 60), (65536, 12)):
-        names = [p for p in paths if p != "scalar" or n <= scalar.SMALL_N]
+        names = [p for p in paths if p != "scalar" or n <= float_step.SMALL_N]
         us = {p: min(per_step_us(paths[p], n, steps) for _ in range(5)) for p in names}
         ratios = " ".join(f"plain/{p} = {us['plain'] / us[p]:.1f}x" for p in names[1:])
         print(f"n = {n:>5}: " + ", ".join(f"{p} {us[p]:.1f} us" for p in names) + f"; {ratios}")
     rng = np.random.default_rng(0)
-    for n in (1, 2, scalar.SMALL_N):
+    for n in (1, 2, float_step.SMALL_N):
         T, L = rng.uniform(0.0, 0.3, (3, n)), np.ones(n)
         floats = min(timeit.repeat(lambda T=T, L=L: core._afferents_floats(T, L, c),
                                    number=2000, repeat=5)) / 2000 * 1e6

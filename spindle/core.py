@@ -33,8 +33,8 @@ the arithmetic runs on.
 Implementations: :func:`plain_advance` is the step written plainly from these equations
 (Newton on the step residual itself); :func:`advance` runs it for the explicit setting and,
 for the implicit ones, one of two fast implementations of the same equation, which agree
-with it to rounding: :mod:`spindle.scalar` (Python floats, a few spindles) and
-:mod:`spindle.batched` (numpy blocks in cache, any number).
+with it to rounding: :mod:`spindle.float_step` (Python floats, a few spindles) and
+:mod:`spindle.batch_step` (numpy blocks in cache, any number).
 """
 
 from __future__ import annotations
@@ -43,19 +43,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spindle.batched import advance_batched
+from spindle.batch_step import advance_batched
 from spindle.fibre_constants import (
     MAX_DRIVE_POWER,
-    Columns,
+    FibreColumns,
     check_finite,
     columns,
     spindle_step_constants,
     step_constants,
 )
+from spindle.float_step import SMALL_N, advance_small, afferents_one, as_floats
 from spindle.methods import Method, get_method
 from spindle.number_rule import real_array, real_scalar
 from spindle.params import CAT, SpindleParams
-from spindle.scalar import SMALL_N, advance_small, afferents_one, as_floats
 
 __all__ = [
     "LENGTH_RANGE_L0", "MAX_DRIVE_POWER", "MAX_SPEED_L0_S", "SLEW_LIMIT_L0_S", "SMALL_N",
@@ -210,15 +210,16 @@ def _drive_rows(gamma_dyn_pps: np.ndarray, gamma_stat_pps: np.ndarray) -> np.nda
 
 
 
-def _z_from_velocity(v: np.ndarray, c: Columns) -> np.ndarray:
+def _z_from_velocity(v: np.ndarray, c: FibreColumns) -> np.ndarray:
     return np.sign(v) * np.abs(v) ** (c.a / 3.0)
 
 
-def _velocity_from_z(z: np.ndarray, c: Columns) -> np.ndarray:
+def _velocity_from_z(z: np.ndarray, c: FibreColumns) -> np.ndarray:
     return np.sign(z) * np.abs(z) ** (3.0 / c.a)
 
 
-def force(T: np.ndarray, z: np.ndarray, L: np.ndarray, f: np.ndarray, c: Columns) -> np.ndarray:
+def force(T: np.ndarray, z: np.ndarray, L: np.ndarray, f: np.ndarray, c: FibreColumns
+          ) -> np.ndarray:
     """M dv/dt of each fibre (FU), (3, n), at tension T, z, length L and activation f; the
     damping C*beta*sgn(v)|v|^a is C*beta*z^3, times the polar length beyond R clipped at 0
     (see the module docstring)."""
@@ -273,13 +274,13 @@ def afferents(state: SpindleState, params: SpindleParams = CAT) -> tuple[np.ndar
 
 
 def afferents_from_tension(T: np.ndarray, L: np.ndarray | float,
-                           c: Columns) -> tuple[np.ndarray, np.ndarray]:
+                           c: FibreColumns) -> tuple[np.ndarray, np.ndarray]:
     """Ia and II (pps), each (n,), of fibre tensions T (3, n) at fascicle lengths L (n,).
 
     Every fibre's potential is clipped at 0 before they are combined (a slack fibre neither
     excites nor inhibits the shared ending); the totals are then >= 0 by construction. Each
     potential is linear in the fibre's T (and the secondary's in L too); it is evaluated in
-    that multiplied-out form (:attr:`Columns.primary_lin`, :attr:`Columns.secondary_lin`).
+    that multiplied-out form (:attr:`FibreColumns.primary_lin`, :attr:`FibreColumns.secondary_lin`).
     """
     n = T.shape[1]
     if n <= SMALL_N:
@@ -298,7 +299,7 @@ def afferents_from_tension(T: np.ndarray, L: np.ndarray | float,
     return ia, ii
 
 
-def _afferents_block(T: np.ndarray, L, c: Columns) -> tuple[np.ndarray, np.ndarray]:
+def _afferents_block(T: np.ndarray, L, c: FibreColumns) -> tuple[np.ndarray, np.ndarray]:
     (g0, n0), (g1, n1), (g2, n2) = c.primary_lin
     (a1, b1, c1), (a2, b2, c2) = c.secondary_lin
     dynamic = np.maximum(T[0] * g0 - n0, 0.0)
@@ -309,7 +310,7 @@ def _afferents_block(T: np.ndarray, L, c: Columns) -> tuple[np.ndarray, np.ndarr
     return ia, ii
 
 
-def _afferents_floats(T: np.ndarray, L, c: Columns) -> tuple[np.ndarray, np.ndarray]:
+def _afferents_floats(T: np.ndarray, L, c: FibreColumns) -> tuple[np.ndarray, np.ndarray]:
     """:func:`afferents_from_tension` spindle by spindle on Python floats (few spindles)."""
     n = T.shape[1]
     lengths = as_floats(L, n)
@@ -367,7 +368,7 @@ def commit(state: SpindleState, new, L, gd, gs, where: np.ndarray | None = None)
     state.gamma_stat_pps[...] = gs
 
 
-def advance(state: SpindleState, L1, gd1, gs1, h, theta: float, c: Columns):
+def advance(state: SpindleState, L1, gd1, gs1, h, theta: float, c: FibreColumns):
     """One theta-method step from the state to (L1, gd1, gs1), unchecked.
 
     ``h`` is the step (s), a float or an (n,) array of one per spindle (arms sampled at their
@@ -393,7 +394,7 @@ def advance(state: SpindleState, L1, gd1, gs1, h, theta: float, c: Columns):
     return advance_batched(state, L1, gd1, gs1, k)
 
 
-def plain_advance(state: SpindleState, L1, gd1, gs1, h: float, theta: float, c: Columns):
+def plain_advance(state: SpindleState, L1, gd1, gs1, h: float, theta: float, c: FibreColumns):
     """One theta-method step written plainly from the model equations; (T1, v1, z1, f1),
     each (3, n), as :func:`advance` returns them (``state`` is not modified).
 

@@ -4,7 +4,7 @@
 chain) that broadcast against the fibre-major (3, n) working arrays; :func:`step_constants`
 gives, per fibre, the constants of one implicit step of size h and weight theta
 (:class:`FibreStepConstants`), which both fast implementations of the step
-(:mod:`spindle.batched` and :mod:`spindle.scalar`) read.
+(:mod:`spindle.batch_step` and :mod:`spindle.float_step`) read.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ activation exactly 1 (g^p / (g^p + freq^p) rounds to 1 long before), as in the C
 instead of inf/inf = NaN."""
 
 
-class Columns:
+class FibreColumns:
     """Fibre constants as (3, 1) columns, computed once per parameter set."""
 
     def __init__(self, params: SpindleParams):
@@ -77,15 +77,15 @@ def _secondary_linear(f: FibreParams) -> tuple[float, float, float]:
                    + (1.0 - X) * Lsec / f.LPR0_L0 * (f.LSR0_L0 + f.LNPR_L0)))
 
 
-_COLUMNS_CACHE: dict[int, tuple[SpindleParams, Columns]] = {}
+_COLUMNS_CACHE: dict[int, tuple[SpindleParams, FibreColumns]] = {}
 
 
-def columns(params: SpindleParams) -> Columns:
-    """The :class:`Columns` of ``params`` (cached by identity)."""
+def columns(params: SpindleParams) -> FibreColumns:
+    """The :class:`FibreColumns` of ``params`` (cached by identity)."""
     key = id(params)
     hit = _COLUMNS_CACHE.get(key)
     if hit is None or hit[0] is not params:
-        hit = (params, Columns(params))
+        hit = (params, FibreColumns(params))
         if len(_COLUMNS_CACHE) > 64:
             _COLUMNS_CACHE.clear()
         _COLUMNS_CACHE[key] = hit
@@ -96,7 +96,7 @@ def columns(params: SpindleParams) -> Columns:
 class FibreStepConstants:
     """One fibre's constants of one implicit step (floats, or (3, 1) columns of all three).
 
-    The theta-method's equation for the new z (see :func:`spindle.batched.newton_loop`)
+    The theta-method's equation for the new z (see :func:`spindle.batch_step.newton_loop`)
     needs, from the start of the step, with q0 = L0 - LSR0 - R - T0/KSR (the polar length
     minus R):
 
@@ -205,7 +205,7 @@ class StepConstants:
 
     per_spindle = False
 
-    def __init__(self, c: Columns, h: float, theta: float):
+    def __init__(self, c: FibreColumns, h: float, theta: float):
         # Python floats throughout: a step with a new h (a streaming chain's jittery sample
         # interval) rebuilds these, and numpy's per-call overhead would cost ~0.5 ms.
         self.h, self.theta = h, theta
@@ -239,7 +239,7 @@ class SpindleStepConstants:
 
     per_spindle = True
 
-    def __init__(self, c: Columns, h: np.ndarray, theta: float, *, _share=None):
+    def __init__(self, c: FibreColumns, h: np.ndarray, theta: float, *, _share=None):
         self.theta = theta
         self.a_is_03 = c.a_is_03 if c is not None else _share[0].a_is_03
         if _share is not None:  # a block's share of another's: (k, cols)
@@ -295,7 +295,7 @@ class _Coefficients:
     parameter set and theta: (3, 1) columns, and the coefficients of 1/a2 stacked (m, 3, 1)
     so that one multiplication makes all of those constants."""
 
-    def __init__(self, c: Columns, theta: float):
+    def __init__(self, c: FibreColumns, theta: float):
         P = c.fibre_parameter_columns
         # the float path at h = 1 gives every constant that does not depend on h
         at_one = _fibre_step_constants(P, np.ones((1, 1)), theta, convert=None)
@@ -320,7 +320,7 @@ class _Coefficients:
         self.tau_safe = np.where(P.tau_s > 0, P.tau_s, 1.0)
 
 
-def _coefficients(c: Columns, theta: float) -> _Coefficients:
+def _coefficients(c: FibreColumns, theta: float) -> _Coefficients:
     """The :class:`_Coefficients` of ``c`` for ``theta`` (kept on ``c``)."""
     theta = float(theta)
     hit = c.per_spindle_coefficients
@@ -371,7 +371,7 @@ class _ParameterColumns:
                 setattr(self, f.name, params.column(f.name))
 
 
-def spindle_step_constants(c: Columns, h: np.ndarray, theta: float) -> SpindleStepConstants:
+def spindle_step_constants(c: FibreColumns, h: np.ndarray, theta: float) -> SpindleStepConstants:
     """The :class:`SpindleStepConstants` of ``c`` for the step sizes ``h`` (n,) and
     ``theta``, kept until either changes."""
     # keyed on float64 values: numpy compares a float32 array with float64 ones as float64,
@@ -386,7 +386,7 @@ def spindle_step_constants(c: Columns, h: np.ndarray, theta: float) -> SpindleSt
     return hit
 
 
-def step_constants(c: Columns, h: float, theta: float) -> StepConstants:
+def step_constants(c: FibreColumns, h: float, theta: float) -> StepConstants:
     """The :class:`StepConstants` of ``c`` for (h, theta), kept until either changes.
 
     The key is the Python floats h and theta stand for: numpy compares ``np.float32(0.001)``

@@ -19,10 +19,10 @@ import numpy as np
 
 from spindle import core
 from spindle.fibre_constants import step_constants
+from spindle.float_step import afferents_one, step_floats
 from spindle.methods import Method, get_method
 from spindle.number_rule import positive_int, real_array, real_scalar
 from spindle.params import CAT, SpindleParams
-from spindle.scalar import afferents_one, step_floats
 from spindle.substeps import substep_lengths, substeps
 
 

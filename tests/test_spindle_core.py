@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import spindle
-from spindle import batched, core
+from spindle import batch_step, core
 
 METHODS = sorted(spindle.METHODS)
 
@@ -290,7 +290,7 @@ def random_states(n, seed):
 
 
 @pytest.mark.parametrize("theta", [0.5, 1.0, 0.0])
-@pytest.mark.parametrize("n", [1, 3, 6, batched.CHUNK_SPINDLES + 37])
+@pytest.mark.parametrize("n", [1, 3, 6, batch_step.CHUNK_SPINDLES + 37])
 @pytest.mark.parametrize("h", [1e-3, 1e-4])
 def test_optimised_step_matches_the_plain_reference_step(theta, n, h):
     state, L1, gd1, gs1 = random_states(n, seed=n)
@@ -317,7 +317,7 @@ def test_a_step_size_per_spindle_matches_the_plain_reference_step(monkeypatch, t
     step (in one block or several): the plain step's result to the tolerances above, and
     with every h equal, the result of the scalar-h step."""
     if chunk is not None:
-        monkeypatch.setattr(batched, "CHUNK_SPINDLES", chunk)
+        monkeypatch.setattr(batch_step, "CHUNK_SPINDLES", chunk)
     state, L1, gd1, gs1 = random_states(n, seed=n + 5)
     h = np.random.default_rng(n).uniform(2e-4, 1e-3, n)
     before = state.copy()
@@ -382,10 +382,10 @@ def test_extrapolated_guess_survives_a_state_changed_between_steps(monkeypatch):
     over two blocks and a remainder."""
     # This motion's first extrapolated step needs more than EXTRAPOLATE_MAX_ITER iterations,
     # which would switch extrapolation off for the rest of the test: keep it on.
-    monkeypatch.setattr(batched, "EXTRAPOLATE_COOLDOWN", 0)
+    monkeypatch.setattr(batch_step, "EXTRAPOLATE_COOLDOWN", 0)
     rng = np.random.default_rng(21)
-    n = batched.EXTRAPOLATE_SPINDLES + 37
-    assert n > batched.CHUNK_SPINDLES
+    n = batch_step.EXTRAPOLATE_SPINDLES + 37
+    assert n > batch_step.CHUNK_SPINDLES
     steps = 24
     t = np.arange(steps + 1)[:, None] * 1e-3
     L = 1.0 + 0.08 * np.sin(2 * np.pi * rng.uniform(1, 4, n) * t + rng.uniform(0, 6, n))
@@ -420,7 +420,7 @@ def test_noisy_lengths_send_the_guess_back_to_the_frozen_factor():
     then need more than EXTRAPOLATE_MAX_ITER Newton iterations, and the workspace returns to
     the frozen-factor guess for a while. Either way the result is the reference step's."""
     rng = np.random.default_rng(5)
-    n = batched.EXTRAPOLATE_SPINDLES
+    n = batch_step.EXTRAPOLATE_SPINDLES
     steps = 6
     L = 1.0 + rng.normal(0.0, 1e-4, (steps + 1, n))
     gd, gs = np.full(n, 40.0), np.full(n, 40.0)
@@ -462,9 +462,9 @@ def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch
     block hands them on and they are finished together (from TAIL_MIN_SPINDLES on), or the
     block iterates on. Still the reference result."""
     if chunk is not None:
-        monkeypatch.setattr(batched, "CHUNK_SPINDLES", chunk)
+        monkeypatch.setattr(batch_step, "CHUNK_SPINDLES", chunk)
     if not tail:
-        monkeypatch.setattr(batched, "TAIL_MIN_SPINDLES", 10**9)
+        monkeypatch.setattr(batch_step, "TAIL_MIN_SPINDLES", 10**9)
     n = 3000
     state, L1, gd1, gs1 = random_states(n, seed=9)
     # mostly at rest and held: quick convergence; a few reverse a fast polar velocity
@@ -476,8 +476,8 @@ def test_slow_fibres_finished_in_the_common_tail_match_the_reference(monkeypatch
     state.polar_velocity_L0_s[fast] = 1.5
     state.velocity_root[fast] = 1.5**0.1
     calls = []
-    finish_tail = batched.Workspace._finish_tail
-    monkeypatch.setattr(batched.Workspace, "_finish_tail",
+    finish_tail = batch_step.Workspace._finish_tail
+    monkeypatch.setattr(batch_step.Workspace, "_finish_tail",
                         lambda self, tail, **kw: calls.append(len(tail))
                         or finish_tail(self, tail, **kw))
     c = core.columns(spindle.CAT)

@@ -42,7 +42,7 @@ CORNER_S = 0.05
 
 
 def read_table(path: str | Path | None = None) -> dict[str, np.ndarray]:
-    """Columns of an ECRB table CSV ('#' comment lines, then a header); default the bundled
+    """FibreColumns of an ECRB table CSV ('#' comment lines, then a header); default the bundled
     ``models/wrist_ecrb.csv``."""
     path = Path(path) if path is not None else models_dir() / TABLE_FILENAME
     lines = [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]

@@ -34,7 +34,7 @@ DEFAULT_ORACLE = REPO_ROOT / "tests" / "data" / "arm26_elbow_oracle.csv"
 
 
 def read_oracle(path: Path) -> dict[str, np.ndarray] | None:
-    """Columns of the OpenSim oracle CSV ('#' comment lines first), or None if absent."""
+    """FibreColumns of the OpenSim oracle CSV ('#' comment lines first), or None if absent."""
     if not path.is_file():
         return None
     lines = [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]

@@ -206,7 +206,7 @@ def markdown(runs: Sequence[Run], errors: dict, stability: dict, default: tuple[
 
 def figure(path: Path, runs: Sequence[Run], speeds: Sequence[float], ref: tuple,
            sim: tuple, label: str) -> None:
-    """Columns = speeds; rows = length, Ia, II, error of ``sim`` against the reference."""
+    """FibreColumns = speeds; rows = length, Ia, II, error of ``sim`` against the reference."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -7,7 +7,7 @@ gamma drive, spindles, counters, handling of bad samples, gaps, bridges, restart
 resyncs, exactly as the module docstring of :mod:`spindle.chain.arm` describes them. One
 push gives every arm its own sample (or none: ``active``); arm k then equals a single
 ``ArmChain`` fed the same samples in the same order (same counters; same outputs to rounding,
-the spindle step of many spindles runs in :mod:`spindle.batched` where one arm's runs on
+the spindle step of many spindles runs in :mod:`spindle.batch_step` where one arm's runs on
 floats).
 
 Per-muscle arrays are (n_arms, 2) in :data:`~spindle.chain.config.MUSCLES` order; the

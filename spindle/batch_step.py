@@ -1,7 +1,7 @@
 """The implicit spindle step for many spindles at once: numpy, in place, in cached blocks.
 
 This is the fast implementation of the step that :func:`spindle.core.plain_advance` writes
-plainly; :func:`spindle.core.advance` uses it beyond :data:`spindle.scalar.SMALL_N` spindles
+plainly; :func:`spindle.core.advance` uses it beyond :data:`spindle.float_step.SMALL_N` spindles
 (it pays from there on: see :func:`spindle.core.advance`). Both solve the same equation to
 the same tolerance and agree to rounding (~1e-13 pps).
 

@@ -1,6 +1,6 @@
 """The implicit spindle step for a few spindles, on Python floats, fibre by fibre.
 
-The same arithmetic as :mod:`spindle.batched`, term by term (the two agree to rounding,
+The same arithmetic as :mod:`spindle.batch_step`, term by term (the two agree to rounding,
 ~1e-13 pps): for a few spindles numpy's per-call overhead costs more than the arithmetic.
 :func:`spindle.core.advance` uses it up to :data:`SMALL_N` spindles, and
 ``spindle.simulate`` for one spindle (the figures are in :func:`spindle.core.advance`).
@@ -17,7 +17,7 @@ from spindle.fibre_constants import (
     NEWTON_MAX_DZ,
     NEWTON_MAX_ITER,
     NEWTON_TOL_Z,
-    Columns,
+    FibreColumns,
     FibreStepConstants,
     StepConstants,
 )
@@ -151,7 +151,7 @@ def _known_terms(T, v, z, f, fn, L0, dL, fc: FibreStepConstants, old: bool):
 
 def _guess(z0: float, p0: float, rhs: float, cM: float, cD: float, fc: FibreStepConstants,
            k: StepConstants) -> float:
-    """The frozen-factor guess of :func:`spindle.batched.frozen_guess` for one fibre."""
+    """The frozen-factor guess of :func:`spindle.batch_step.frozen_guess` for one fibre."""
     abs_z0, z0_squared = abs(z0), z0 * z0
     if k.a_is_03:
         frozen = z0_squared * z0_squared * z0_squared * abs_z0
@@ -167,7 +167,7 @@ def _guess(z0: float, p0: float, rhs: float, cM: float, cD: float, fc: FibreStep
 
 
 def newton_float(z, p0, rhs, cM, cD, k, three_over_a, clip=False):
-    """Newton on the step equation of :func:`spindle.batched.newton_loop` for one fibre;
+    """Newton on the step equation of :func:`spindle.batch_step.newton_loop` for one fibre;
     with ``clip`` the damping's polar-length factor q is clipped at 0 (where q <= 0,
     g = v - rhs)."""
     th_h = k.th_h
@@ -211,7 +211,7 @@ def newton_float(z, p0, rhs, cM, cD, k, three_over_a, clip=False):
     )
 
 
-def afferents_one(T: list[float], L: float, c: Columns) -> tuple[float, float]:
+def afferents_one(T: list[float], L: float, c: FibreColumns) -> tuple[float, float]:
     """Ia and II (pps) of one spindle from its three fibre tensions, on floats (the
     arithmetic of :func:`spindle.core.afferents_from_tension`)."""
     (g0, n0), (g1, n1), (g2, n2) = c.primary_lin
