@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 import spindle
-import spindle.simulate  # the module (the package attribute is the function)
+import spindle.simulation
 from spindle import batch_step, core, float_step
 from spindle.fibre_constants import step_constants
 
@@ -105,7 +105,10 @@ def load_baseline(rev: str) -> tuple[types.ModuleType, types.ModuleType]:
     sys.path.insert(0, str(folder))
     try:
         core_mod = importlib.import_module("spindle.core")
-        simulate_mod = importlib.import_module("spindle.simulate")
+        try:
+            simulate_mod = importlib.import_module("spindle.simulation")
+        except ModuleNotFoundError:  # revisions before the module's rename
+            simulate_mod = importlib.import_module("spindle.simulate")
     finally:
         sys.path.remove(str(folder))
         for name in [n for n in sys.modules if n.split(".")[0] == "spindle"]:
@@ -219,7 +222,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sizes = (1, 64, 4096, 65536)
     repeats = args.repeats or (1 if args.quick else 5)
     max_steps = 20 if args.quick else 2000
-    impls = {"this tree": (core, sys.modules["spindle.simulate"])}
+    impls = {"this tree": (core, sys.modules["spindle.simulation"])}
     if args.baseline != "none":
         impls[f"baseline {args.baseline}"] = load_baseline(args.baseline)
     m = spindle.DEFAULT_METHOD

@@ -5,7 +5,7 @@ integrated by a theta-method (forward Euler, backward Euler, trapezoidal rule), 
 reference solver (scipy, optional) to check it against. The package's rooms:
 
 - the receptor model (numpy only): :mod:`spindle.params`, :mod:`spindle.methods`,
-  :mod:`spindle.core` (the step), :mod:`spindle.substeps`, :mod:`spindle.simulate`,
+  :mod:`spindle.core` (the step), :mod:`spindle.substeps`, :mod:`spindle.simulation`,
   :mod:`spindle.reference`;
 - :mod:`spindle.chain`: what runs on the prosthesis (sensor, length model, conditioning,
   fusimotor, the arm chain);
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from spindle import simulate as _numpy_simulate
+from spindle import simulation as _numpy_simulate
 from spindle.backends import DEFAULT_BACKEND, resolve_backend
 from spindle.chain.length_model import (
     LengthFit,
@@ -37,7 +37,7 @@ from spindle.core import (
 )
 from spindle.methods import DEFAULT_METHOD, METHODS, Method, get_method
 from spindle.params import CAT, FIBRES, HUMAN, FibreParams, SpindleParams
-from spindle.simulate import SpindleResult
+from spindle.simulation import SpindleResult
 
 __all__ = [
     "CAT",
@@ -93,7 +93,7 @@ def simulate(
         method: ``"trapezoidal"`` (default), ``"backward_euler"`` or ``"forward_euler"``.
         step: internal integration step (s). Each sample interval is split into the fewest
             equal sub-steps no longer than ``step``. None means the method's default.
-        backend: ``"numpy"`` (:mod:`spindle.simulate`), ``"c"`` (the C port,
+        backend: ``"numpy"`` (:mod:`spindle.simulation`), ``"c"`` (the C port,
             ``spindle/native/c/spindle.c`` through :mod:`spindle.native.spindle`, compiled on
             first use; :class:`spindle.native.build.CBackendError` if no C compiler is found)
             or ``"auto"`` (the default: C where the library loads or builds here, else numpy;
@@ -101,7 +101,7 @@ def simulate(
             same ValueErrors and agree to ~1e-12 pps for the implicit methods
             (``docs/c_port.md``).
         chunk_samples: sample intervals per chunk of the stream (default: about
-            :data:`spindle.simulate.CHUNK_ELEMENTS` internal steps x spindles); only memory
+            :data:`spindle.simulation.CHUNK_ELEMENTS` internal steps x spindles); only memory
             depends on it.
 
     The integrator consumes lengths only (the (T, v) form integrates the dL/dt input exactly
@@ -116,7 +116,7 @@ def simulate(
         ValueError: non-finite inputs, lengths outside :data:`spindle.core.LENGTH_RANGE_L0`,
             length changes faster than :data:`spindle.core.MAX_SPEED_L0_S`, negative drive,
             ``dt`` or ``step`` <= 0 or above the method's limit, more than
-            :data:`spindle.simulate.MAX_SUBSTEPS` internal steps per sample interval, shapes
+            :data:`spindle.simulation.MAX_SUBSTEPS` internal steps per sample interval, shapes
             that do not match; :class:`spindle.number_rule.NumberError` (a ValueError and a
             TypeError) for a bool, string, bytes, complex or None where a number belongs
             (``dt=True``, string or complex lengths).

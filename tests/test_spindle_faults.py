@@ -26,7 +26,7 @@ import pytest
 
 import spindle
 from spindle.native import build
-from spindle.simulate import MAX_SUBSTEPS
+from spindle.simulation import MAX_SUBSTEPS
 from spindle.substeps import substep_lengths
 
 try:

@@ -337,9 +337,9 @@ def check_max_interval(max_interval_s: object, timestep_s: float, step_s: float,
     """``max_interval_s`` as a float; ``ValueError`` naming it unless it is a real number
     (not a bool, string or complex) at least one physics step (``timestep_s``) and the env
     step (``env_dt_s``, when the env tells it: its steps would all restart), and its knots'
-    spindle sub-steps of at most ``step_s`` stay within :data:`spindle.simulate.MAX_SUBSTEPS`
+    spindle sub-steps of at most ``step_s`` stay within :data:`spindle.simulation.MAX_SUBSTEPS`
     (the bound on one interval's work that ``spindle.simulate`` applies)."""
-    from spindle.simulate import MAX_SUBSTEPS
+    from spindle.simulation import MAX_SUBSTEPS
     from spindle.substeps import substeps
 
     if isinstance(max_interval_s, bool | np.bool_) or not isinstance(

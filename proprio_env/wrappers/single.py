@@ -148,7 +148,7 @@ class SpindleAfferents(gym.Wrapper):
             moves time, the env stepped for long without the wrapper) restarts them at rest
             at the env's state, counted in ``spindle_restarts``, so that the work of a step
             is bounded. ``ValueError`` if it is shorter than a physics step or the env step,
-            or needs more than ``spindle.simulate.MAX_SUBSTEPS`` spindle sub-steps.
+            or needs more than ``spindle.simulation.MAX_SUBSTEPS`` spindle sub-steps.
 
     Copies (``copy.deepcopy``, ``pickle``) of a wrapped env continue bit for bit as the
     original would, on either backend. Several wrappers on one env share its recorded

@@ -94,7 +94,7 @@ def afferents_from_trajectory(
             wrapper's.
         max_substeps: the most spindle sub-steps (of at most ``step_s``) the trajectory may
             take in all; ``ValueError`` naming the count and the limit beyond it, or beyond
-            ``spindle.simulate.MAX_SUBSTEPS`` in one sample interval (both checked before any
+            ``spindle.simulation.MAX_SUBSTEPS`` in one sample interval (both checked before any
             work).
 
     Returns:
@@ -163,9 +163,9 @@ def _checked_trajectory(model: mujoco.MjModel, qpos_t, t_s, qvel_t
 
 def _check_work(dt_s: np.ndarray, step_s: float, max_substeps: object) -> int:
     """The spindle sub-steps per sample interval; ``ValueError`` if one interval needs more
-    than ``spindle.simulate.MAX_SUBSTEPS`` or the whole trajectory more than
+    than ``spindle.simulation.MAX_SUBSTEPS`` or the whole trajectory more than
     ``max_substeps``."""
-    from spindle.simulate import MAX_SUBSTEPS
+    from spindle.simulation import MAX_SUBSTEPS
 
     if isinstance(max_substeps, bool | np.bool_) or not isinstance(max_substeps, Integral) \
             or max_substeps < 1:

@@ -3,7 +3,7 @@
 The library is compiled on first use by :mod:`spindle.native.build` (a clear
 :class:`~spindle.native.build.CBackendError` if no C compiler is found). :func:`simulate` is
 ``spindle.simulate(..., backend="c")``: the same validation and ValueErrors as the numpy path
-(:func:`spindle.simulate.prepare_inputs`), the same sub-step lengths
+(:func:`spindle.simulation.prepare_inputs`), the same sub-step lengths
 (:func:`spindle.substeps.substep_lengths`), then one ``ps_spindle_run`` call per spindle.
 :class:`SpindleBatch` holds many independent spindles in one C array and advances them all by
 one ``ps_spindle_batch_step`` call per step (the C counterpart of ``spindle.core.advance`` on
@@ -22,7 +22,7 @@ from spindle.methods import Method
 from spindle.native import build
 from spindle.native.abi import Status, params_struct, plan_struct, real_type, status_name, structs
 from spindle.params import CAT, SpindleParams
-from spindle.simulate import SpindleResult, chunk_bounds, prepare_inputs
+from spindle.simulation import SpindleResult, chunk_bounds, prepare_inputs
 from spindle.substeps import substep_lengths
 
 
