@@ -205,7 +205,7 @@ def _forces(force_N: object, n: int | None) -> np.ndarray:
     f = np.asarray(force_N, dtype=np.float64)
     if f.ndim > 1 or (n is not None and f.ndim == 1 and f.shape[0] != n):
         raise ValueError(f"force_N has shape {f.shape}; expected a scalar or ({n},)")
-    f = np.broadcast_to(f, (n if n is not None else max(f.size, 1),))
+    f = np.broadcast_to(f, (n if n is not None else (f.size if f.ndim == 1 else 1),))
     bad = ~np.isfinite(f)
     if bad.any():
         raise ValueError(f"force_N={f[bad][0]!r} is not finite (muscle {int(np.argmax(bad))})")

@@ -740,7 +740,7 @@ class BatchedArmChain:
         force = tendon_forces_N(torque, np.radians(angle), self.moment_arms, clip=True)
         organs = _spindles(rows)
         rest = tendon_organ.equilibrium_state(force.reshape(-1), self._force_scale[organs],
-                                              self.config.gto)
+                                              self.config.gto, organs.size)
         gto = self._gto.copy()
         gto.z[:, organs], gto.force_N[organs], gto.r_pps[organs] = rest.z, rest.force_N, \
             rest.r_pps
