@@ -26,10 +26,13 @@ from spindle.number_rule import check_fields, positive_int
 from spindle.number_rule import sample_array as real_array  # noqa: F401
 from spindle.number_rule import sample_number as real_number  # noqa: F401
 from spindle.params import HUMAN, SpindleParams
-from spindle.tendon_organ_params import ARM26_MAX_ISOMETRIC_FORCE_N
+from spindle.tendon_organ_params import (
+    ARM26_MAX_ISOMETRIC_FORCE_N,
+    TendonOrganParams,
+    force_scales_N,
+)
 from spindle.tendon_organ_params import HUMAN as GTO_HUMAN
 from spindle.tendon_organ_params import MAX_STEP_S as GTO_MAX_STEP_S
-from spindle.tendon_organ_params import TendonOrganParams, force_scales_N
 
 MUSCLES = ("BRA", "TRImed")
 """The muscles of the arm, in the order of every per-muscle axis of the project."""

@@ -598,6 +598,10 @@ class CArmChain:
                 f"the sample at t_s={t_s!r} is too far after the last accepted one at "
                 f"{float(self._chain.state.t_s)!r} s: the interval needs more than "
                 f"{MAX_UPDATES} spindle sub-steps or predictor updates; chain left unchanged")
+        if status == Status.PS_ERR_FORCE_RANGE:
+            raise ValueError(
+                f"the sample at t_s={t_s!r} stands for a tendon force above MAX_FORCE_N "
+                f"(the load reading's torque over the moment arm); chain left unchanged")
         if what == "push":
             raise FloatingPointError(
                 f"the C chain failed at t_s={t_s!r} ({status_name(status)}): a spindle "
