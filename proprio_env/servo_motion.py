@@ -27,6 +27,8 @@ class ServoMotion:
         angle_deg: the elbow angle reached (deg).
         length_L0: (T, 2) exact normalised fibre lengths, BRA and TRImed.
         velocity_L0_s: (T, 2) their time derivatives.
+        torque_Nm: the servo's joint torque (N m, flexion positive): MuJoCo's actuator force
+            of the position servo (gear 1 on the hinge), what its load reading reports.
     """
 
     t_s: np.ndarray
@@ -34,6 +36,7 @@ class ServoMotion:
     angle_deg: np.ndarray
     length_L0: np.ndarray
     velocity_L0_s: np.ndarray
+    torque_Nm: np.ndarray
 
 
 def triangle_deg(t_s: np.ndarray, low_deg: float = 20.0, high_deg: float = 110.0,
@@ -82,11 +85,13 @@ def drive_servo(command_deg: np.ndarray, model=None) -> ServoMotion:
     servo = model.actuator(SERVO).id
     geoms = tuple(muscle_geometry(model, m) for m in MUSCLES)
     data.qpos[qadr] = math.radians(command[0])
+    data.ctrl[servo] = math.radians(command[0])  # (the first row's torque holds the arm there)
     mujoco.mj_forward(model, data)
     n = command.size
     angle = np.empty(n)
     length = np.empty((n, 2))
     velocity = np.empty((n, 2))
+    torque = np.empty(n)
     for i in range(n):
         if i:
             data.ctrl[servo] = math.radians(command[i])
@@ -94,5 +99,6 @@ def drive_servo(command_deg: np.ndarray, model=None) -> ServoMotion:
             mujoco.mj_forward(model, data)
         angle[i] = math.degrees(data.qpos[qadr])
         length[i], velocity[i] = fibre_state(model, data, geoms)
+        torque[i] = data.actuator_force[servo]
     t = np.arange(n) * model.opt.timestep
-    return ServoMotion(t, command, angle, length, velocity)
+    return ServoMotion(t, command, angle, length, velocity, torque)
