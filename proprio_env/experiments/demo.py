@@ -1,4 +1,4 @@
-"""The whole chain on the bundled elbow: servo motion -> encoder -> ... -> Ia, II, Ib (the main job).
+"""The whole chain on the bundled elbow: servo motion -> encoder, load -> Ia, II, Ib (the main job).
 
 As in the seed paper's Fig. 8: the MuJoCo elbow's position servo drives repeated rapid
 flexion-extension (~130 deg/s, 20-110 deg). A simulated AX-12 encoder reads the angle
