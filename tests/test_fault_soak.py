@@ -12,8 +12,8 @@ import pytest
 
 from proprio_env import fault_injection as fi
 from spindle.chain import BACKENDS, COUNTERS, ArmChain, ChainConfig, make_chain
-from spindle.chain.length_model import load_length_fits
 from spindle.chain.config import real_array
+from spindle.chain.length_model import load_length_fits
 from spindle.chain.sensor import is_valid_reading, valid_load_words
 
 
