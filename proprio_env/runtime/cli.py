@@ -48,6 +48,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--rt-priority", type=int, default=None,
                     help="run the loop (and a virtual servo) under SCHED_FIFO at this "
                          "priority, 1-99 (needs root or CAP_SYS_NICE)")
+    ap.add_argument("--no-force-sense", action="store_true",
+                    help="push the angle alone, not the servo's load word (Ib stays at 0)")
     ap.add_argument("--quiet", action="store_true", help="no live status line")
     return ap
 
@@ -115,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                           log=CsvLog(args.log) if args.log else None,
                           status=None if args.quiet else StatusLine(),
                           duration_s=args.duration, info={"port": args.port},
-                          rt_priority=args.rt_priority)
+                          rt_priority=args.rt_priority,
+                          force_sense=not args.no_force_sense)
         summary = runtime.run()
     finally:
         if child is not None:
