@@ -180,7 +180,9 @@ def plan_steps(params: TendonOrganParams, dt_s: np.ndarray) -> TendonOrganPlan:
         raise ValueError(f"dt_s={dt_s!r} must be a 1-D array of steps in (0, {MAX_STEP_S}] s")
     if bool((h == h[0]).all()):
         return plan(params, float(h[0]))
-    return TendonOrganPlan(params, h, *_plan_arrays(params, h))
+    steps, which = np.unique(h, return_inverse=True)  # one exponential per distinct step
+    phi, g0, g1, c = _plan_arrays(params, steps)
+    return TendonOrganPlan(params, h, phi[which], g0[which], g1[which], c)
 
 
 @dataclass

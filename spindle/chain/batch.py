@@ -586,6 +586,10 @@ class BatchedArmChain:
         torque = self._block_torques(kind, block)
         force = tendon_forces_N(torque, np.radians(angle), self.moment_arms, clip=True)
         state, params = self._gto, self.config.gto
+        if not (force.any() or state.z.any() or state.r_pps.any()):
+            # at rest at zero force, and staying there (no load, or none yet): the steps
+            # would give exact zeros
+            return torque, force, np.zeros((n, 2))
         for j in range(ok.shape[1]):
             live = np.repeat(ok[:, j], 2)
             if not live.any():

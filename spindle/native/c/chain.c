@@ -585,8 +585,17 @@ static int advance_tendon_organs(const ps_chain_config *cfg, ps_chain_state *st,
                                  ps_real torque, ps_real angle_deg, ps_time dt,
                                  ps_real *force, ps_real *ib)
 {
-    int k, status;
+    int k, status, resting = 1;
     tendon_forces(cfg, torque, angle_deg, force);
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        resting = resting && force[k] == 0 && st->gto[k].r_pps == 0 && st->gto[k].z[0] == 0
+                  && st->gto[k].z[1] == 0 && st->gto[k].z[2] == 0;
+    }
+    if (resting) { /* at rest at zero force and staying there: the step would give zeros */
+        ib[0] = 0;
+        ib[1] = 0;
+        return PS_OK;
+    }
     if (st->gto_plan.h != (ps_real)dt) {
         status = ps_gto_plan_init(&st->gto_plan, &cfg->gto, (ps_real)dt);
         if (status != PS_OK) {
