@@ -3,7 +3,8 @@
 :class:`BatchedArmChain` is :class:`spindle.chain.arm.ArmChain` for ``n_arms`` independent
 arms (a vector env's): each arm has its own median window, calibration stage, slew limit,
 clamp, tracking low-pass, PI predictor (on its own update grid from its own reset time),
-gamma drive, spindles, counters, handling of bad samples, gaps, bridges, restarts and clock
+gamma drive, spindles, tendon organs (the force sense: load word, torque, tendon forces, Ib),
+counters, handling of bad samples, gaps, bridges, restarts and clock
 resyncs, exactly as the module docstring of :mod:`spindle.chain.arm` describes them. One
 push gives every arm its own sample (or none: ``active``); arm k then equals a single
 ``ArmChain`` fed the same samples in the same order (same counters; same outputs to rounding,

@@ -239,8 +239,8 @@ class Chain(Protocol):
     """What both chains (numpy :class:`~spindle.chain.arm.ArmChain`, C
     :class:`~spindle.native.chain.CArmChain`) offer and :func:`spindle.chain.run_chain` uses.
 
-    Both also have the per-sample pushes (``push_counts``, ``push_angle``, ``push_lengths``),
-    their ``*_block`` forms, ``set_intended_angle`` and ``spindle_state``.
+    Both also have the per-sample pushes (``push_counts`` with its ``load``, ``push_angle``,
+    ``push_lengths``), their ``*_block`` forms, ``set_intended_angle`` and ``spindle_state``.
     """
 
     config: ChainConfig
@@ -253,10 +253,13 @@ class Chain(Protocol):
     def last(self) -> ArmSample: ...
 
     def reset(self, angle_deg: float, t_s: float = 0.0,
-              length_L0: np.ndarray | None = None) -> ArmSample: ...
+              length_L0: np.ndarray | None = None, load: float | None = None
+              ) -> ArmSample: ...
 
     def run_trace(self, push: str, t_s: np.ndarray, signal: np.ndarray,
-                  intended_angle_deg: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                  intended_angle_deg: np.ndarray | None = None,
+                  load: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Push a whole trace through entry point ``push`` (``"push_counts"``...), setting
-        the switch from ``intended_angle_deg`` before each sample; the stacked outputs."""
+        the switch from ``intended_angle_deg`` before each sample, with the load words
+        ``load`` beside counts; the stacked outputs."""
         ...
