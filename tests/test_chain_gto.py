@@ -220,6 +220,9 @@ def test_c_blocks_and_resets_with_loads_equal_numpy():
         outs = [ch.push_counts_block(t_s[sl], counts[sl], load=load[sl]) for ch in chains]
         assert np.max(np.abs(outs[0].ib_pps - outs[1].ib_pps)) < 1e-12
     assert chains[0].counters == chains[1].counters
+    a, b = (ch.tendon_organ_state for ch in chains)
+    np.testing.assert_allclose(a.z, b.z, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(a.force_N, b.force_N)
 
 
 @pytest.mark.parametrize("backend", ["numpy", pytest.param("c", marks=needs_c)])

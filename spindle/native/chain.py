@@ -36,6 +36,7 @@ from spindle.methods import get_method
 from spindle.native import build
 from spindle.native.abi import Status, params_struct, real_type, status_name
 from spindle.native.abi import structs as spindle_structs
+from spindle.tendon_organ import TendonOrganState
 
 # Constants of proprio.h's chain section (checked against the header by the tests).
 MEDIAN_MAX_WINDOW = 15
@@ -459,6 +460,17 @@ class CArmChain:
 
         return core.SpindleState(fibres("T"), fibres("v"), fibres("z"), fibres("f"),
                                  scalar("L"), scalar("gd"), scalar("gs"))
+
+    @property
+    def tendon_organ_state(self) -> TendonOrganState:
+        """A copy of the tendon organs' state (2 organs: BRA, TRImed)."""
+        if self._last is None:
+            raise RuntimeError("call ArmChain.reset before using the chain")
+        organs = self._chain.state.gto
+        return TendonOrganState(
+            np.array([organs[k].z[:] for k in range(len(MUSCLES))], dtype=float).T,
+            np.array([organs[k].force_N for k in range(len(MUSCLES))], dtype=float),
+            np.array([organs[k].r_pps for k in range(len(MUSCLES))], dtype=float))
 
     # -- pushes ----------------------------------------------------------------------------
     def push_counts(self, t_s: float, counts: float, load: float | None = None) -> ArmSample:
