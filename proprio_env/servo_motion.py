@@ -15,6 +15,7 @@ import numpy as np
 
 from proprio_env.model import JOINT, MUSCLES, SERVO, load_model
 from proprio_env.muscle_length import fibre_state, muscle_geometry
+from spindle.chain.sensor import AX12_LOAD, LoadParams
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,21 @@ class ServoMotion:
     length_L0: np.ndarray
     velocity_L0_s: np.ndarray
     torque_Nm: np.ndarray
+
+
+def servo_full_scale_Nm(model) -> float:
+    """The torque the model's position servo can exert (N m): its force range."""
+    return float(np.max(np.abs(model.actuator_forcerange[model.actuator(SERVO).id])))
+
+
+def servo_load_params(model=None) -> LoadParams:
+    """The load reading of the model's servo: the AX-12's word and noise, full scale
+    (1023) at :func:`servo_full_scale_Nm` (20 N m for ``models/elbow.xml``). It holds the
+    Arm26 forearm against gravity with 2-5 N m, above an AX-12's 1.5 N m stall torque, so
+    its load word spans its own range (what the virtual AX-12 of the runtime sends too)."""
+    model = load_model() if model is None else model
+    return LoadParams(max_torque_Nm=servo_full_scale_Nm(model),
+                      noise_counts=AX12_LOAD.noise_counts, invalid_rate=AX12_LOAD.invalid_rate)
 
 
 def triangle_deg(t_s: np.ndarray, low_deg: float = 20.0, high_deg: float = 110.0,

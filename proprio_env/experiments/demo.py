@@ -10,7 +10,8 @@ simulated load word of the servo's joint torque, MuJoCo's actuator force) goes i
 chain, which turns it into BRA and TRImed tendon forces and their Golgi tendon organs' Ib.
 The bundled servo holds the Arm26 forearm against gravity with up to ~5 N m, above an
 AX-12's 1.5 N m stall torque, so the demo's load word spans the model servo's force range
-(:func:`demo_load_params`, 20 N m for 1023 counts) instead of saturating.
+(:func:`proprio_env.servo_motion.servo_load_params`, 20 N m for 1023 counts) instead of
+saturating.
 
 Beside it, at the same sample times, two noise-free chains run on the motion MuJoCo really
 made: one on the clean angle through the fitted lengths (reduced), one on MuJoCo's exact
@@ -26,23 +27,16 @@ from __future__ import annotations
 
 import csv
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from proprio_env.encoder import Encoder, LoadSensor
-from proprio_env.model import SERVO, load_model
-from proprio_env.servo_motion import drive_servo, triangle_deg
+from proprio_env.model import load_model
+from proprio_env.servo_motion import drive_servo, servo_load_params, triangle_deg
 from spindle.chain import MUSCLES, ChainConfig, ChainTrace, run_chain
-from spindle.chain.sensor import AX12_LOAD, Calibration, LoadParams
-
-
-def demo_load_params(model) -> LoadParams:
-    """The demo's load reading: the AX-12's word and noise, its full scale the model servo's
-    force range (N m), so the forearm's gravity torque does not saturate it."""
-    return replace(AX12_LOAD, max_torque_Nm=float(np.max(np.abs(
-        model.actuator_forcerange[model.actuator(SERVO).id]))))
+from spindle.chain.sensor import Calibration
 
 
 def run_chains(duration_s: float, seed: int) -> dict[str, object]:
@@ -55,7 +49,7 @@ def run_chains(duration_s: float, seed: int) -> dict[str, object]:
     t_s, counts = encoder.record(motion.t_s, motion.angle_deg)
     true_angle = np.interp(t_s, motion.t_s, motion.angle_deg)
     true_torque = np.interp(t_s, motion.t_s, motion.torque_Nm)
-    config = ChainConfig(load=demo_load_params(model))
+    config = ChainConfig(load=servo_load_params(model))
     sensor = LoadSensor(config.load, sign=config.calibration.sign,
                         rng=np.random.default_rng([seed, 1]))
     load = sensor.read_block(true_torque)

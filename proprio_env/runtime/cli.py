@@ -110,9 +110,15 @@ def main(argv: list[str] | None = None) -> int:
                 raise SystemExit("--source replay needs --replay FILE")
             source = ReplaySource(args.replay)
         stages = [SpindleStage()] + [load_factory(s) for s in args.stage]
+        config = None  # a real AX-12: its own load scale (AX12_LOAD)
+        if args.source in ("virtual", "simulated"):  # the model servo's torque range
+            from proprio_env.servo_motion import servo_load_params
+            from spindle.chain import ChainConfig
+
+            config = ChainConfig(load=servo_load_params())
         encoder = load_factory(args.pulse_encoder) if args.pulse_encoder else None
         sinks = [] if args.no_lsl else [LslSink(args.lsl_name)]
-        runtime = Runtime(source, rate_hz=args.rate, backend=args.backend,
+        runtime = Runtime(source, rate_hz=args.rate, backend=args.backend, config=config,
                           stages=stages, pulse_encoder=encoder, sinks=sinks,
                           log=CsvLog(args.log) if args.log else None,
                           status=None if args.quiet else StatusLine(),
