@@ -16,21 +16,28 @@ invalid readings (:class:`proprio_env.encoder.Encoder`). Mostly encoder counts
 - corrupted times: repeated, backwards, NaN, +-inf, 1e9, 1e9 s ahead, 1e308, the Python int
   10**400, 1e-9 s after the last one;
 - corrupted values: NaN, +-inf, spikes inside the valid range, out-of-range and non-integer
-  readings, the Python int 10**400; for angles and lengths the same classes.
+  readings, the Python int 10**400; for angles and lengths the same classes;
+- the servo's load word (the force sense: every counts sample carries one, the simulated
+  AX-12 load reading of a smooth servo torque with its own rare invalid words,
+  :class:`proprio_env.encoder.LoadSensor`): a run of invalid words (the dropout code -1,
+  NaN, +-inf, words above 2047, fractions, negatives, 10**400, complex numbers) on samples
+  whose angle is good (``load_invalid``), or a run pushed with no load at all
+  (``load_missing``).
 
 A fault is pushed on its own (single push) or inside a block of clean samples
 (``push_*_block``), each half the time; clean runs go in blocks of 1-64 samples, a quarter of
 them sample by sample. Both backends get exactly the same calls.
 
 Checks (:class:`SoakReport`): every counter delta equal between the backends after every
-call; every returned output finite, with Ia and II in [0, :data:`RATE_BOUND_PPS`] and
-lengths in :data:`spindle.core.LENGTH_RANGE_L0`; the max |numpy - C| of the rates below
-:data:`RATE_DIFF_LIMIT_PPS`; no push raises; no single call runs longer than
-``max_call_s``; never stuck: after each fault, of the clean samples that follow (valid time
-and value, which every rule accepts) until the next fault or :data:`RECOVERY_WINDOW` of them,
-at most ``resync_after_samples - 1`` are rejected (the clock-resync rule's cost after a
-corrupt time far ahead; every other fault costs none); resident memory flat (growth from
-10 % to 100 % of the run below :data:`RSS_GROWTH_LIMIT_MB`).
+call; every returned output finite, with Ia, II and Ib in [0, :data:`RATE_BOUND_PPS`],
+tendon forces >= 0 and lengths in :data:`spindle.core.LENGTH_RANGE_L0`; the max |numpy - C|
+of Ia and II below :data:`RATE_DIFF_LIMIT_PPS` and of Ib below :data:`IB_DIFF_LIMIT_PPS`; no
+push raises; no single call runs longer than ``max_call_s``; never stuck: after each fault,
+of the clean samples that follow (valid time and value, which every rule accepts) until the
+next fault or :data:`RECOVERY_WINDOW` of them, at most ``resync_after_samples - 1`` are
+rejected (the clock-resync rule's cost after a corrupt time far ahead; every other fault
+costs none); resident memory flat (growth from 10 % to 100 % of the run below
+:data:`RSS_GROWTH_LIMIT_MB`).
 
 A backend that raises is left as it is for the next calls (so a chain that stays broken
 shows as ``stuck``); after :data:`STUCK_AFTER` failing calls in a row, or a call stopped by
@@ -53,7 +60,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from proprio_env.encoder import Encoder
+from proprio_env.encoder import Encoder, LoadSensor
 from spindle import core
 from spindle.chain import BACKENDS, COUNTERS, ArmChain, ArmSample, ChainConfig, make_chain
 from spindle.chain.length_model import LengthFits
@@ -65,6 +72,8 @@ RATE_BOUND_PPS = 1000.0
 failures were 10^3-10^6 pps)."""
 RATE_DIFF_LIMIT_PPS = 1e-6
 """Largest accepted |numpy - C| of a rate (pps); the backends agree to ~1e-12 pps."""
+IB_DIFF_LIMIT_PPS = 1e-9
+"""Largest accepted |numpy - C| of an Ib rate (pps; issue 24's target)."""
 RSS_GROWTH_LIMIT_MB = 20.0
 """Largest accepted growth of resident memory between 10 % and 100 % of the run (MB)."""
 RECOVERY_WINDOW = 50
@@ -81,13 +90,16 @@ FAULTS = (
     "time_repeat", "time_backwards", "time_nan", "time_inf", "time_neg_inf", "time_1e9",
     "time_jump_1e9", "time_1e308", "time_pyint", "time_tiny_step",
     "value_nan", "value_inf", "value_neg_inf", "value_spike", "value_out_of_range",
-    "value_non_integer", "value_pyint",
+    "value_non_integer", "value_pyint", "load_invalid", "load_missing",
 )
 """Names of the injected faults (``dropout_*`` is labelled by the motion at its start)."""
-_FAULT_WEIGHTS = {"dropout": 0.34, "clock_jump": 0.02, "dead_encoder": 0.04, "time": 0.3,
-                  "value": 0.3}
+_FAULT_WEIGHTS = {"dropout": 0.3, "clock_jump": 0.02, "dead_encoder": 0.04, "time": 0.27,
+                  "value": 0.27, "load": 0.1}
 _TIME_FAULTS = tuple(f for f in FAULTS if f.startswith("time_"))
 _VALUE_FAULTS = tuple(f for f in FAULTS if f.startswith("value_"))
+_LOAD_FAULTS = tuple(f for f in FAULTS if f.startswith("load_"))
+_BAD_LOAD_WORDS = (-1, math.nan, math.inf, -math.inf, 2048, 4095, 65535, 3.5, -3, 10**400,
+                   complex(5.0, 1.0))
 ENTRIES = ("counts", "angle", "lengths")
 
 
@@ -102,6 +114,7 @@ class Segment:
         true_t_s, true_angle_deg: the real clock and elbow angle of each sample.
         single: push sample by sample instead of one block call.
         fault: the injected fault's name ("" for a clean run).
+        loads: the load word beside each sample (counts only; None: pushed without load).
     """
 
     entry: str
@@ -112,6 +125,7 @@ class Segment:
     true_angle_deg: list[float]
     single: bool
     fault: str = ""
+    loads: list | None = None
 
 
 class ServoMotion:
@@ -175,6 +189,8 @@ def fault_stream(rng: np.random.Generator, n_samples: int, fits: LengthFits,
             entry = str(rng.choice(ENTRIES, p=[0.8, 0.1, 0.1]))
             run_left = int(rng.integers(100, 1500))
         fault = _draw_fault(rng, fault_probability)
+        if fault in _LOAD_FAULTS and entry != "counts":
+            fault = ""  # only encoder samples carry a load word
         stream.start_segment()
         if not fault:
             stream.add_clean(entry, int(rng.integers(1, 65)))
@@ -184,14 +200,17 @@ def fault_stream(rng: np.random.Generator, n_samples: int, fits: LengthFits,
         ts, values = stream.ts, stream.values
         if any(isinstance(x, int) and abs(x) > 2**53 for x in ts + _flat(values)):
             single = True  # a Python int beyond float cannot go into a float block
-        if any(isinstance(v, complex) for v in _flat(values)):
+        if any(isinstance(v, complex) for v in _flat(values) + stream.loads):
+            single = True
+        if any(isinstance(x, int) and abs(x) > 2**53 for x in stream.loads):
             single = True
         if entry == "lengths" and any(len(v) != 2 for v in values):
             single = True
         done += len(ts)
         run_left -= len(ts)
+        loads = stream.loads if entry == "counts" and fault != "load_missing" else None
         yield Segment(entry, ts, values, stream.clean, stream.true_t, stream.true_a, single,
-                      fault)
+                      fault, loads)
 
 
 def _draw_fault(rng: np.random.Generator, fault_probability: float) -> str:
@@ -203,6 +222,8 @@ def _draw_fault(rng: np.random.Generator, fault_probability: float) -> str:
         return str(rng.choice(_TIME_FAULTS))
     if fault == "value":
         return str(rng.choice(_VALUE_FAULTS))
+    if fault == "load":
+        return str(rng.choice(_LOAD_FAULTS))
     return fault
 
 
@@ -214,6 +235,7 @@ class _StreamWriter:
         self.rng = rng
         self.fits = fits
         self.encoder = Encoder(AX12, Calibration(), rng=rng)
+        self.load_sensor = LoadSensor(rng=rng)
         self.motion = ServoMotion(rng)
         self.clock = 0.0   # the true time of the last sample delivered
         self.last_t = 0.0  # the last time pushed (a corrupted one included)
@@ -221,11 +243,14 @@ class _StreamWriter:
 
     def start_segment(self) -> None:
         self.ts, self.values, self.clean, self.true_t, self.true_a = [], [], [], [], []
+        self.loads: list = []
 
     def add(self, t: object, value: object, ok: bool, t_true: float, a_true: float) -> None:
         for column, item in zip((self.ts, self.values, self.clean, self.true_t, self.true_a),
                                 (t, value, ok, t_true, a_true), strict=True):
             column.append(item)
+        torque = np.array([servo_torque_Nm(t_true)])
+        self.loads.append(float(self.load_sensor.read_block(torque)[0]))
         if ok:
             self.last_t = t_true
 
@@ -262,6 +287,12 @@ class _StreamWriter:
                 t, a = self.sample()
                 dead = {"counts": -1, "angle": math.nan}.get(entry, [math.nan] * 2)
                 self.add(t, dead, False, t, a)
+        elif fault == "load_invalid":
+            for _ in range(int(rng.integers(1, 30))):
+                self.add_clean(entry, 1)
+                self.loads[-1] = _BAD_LOAD_WORDS[int(rng.integers(len(_BAD_LOAD_WORDS)))]
+        elif fault == "load_missing":
+            self.add_clean(entry, int(rng.integers(1, 30)))
         elif fault.startswith("time_"):
             t, a = self.sample()
             bad_t = self.corrupt_time(fault, t)
@@ -334,6 +365,12 @@ class _StreamWriter:
                 "time_pyint": 10**400, "time_tiny_step": last_t + 1e-9}[fault]
 
 
+def servo_torque_Nm(t_s: float) -> float:
+    """The servo's joint torque the load words read (N m): a smooth load within the AX-12's
+    1.5 N m, flexion and extension."""
+    return 0.8 * math.sin(2 * math.pi * 0.5 * t_s) + 0.3 * math.sin(2 * math.pi * 2.3 * t_s)
+
+
 def _flat(values: list) -> list:
     return [x for v in values for x in (v if isinstance(v, list) else [v])]
 
@@ -394,10 +431,12 @@ class SoakReport:
     counter_mismatches: int = 0
     first_mismatch: str = ""
     max_rate_diff_pps: float = 0.0
+    max_ib_diff_pps: float = 0.0
     compared_outputs: int = 0
     nonfinite: Counter = field(default_factory=Counter)
     out_of_bounds: Counter = field(default_factory=Counter)
     max_rate_pps: dict[str, float] = field(default_factory=lambda: dict.fromkeys(BACKENDS, 0.0))
+    max_ib_pps: dict[str, float] = field(default_factory=lambda: dict.fromkeys(BACKENDS, 0.0))
     errors: Counter = field(default_factory=Counter)
     error_examples: dict[tuple, str] = field(default_factory=dict)
     stuck: Counter = field(default_factory=Counter)
@@ -437,11 +476,15 @@ class SoakReport:
         if sum(self.nonfinite.values()):
             out.append(f"non-finite outputs: {dict(self.nonfinite)}")
         if sum(self.out_of_bounds.values()):
-            out.append(f"outputs out of bounds (Ia/II in [0, {RATE_BOUND_PPS:g}] pps, "
-                       f"lengths in {core.LENGTH_RANGE_L0} L0): {dict(self.out_of_bounds)}")
+            out.append(f"outputs out of bounds (Ia/II/Ib in [0, {RATE_BOUND_PPS:g}] pps, "
+                       f"forces >= 0, lengths in {core.LENGTH_RANGE_L0} L0): "
+                       f"{dict(self.out_of_bounds)}")
         if not self.max_rate_diff_pps <= RATE_DIFF_LIMIT_PPS:
             out.append(f"max |numpy - C| rate {self.max_rate_diff_pps:.3g} pps > "
                        f"{RATE_DIFF_LIMIT_PPS:g}")
+        if not self.max_ib_diff_pps <= IB_DIFF_LIMIT_PPS:
+            out.append(f"max |numpy - C| Ib {self.max_ib_diff_pps:.3g} pps > "
+                       f"{IB_DIFF_LIMIT_PPS:g}")
         if sum(self.errors.values()):
             out.append(f"pushes raised: {dict(self.errors)}")
         if sum(self.timeouts.values()):
@@ -471,6 +514,7 @@ class SoakReport:
                             {b: f"{self.max_call_s[b]:.3f}" for b in BACKENDS}),
                            ("max Ia/II (pps)", {b: f"{self.max_rate_pps[b]:.1f}"
                                                 for b in BACKENDS}),
+                           ("max Ib (pps)", {b: f"{self.max_ib_pps[b]:.1f}" for b in BACKENDS}),
                            ("non-finite outputs", self.nonfinite),
                            ("out-of-bounds outputs", self.out_of_bounds),
                            ("pushes raised", {b: sum(n for (bb, *_), n in self.errors.items()
@@ -482,7 +526,7 @@ class SoakReport:
         lines.insert(1, "  ".join("-" * w for w in width))
         lines += ["", f"samples {self.samples}, calls {self.calls}, outputs compared "
                       f"{self.compared_outputs}, max |numpy - C| {self.max_rate_diff_pps:.3g} "
-                      f"pps, resyncs {self.resyncs}",
+                      f"pps (Ib {self.max_ib_diff_pps:.3g} pps), resyncs {self.resyncs}",
                   f"RSS at 10 % {self.rss_10_MB:.1f} MB, at 100 % {self.rss_end_MB:.1f} MB, "
                   f"peak {self.peak_rss_MB:.1f} MB",
                   "faults (count, most clean samples rejected after one): " + ", ".join(
@@ -496,6 +540,7 @@ class SoakReport:
     def last_line(self) -> str:
         return (f"fault_soak samples={self.samples} counters_equal={self.counters_equal} "
                 f"max_rate_diff_pps={self.max_rate_diff_pps:.3g} "
+                f"max_ib_diff_pps={self.max_ib_diff_pps:.3g} "
                 f"rss_growth_MB={self.rss_growth_MB:.1f} "
                 f"nonfinite={sum(self.nonfinite.values())} "
                 f"out_of_bounds={sum(self.out_of_bounds.values())} "
@@ -506,6 +551,13 @@ class SoakReport:
 def _push(chain: ArmChain, seg: Segment) -> list[ArmSample]:
     """The outputs a call returns: each sample's for single pushes, the last for a block."""
     push = getattr(chain, f"push_{seg.entry}")
+    if seg.loads is not None:  # counts with their load words
+        if seg.single:
+            return [push(t, v, w) for t, v, w in zip(seg.t_s, seg.values, seg.loads,
+                                                     strict=True)]
+        return [chain.push_counts_block(np.array(seg.t_s, dtype=float),
+                                        np.array(seg.values, dtype=float),
+                                        load=np.array(seg.loads, dtype=float))]
     if seg.single:
         return [push(t, v) for t, v in zip(seg.t_s, seg.values, strict=True)]
     block = getattr(chain, f"push_{seg.entry}_block")
@@ -517,15 +569,17 @@ def _check_output(s: ArmSample, backend: str, report: SoakReport) -> None:
                              for f in ("t_s", "counts", "counts_filtered", "angle_deg",
                                        "length_L0", "velocity_L0_s", "acceleration_L0_s2",
                                        "template_L0", "gamma_static_pps", "gamma_dynamic_pps",
-                                       "ia_pps", "ii_pps")])
+                                       "ia_pps", "ii_pps", "torque_Nm", "force_N", "ib_pps")])
     if not np.all(np.isfinite(values)):
         report.nonfinite[backend] += 1
         return
-    rates = np.concatenate([s.ia_pps, s.ii_pps])
+    rates = np.concatenate([s.ia_pps, s.ii_pps, s.ib_pps])
     lo, hi = core.LENGTH_RANGE_L0
-    report.max_rate_pps[backend] = max(report.max_rate_pps[backend], float(rates.max()))
+    report.max_rate_pps[backend] = max(report.max_rate_pps[backend],
+                                       float(max(s.ia_pps.max(), s.ii_pps.max())))
+    report.max_ib_pps[backend] = max(report.max_ib_pps[backend], float(s.ib_pps.max()))
     if (rates.min() < 0 or rates.max() > RATE_BOUND_PPS or s.length_L0.min() < lo
-            or s.length_L0.max() > hi):
+            or s.length_L0.max() > hi or s.force_N.min() < 0):
         report.out_of_bounds[backend] += 1
 
 
@@ -640,6 +694,9 @@ def _compare_backends(report: SoakReport, seg: Segment, outputs, deltas) -> None
                        float(np.max(np.abs(sn.ii_pps - sc.ii_pps))))
             report.max_rate_diff_pps = max(report.max_rate_diff_pps,
                                            diff if math.isfinite(diff) else math.inf)
+            ib = float(np.max(np.abs(sn.ib_pps - sc.ib_pps)))
+            report.max_ib_diff_pps = max(report.max_ib_diff_pps,
+                                         ib if math.isfinite(ib) else math.inf)
             report.compared_outputs += 1
 
 

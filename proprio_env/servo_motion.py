@@ -15,6 +15,7 @@ import numpy as np
 
 from proprio_env.model import JOINT, MUSCLES, SERVO, load_model
 from proprio_env.muscle_length import fibre_state, muscle_geometry
+from spindle.chain.sensor import AX12_LOAD, LoadParams
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,8 @@ class ServoMotion:
         angle_deg: the elbow angle reached (deg).
         length_L0: (T, 2) exact normalised fibre lengths, BRA and TRImed.
         velocity_L0_s: (T, 2) their time derivatives.
+        torque_Nm: the servo's joint torque (N m, flexion positive): MuJoCo's actuator force
+            of the position servo (gear 1 on the hinge), what its load reading reports.
     """
 
     t_s: np.ndarray
@@ -34,6 +37,22 @@ class ServoMotion:
     angle_deg: np.ndarray
     length_L0: np.ndarray
     velocity_L0_s: np.ndarray
+    torque_Nm: np.ndarray
+
+
+def servo_full_scale_Nm(model) -> float:
+    """The torque the model's position servo can exert (N m): its force range."""
+    return float(np.max(np.abs(model.actuator_forcerange[model.actuator(SERVO).id])))
+
+
+def servo_load_params(model=None) -> LoadParams:
+    """The load reading of the model's servo: the AX-12's word and noise, full scale
+    (1023) at :func:`servo_full_scale_Nm` (20 N m for ``models/elbow.xml``). It holds the
+    Arm26 forearm against gravity with 2-5 N m, above an AX-12's 1.5 N m stall torque, so
+    its load word spans its own range (what the virtual AX-12 of the runtime sends too)."""
+    model = load_model() if model is None else model
+    return LoadParams(max_torque_Nm=servo_full_scale_Nm(model),
+                      noise_counts=AX12_LOAD.noise_counts, invalid_rate=AX12_LOAD.invalid_rate)
 
 
 def triangle_deg(t_s: np.ndarray, low_deg: float = 20.0, high_deg: float = 110.0,
@@ -82,11 +101,13 @@ def drive_servo(command_deg: np.ndarray, model=None) -> ServoMotion:
     servo = model.actuator(SERVO).id
     geoms = tuple(muscle_geometry(model, m) for m in MUSCLES)
     data.qpos[qadr] = math.radians(command[0])
+    data.ctrl[servo] = math.radians(command[0])  # (the first row's torque holds the arm there)
     mujoco.mj_forward(model, data)
     n = command.size
     angle = np.empty(n)
     length = np.empty((n, 2))
     velocity = np.empty((n, 2))
+    torque = np.empty(n)
     for i in range(n):
         if i:
             data.ctrl[servo] = math.radians(command[i])
@@ -94,5 +115,6 @@ def drive_servo(command_deg: np.ndarray, model=None) -> ServoMotion:
             mujoco.mj_forward(model, data)
         angle[i] = math.degrees(data.qpos[qadr])
         length[i], velocity[i] = fibre_state(model, data, geoms)
+        torque[i] = data.actuator_force[servo]
     t = np.arange(n) * model.opt.timestep
-    return ServoMotion(t, command, angle, length, velocity)
+    return ServoMotion(t, command, angle, length, velocity, torque)

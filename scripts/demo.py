@@ -1,4 +1,4 @@
-"""The whole chain on the bundled elbow: servo motion -> encoder -> ... -> Ia, II (the main job).
+"""The whole chain on the bundled elbow: servo motion -> encoder, load -> Ia, II, Ib (the main job).
 
     python scripts/demo.py [--out DIR] [--duration S] [--seed N]
 

@@ -6,10 +6,11 @@
     python scripts/fault_soak.py --samples 0 --wrapper-steps 5000   # the wrappers only
 
 The stream, the faults and the checks are those of :mod:`proprio_env.fault_injection` (servo
-moves read by a noisy AX-12 encoder; dropouts from one sample to minutes, clock jumps,
-corrupted times and readings). Prints a summary table, then a last line
-``fault_soak samples=<n> counters_equal=<bool> max_rate_diff_pps=<f> rss_growth_MB=<f>
-nonfinite=<n> ...``; exits 1 if any check fails.
+moves read by a noisy AX-12 encoder, with the servo's load word beside each reading;
+dropouts from one sample to minutes, clock jumps, corrupted times, readings and load words,
+readings without load). Prints a summary table, then a last line
+``fault_soak samples=<n> counters_equal=<bool> max_rate_diff_pps=<f> max_ib_diff_pps=<f>
+rss_growth_MB=<f> nonfinite=<n> ...``; exits 1 if any check fails.
 
 Then the wrapper section (:mod:`proprio_env.wrapper_fault_injection`): ``--wrapper-steps``
 wrapped steps per target (single, single lagged, vector with SAME_STEP autoreset) and backend,

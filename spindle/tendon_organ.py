@@ -82,6 +82,7 @@ __all__ = [
     "log_stage",
     "make_tendon_organs",
     "plan",
+    "plan_steps",
     "rate_pps",
     "simulate",
     "state_space",
@@ -106,22 +107,27 @@ TAYLOR_TERMS = 20
 
 
 def expm_taylor(M: np.ndarray) -> np.ndarray:
-    """e^M of a small square matrix: scaled by 2^-s to 1-norm <= 1/2, a Taylor series, s
-    squarings. (``ps_gto_plan_init`` in C runs the same steps in the same order.)"""
-    norm = float(np.max(np.sum(np.abs(M), axis=0)))
-    s = 0
-    while norm > 0.5:
-        norm *= 0.5
-        s += 1
-    X = M / float(2**s)
-    E = np.eye(M.shape[0])
-    term = np.eye(M.shape[0])
+    """e^M of a small square matrix, or of each of a stack (..., m, m): scaled by 2^-s to
+    1-norm <= 1/2 (s per matrix), a Taylor series, s squarings. (``ps_gto_plan_init`` in C
+    runs the same steps in the same order.)"""
+    M = np.asarray(M, dtype=np.float64)
+    m = M.shape[-1]
+    stack = M.reshape(-1, m, m)
+    norm = np.max(np.sum(np.abs(stack), axis=1), axis=1)
+    s = np.zeros(norm.shape, dtype=np.int64)
+    while (norm > 0.5).any():
+        big = norm > 0.5
+        norm = np.where(big, norm * 0.5, norm)
+        s += big
+    X = stack / (2.0 ** s)[:, None, None]
+    E = np.broadcast_to(np.eye(m), stack.shape).copy()
+    term = E.copy()
     for k in range(1, TAYLOR_TERMS + 1):
         term = (term @ X) / k
         E = E + term
-    for _ in range(s):
-        E = E @ E
-    return E
+    for q in range(int(s.max(initial=0))):
+        E = np.where((q < s)[:, None, None], E @ E, E)
+    return E.reshape(M.shape)
 
 
 @dataclass(frozen=True)
@@ -130,7 +136,7 @@ class TendonOrganPlan:
     y = c z. Made by :func:`plan`; read-only."""
 
     params: TendonOrganParams
-    dt_s: float
+    dt_s: float | np.ndarray
     phi: np.ndarray
     g0: np.ndarray
     g1: np.ndarray
@@ -144,16 +150,39 @@ def plan(params: TendonOrganParams = HUMAN, dt_s: float = 1e-3) -> TendonOrganPl
 
 @lru_cache(maxsize=64)
 def _plan(params: TendonOrganParams, h: float) -> TendonOrganPlan:
-    A, B, C = state_space(params)
-    M = np.zeros((5, 5))
-    M[:3, :3] = A * h
-    M[:3, 3] = B * h
-    M[3, 4] = 1.0
-    E = expm_taylor(M)
-    arrays = [E[:3, :3].copy(), E[:3, 3].copy(), E[:3, 4].copy(), C]
+    phi, g0, g1, c = _plan_arrays(params, np.array([h]))
+    arrays = [phi[0], g0[0], g1[0], c]
     for a in arrays:
         a.setflags(write=False)
     return TendonOrganPlan(params, h, *arrays)
+
+
+def _plan_arrays(params: TendonOrganParams, h: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(phi (m, 3, 3), g0 (m, 3), g1 (m, 3), c (3,)) of the exact step for each of m steps
+    ``h`` (s): one matrix exponential of the augmented 5 x 5 system per step."""
+    A, B, C = state_space(params)
+    M = np.zeros((h.shape[0], 5, 5))
+    M[:, :3, :3] = A * h[:, None, None]
+    M[:, :3, 3] = B * h[:, None]
+    M[:, 3, 4] = 1.0
+    E = expm_taylor(M)
+    return E[:, :3, :3].copy(), E[:, :3, 3].copy(), E[:, :3, 4].copy(), C
+
+
+def plan_steps(params: TendonOrganParams, dt_s: np.ndarray) -> TendonOrganPlan:
+    """The exact step's constants for n organs, each its own step ``dt_s`` (n,) (s, every
+    one within :func:`check_step`'s limits; not cached): a plan whose ``phi`` is (n, 3, 3),
+    ``g0`` and ``g1`` (n, 3), which :func:`step` takes as one step per organ. Organs
+    sharing one step get the cached :func:`plan` instead."""
+    h = np.asarray(dt_s, dtype=np.float64)
+    if h.ndim != 1 or not bool(np.all((h > 0) & (h <= MAX_STEP_S))):
+        raise ValueError(f"dt_s={dt_s!r} must be a 1-D array of steps in (0, {MAX_STEP_S}] s")
+    if bool((h == h[0]).all()):
+        return plan(params, float(h[0]))
+    steps, which = np.unique(h, return_inverse=True)  # one exponential per distinct step
+    phi, g0, g1, c = _plan_arrays(params, steps)
+    return TendonOrganPlan(params, h, phi[which], g0[which], g1[which], c)
 
 
 @dataclass
@@ -178,7 +207,7 @@ def _forces(force_N: object, n: int | None) -> np.ndarray:
     f = np.asarray(force_N, dtype=np.float64)
     if f.ndim > 1 or (n is not None and f.ndim == 1 and f.shape[0] != n):
         raise ValueError(f"force_N has shape {f.shape}; expected a scalar or ({n},)")
-    f = np.broadcast_to(f, (n if n is not None else max(f.size, 1),))
+    f = np.broadcast_to(f, (n if n is not None else (f.size if f.ndim == 1 else 1),))
     bad = ~np.isfinite(f)
     if bad.any():
         raise ValueError(f"force_N={f[bad][0]!r} is not finite (muscle {int(np.argmax(bad))})")
@@ -244,7 +273,8 @@ def ln_cosh(d: np.ndarray) -> np.ndarray:
 def step(state: TendonOrganState, force_N: object, force_scale_N: object,
          step_plan: TendonOrganPlan) -> np.ndarray:
     """Advance ``state`` in place by ``step_plan.dt_s`` to tendon force ``force_N`` (N) at the
-    step's end; returns Ib (pps, (n,)) there. Inputs are checked first (module rules)."""
+    step's end; returns Ib (pps, (n,)) there. Inputs are checked first (module rules). A plan
+    of :func:`plan_steps` with one step per organ steps each organ by its own."""
     n = state.n
     f1 = np.maximum(_forces(force_N, n), 0.0)
     g = _scales(force_scale_N, n)
@@ -252,9 +282,14 @@ def step(state: TendonOrganState, force_N: object, force_scale_N: object,
     r0 = state.r_pps
     r1 = gain * np.log1p(f1 / g)
     alpha = r0 + (2.0 * gain / 3.0) * ln_cosh((r1 - r0) * (0.5 / gain))
-    z = step_plan.phi @ state.z
-    z += step_plan.g0[:, None] * alpha
-    z += step_plan.g1[:, None] * (r1 - r0)
+    if step_plan.phi.ndim == 3:  # one step per organ
+        z = np.einsum("nij,jn->in", step_plan.phi, state.z)
+        z += step_plan.g0.T * alpha
+        z += step_plan.g1.T * (r1 - r0)
+    else:
+        z = step_plan.phi @ state.z
+        z += step_plan.g0[:, None] * alpha
+        z += step_plan.g1[:, None] * (r1 - r0)
     state.z[...] = z
     state.force_N[...] = f1
     state.r_pps[...] = r1

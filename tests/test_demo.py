@@ -38,6 +38,16 @@ def test_demo_runs_the_chain_and_writes_a_figure_and_finite_signals(tmp_path):
         gs = col[f"{muscle}_gamma_static_pps"]
         assert gs.min() >= 20 and gs.max() <= 150
         assert set(np.unique(col[f"{muscle}_gamma_dynamic_pps"])) == {0.0, 100.0}
+    # the force sense: the load word's torque follows MuJoCo's servo torque to its resolution
+    # and noise (20 N m / 1023 counts, 3 counts: measured 0.06 N m RMS), Ib finite, >= 0
+    for name in ("load_counts", "torque_Nm", "true_torque_Nm", "BRA_force_N", "TRImed_force_N",
+                 "BRA_ib_pps", "TRImed_ib_pps"):
+        assert name in col, name
+    valid = (col["load_counts"] >= 0) & (col["load_counts"] <= 2047)
+    assert np.sqrt(np.mean((col["torque_Nm"] - col["true_torque_Nm"])[valid] ** 2)) < 0.1
+    assert col["BRA_ib_pps"].min() >= 0 and col["TRImed_ib_pps"].min() >= 0
+    # the servo holds the forearm against gravity: a flexion torque on BRA, tens of pps
+    assert np.median(col["torque_Nm"]) > 0.5 and 10 < np.median(col["BRA_ib_pps"]) < 100
     # the exact (MuJoCo lengths) and reduced (fits) chains agree to a fraction of a pps
     diffs = [float(x) for x in re.findall(r"exact vs reduced RMS Ia ([0-9.]+)", run.stdout)]
     assert len(diffs) == 2 and max(diffs) < 0.5

@@ -13,8 +13,9 @@ from work_bounds import count_each_call
 
 from proprio_env import fault_injection as fi
 from spindle.chain import BACKENDS, COUNTERS, ArmChain, ChainConfig, make_chain
+from spindle.chain.config import real_array
 from spindle.chain.length_model import load_length_fits
-from spindle.chain.sensor import is_valid_reading
+from spindle.chain.sensor import is_valid_reading, valid_load_words
 
 
 def _stream(seed: int, n: int, p: float = 0.5) -> list[fi.Segment]:
@@ -24,7 +25,7 @@ def _stream(seed: int, n: int, p: float = 0.5) -> list[fi.Segment]:
 def test_stream_is_seeded_and_holds_the_documented_faults():
     assert repr(_stream(2, 1_000)) == repr(_stream(2, 1_000))
     assert repr(_stream(2, 1_000)) != repr(_stream(3, 1_000))
-    segs = _stream(3, 8_000, 0.8)  # a seed whose 8000 samples hold every entry and fault
+    segs = _stream(4, 8_000, 0.8)  # a seed whose 8000 samples hold every entry and fault
     assert 8_000 <= sum(len(s.t_s) for s in segs) < 10_000
     assert set(Counter(s.fault for s in segs)) == {"", *fi.FAULTS}
     assert {s.entry for s in segs} == set(fi.ENTRIES)
@@ -37,6 +38,12 @@ def test_stream_is_seeded_and_holds_the_documented_faults():
         for v, ok in zip(s.values, s.clean, strict=True):
             if ok and s.entry == "counts":
                 assert is_valid_reading(v)
+        # the load words: every counts sample carries one unless the run is load_missing
+        assert (s.loads is None) == (s.entry != "counts" or s.fault == "load_missing")
+        if s.fault == "load_invalid":
+            assert not all(valid_load_words(real_array(s.loads)))
+    words = np.array([w for s in segs if s.loads and not s.fault for w in s.loads])
+    assert np.mean(valid_load_words(words)) > 0.99 and np.ptp(words[words < 1024]) > 300
     # Dropouts: one sample to minutes, moving ones during a movement.
     gaps = {"dropout_moving": [], "dropout_rest": []}
     angles = np.array([a for s in segs for a in s.true_angle_deg])
@@ -50,7 +57,8 @@ def test_stream_is_seeded_and_holds_the_documented_faults():
 
 
 class _Broken(ArmChain):
-    """The numpy chain with one bug: every 40th push reports an NaN Ia and counts nothing."""
+    """The numpy chain with one bug: every 10th push (block pushes included) reports an NaN
+    Ia and counts nothing."""
 
     pushes = 0
     lost = 0
@@ -63,13 +71,16 @@ class _Broken(ArmChain):
 
     def _broken(self, out):
         self.pushes += 1
-        if self.pushes % 40 == 0:
+        if self.pushes % 10 == 0:
             self.lost += 1
             out.ia_pps[0] = math.nan
         return out
 
-    def push_counts(self, t_s, counts):
-        return self._broken(super().push_counts(t_s, counts))
+    def push_counts(self, t_s, counts, load=None):
+        return self._broken(super().push_counts(t_s, counts, load))
+
+    def _block(self, *args):  # every block push
+        return self._broken(super()._block(*args))
 
     def push_angle(self, t_s, angle_deg):
         return self._broken(super().push_angle(t_s, angle_deg))
@@ -113,6 +124,10 @@ def test_quick_soak_passes_on_both_backends():
     assert set(report.counters["c"]) <= set(COUNTERS)
     assert report.counters["c"]["accepted"] > 1000
     assert report.max_rate_pps["c"] > 10.0  # the spindles fire
+    assert report.max_ib_pps["c"] > 10.0  # the tendon organs too
+    assert report.faults["load_invalid"] > 0 and report.faults["load_missing"] > 0
+    assert report.counters["c"]["invalid_load"] > 10 and report.counters["c"]["missing_load"] > 0
+    assert report.max_ib_diff_pps <= fi.IB_DIFF_LIMIT_PPS  # (measured 1e-14)
     assert report.failures == []
     assert report.last_line().startswith(f"fault_soak samples={report.samples} "
                                           "counters_equal=True")

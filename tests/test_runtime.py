@@ -48,10 +48,15 @@ def assert_equals_offline_chain(log, backend):
     read = [r for r in log if r["status"] in READ]
     t = np.array([float(r["t_s"]) for r in read])
     counts = np.array([float(r["counts"]) for r in read])
-    trace = run_chain(t, counts=counts, config=ChainConfig(backend=backend))
+    load = np.array([float(r["load_raw"]) for r in read])
+    trace = run_chain(t, counts=counts, load=load, config=ChainConfig(backend=backend))
     live = [i for i, r in enumerate(read) if r["status"] != "before_start"]
     assert live, "the chain never started"
-    for name in ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps", "length_L0"):
+    logged_torque = np.array([float(read[i]["torque_Nm"]) for i in live])
+    assert np.array_equal(logged_torque, trace.torque_Nm[live])
+    assert np.ptp(logged_torque) > 0.05  # the load moved, and the tendon organs with it
+    for name in ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps", "length_L0",
+                 "force_N", "ib_pps"):
         for k, m in enumerate(MUSCLES):
             logged = np.array([float(read[i][f"{m}_{name}"]) for i in live])
             assert np.array_equal(logged, getattr(trace, name)[live, k]), (name, m)

@@ -1,11 +1,17 @@
-"""The whole chain on the bundled elbow: servo motion -> encoder -> ... -> Ia, II (the main job).
+"""The whole chain on the bundled elbow: servo motion -> encoder, load -> Ia, II, Ib (the main job).
 
 As in the seed paper's Fig. 8: the MuJoCo elbow's position servo drives repeated rapid
 flexion-extension (~130 deg/s, 20-110 deg). A simulated AX-12 encoder reads the angle
 (~500 Hz, 0.29 deg counts, noise, jitter, rare glitches) and the prosthesis chain
 (``spindle.chain``: median filter, f(x), fitted lengths, low-pass, fusimotor template,
 gamma_s/gamma_d, HUMAN spindles) turns the readings into Ia and II of the brachialis (BRA)
-and the triceps medial head (TRImed).
+and the triceps medial head (TRImed). Beside each angle the servo's load reading (the
+simulated load word of the servo's joint torque, MuJoCo's actuator force) goes into the same
+chain, which turns it into BRA and TRImed tendon forces and their Golgi tendon organs' Ib.
+The bundled servo holds the Arm26 forearm against gravity with up to ~5 N m, above an
+AX-12's 1.5 N m stall torque, so the demo's load word spans the model servo's force range
+(:func:`proprio_env.servo_motion.servo_load_params`, 20 N m for 1023 counts) instead of
+saturating.
 
 Beside it, at the same sample times, two noise-free chains run on the motion MuJoCo really
 made: one on the clean angle through the fitted lengths (reduced), one on MuJoCo's exact
@@ -26,15 +32,15 @@ from pathlib import Path
 
 import numpy as np
 
-from proprio_env.encoder import Encoder
+from proprio_env.encoder import Encoder, LoadSensor
 from proprio_env.model import load_model
-from proprio_env.servo_motion import drive_servo, triangle_deg
-from spindle.chain import MUSCLES, ChainTrace, run_chain
+from proprio_env.servo_motion import drive_servo, servo_load_params, triangle_deg
+from spindle.chain import MUSCLES, ChainConfig, ChainTrace, run_chain
 from spindle.chain.sensor import Calibration
 
 
 def run_chains(duration_s: float, seed: int) -> dict[str, object]:
-    """The servo motion, the encoder readings and the three chains' traces."""
+    """The servo motion, the encoder and load readings and the three chains' traces."""
     model = load_model()
     t_phys = np.arange(0.0, duration_s, model.opt.timestep)
     motion = drive_servo(triangle_deg(t_phys), model)
@@ -42,12 +48,18 @@ def run_chains(duration_s: float, seed: int) -> dict[str, object]:
     encoder = Encoder(rng=seed)
     t_s, counts = encoder.record(motion.t_s, motion.angle_deg)
     true_angle = np.interp(t_s, motion.t_s, motion.angle_deg)
+    true_torque = np.interp(t_s, motion.t_s, motion.torque_Nm)
+    config = ChainConfig(load=servo_load_params(model))
+    sensor = LoadSensor(config.load, sign=config.calibration.sign,
+                        rng=np.random.default_rng([seed, 1]))
+    load = sensor.read_block(true_torque)
     exact_L = np.stack([np.interp(t_s, motion.t_s, motion.length_L0[:, k]) for k in range(2)],
                        axis=-1)
-    prosthesis = run_chain(t_s, counts=counts)
+    prosthesis = run_chain(t_s, counts=counts, load=load, config=config)
     reduced = run_chain(t_s, angle_deg=true_angle)
     exact = run_chain(t_s, length_L0=exact_L)
-    return {"t_s": t_s, "true_angle_deg": true_angle, "exact_length_L0": exact_L,
+    return {"t_s": t_s, "true_angle_deg": true_angle, "true_torque_Nm": true_torque,
+            "load_counts": load, "exact_length_L0": exact_L,
             "prosthesis": prosthesis, "reduced": reduced, "exact": exact}
 
 
@@ -56,8 +68,13 @@ def rms(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def write_csv(result: dict[str, object], path: Path) -> None:
-    cols = {"t_s": result["t_s"], "true_angle_deg": result["true_angle_deg"]}
-    cols.update({k: v for k, v in result["prosthesis"].columns().items() if k != "t_s"})
+    cols = {"t_s": result["t_s"], "true_angle_deg": result["true_angle_deg"],
+            "true_torque_Nm": result["true_torque_Nm"]}
+    for name, column in result["prosthesis"].columns().items():
+        if name != "t_s":
+            cols[name] = column
+        if name == "counts_filtered":
+            cols["load_counts"] = result["load_counts"]
     for name in ("reduced", "exact"):
         trace: ChainTrace = result[name]
         for k, muscle in enumerate(MUSCLES):
@@ -81,8 +98,8 @@ def plot(result: dict[str, object], path: Path) -> None:
     t = result["t_s"]
     cal = Calibration()
     raw_deg = np.where(pro.counts >= 0, cal.angle_deg(pro.counts), np.nan)
-    rows = ["encoder", "length", "gamma_s", "gamma_d", "ia", "ii"]
-    fig, axes = plt.subplots(len(rows), 2, figsize=(11, 12), sharex=True)
+    rows = ["encoder", "length", "gamma_s", "gamma_d", "ia", "ii", "torque", "force", "ib"]
+    fig, axes = plt.subplots(len(rows), 2, figsize=(11, 17), sharex=True)
     for k, muscle in enumerate(MUSCLES):
         ax = axes[0, k]
         ax.plot(t, raw_deg, ".", ms=1.5, color="0.6", label="encoder raw")
@@ -106,11 +123,20 @@ def plot(result: dict[str, object], path: Path) -> None:
             ax.plot(t, getattr(exact, field)[:, k], lw=0.8, ls="--", color="k",
                     label="exact lengths, clean")
             ax.set_ylabel(("Ia" if row == 4 else "II") + " (pps)")
+        ax = axes[6, k]
+        ax.plot(t, pro.torque_Nm, lw=1, label="from the load reading")
+        ax.plot(t, result["true_torque_Nm"], lw=0.8, ls="--", color="k",
+                label="MuJoCo servo torque")
+        ax.set_ylabel("joint torque (N m)")
+        axes[7, k].plot(t, pro.force_N[:, k], lw=1)
+        axes[7, k].set_ylabel("tendon force (N)")
+        axes[8, k].plot(t, pro.ib_pps[:, k], lw=1, color="C3")
+        axes[8, k].set_ylabel("Ib (pps)")
         axes[-1, k].set_xlabel("time (s)")
-    for row in (0, 1, 4):
+    for row in (0, 1, 4, 6):
         axes[row, 0].legend(fontsize=7, loc="upper right")
     fig.suptitle("Seed paper Fig. 8 protocol: servo-driven flexion-extension at ~130°/s, "
-                 "HUMAN spindles")
+                 "HUMAN spindles and tendon organs")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -129,6 +155,7 @@ class DemoNumbers:
     counters: dict[str, int]
     ia_range_pps: dict[str, tuple[float, float]]
     ii_range_pps: dict[str, tuple[float, float]]
+    ib_range_pps: dict[str, tuple[float, float]]
     exact_vs_reduced_rms_pps: dict[str, tuple[float, float]]
     """muscle -> (Ia, II)"""
     encoder_vs_clean_rms_pps: dict[str, tuple[float, float]]
@@ -143,8 +170,10 @@ class DemoNumbers:
             (ia_lo, ia_hi), (ii_lo, ii_hi) = self.ia_range_pps[muscle], self.ii_range_pps[muscle]
             ex_ia, ex_ii = self.exact_vs_reduced_rms_pps[muscle]
             enc_ia, enc_ii = self.encoder_vs_clean_rms_pps[muscle]
+            ib_lo, ib_hi = self.ib_range_pps[muscle]
             lines.append(f"{muscle:7s} Ia {ia_lo:5.1f}-{ia_hi:5.1f} pps, II {ii_lo:5.1f}-"
-                         f"{ii_hi:5.1f} pps | exact vs reduced RMS Ia {ex_ia:.3f}, II "
+                         f"{ii_hi:5.1f} pps, Ib {ib_lo:5.1f}-{ib_hi:5.1f} pps"
+                         f" | exact vs reduced RMS Ia {ex_ia:.3f}, II "
                          f"{ex_ii:.3f} pps | encoder vs clean RMS Ia {enc_ia:.2f}, II "
                          f"{enc_ii:.2f} pps")
         lines.append(f"wrote {self.out_dir / 'demo.png'} and "
@@ -179,6 +208,7 @@ def run(out_dir: Path, quick: bool = False, duration_s: float | None = None,
         {k: v for k, v in pro.counters.items() if v},
         {m: (pro.ia_pps[:, k].min(), pro.ia_pps[:, k].max()) for k, m in enumerate(MUSCLES)},
         {m: (pro.ii_pps[:, k].min(), pro.ii_pps[:, k].max()) for k, m in enumerate(MUSCLES)},
+        {m: (pro.ib_pps[:, k].min(), pro.ib_pps[:, k].max()) for k, m in enumerate(MUSCLES)},
         {m: (ex_ia[k], ex_ii[k]) for k, m in enumerate(MUSCLES)},
         {m: (enc_ia[k], enc_ii[k]) for k, m in enumerate(MUSCLES)},
     )

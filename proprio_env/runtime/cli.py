@@ -48,6 +48,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--rt-priority", type=int, default=None,
                     help="run the loop (and a virtual servo) under SCHED_FIFO at this "
                          "priority, 1-99 (needs root or CAP_SYS_NICE)")
+    ap.add_argument("--no-force-sense", action="store_true",
+                    help="push the angle alone, not the servo's load word (Ib stays at 0)")
     ap.add_argument("--quiet", action="store_true", help="no live status line")
     return ap
 
@@ -108,14 +110,21 @@ def main(argv: list[str] | None = None) -> int:
                 raise SystemExit("--source replay needs --replay FILE")
             source = ReplaySource(args.replay)
         stages = [SpindleStage()] + [load_factory(s) for s in args.stage]
+        config = None  # a real AX-12: its own load scale (AX12_LOAD)
+        if args.source in ("virtual", "simulated"):  # the model servo's torque range
+            from proprio_env.servo_motion import servo_load_params
+            from spindle.chain import ChainConfig
+
+            config = ChainConfig(load=servo_load_params())
         encoder = load_factory(args.pulse_encoder) if args.pulse_encoder else None
         sinks = [] if args.no_lsl else [LslSink(args.lsl_name)]
-        runtime = Runtime(source, rate_hz=args.rate, backend=args.backend,
+        runtime = Runtime(source, rate_hz=args.rate, backend=args.backend, config=config,
                           stages=stages, pulse_encoder=encoder, sinks=sinks,
                           log=CsvLog(args.log) if args.log else None,
                           status=None if args.quiet else StatusLine(),
                           duration_s=args.duration, info={"port": args.port},
-                          rt_priority=args.rt_priority)
+                          rt_priority=args.rt_priority,
+                          force_sense=not args.no_force_sense)
         summary = runtime.run()
     finally:
         if child is not None:

@@ -13,8 +13,11 @@ What happens to each reading (docs/runtime.md has the table):
   when it exceeds ``max_bridge_s`` (its documented rules, docs/faults.md);
 - the first valid reading resets the chain at rest at its angle (as
   :func:`spindle.chain.run_chain` starts); readings before it are logged ``before_start``;
-- every later reading is pushed (``push_counts``); the chain accepts it or rejects it
-  (out-of-range, repeated time...) by its rules and the output is published either way.
+- every later reading is pushed (``push_counts``) with the servo's load word beside it
+  (``force_sense``, on by default: the chain's Ib; a load that was not read, -1, is an
+  invalid word and the chain holds the last torque, counted ``invalid_load``); the chain
+  accepts it or rejects it (out-of-range, repeated time...) by its rules and the output is
+  published either way.
 """
 
 from __future__ import annotations
@@ -77,6 +80,8 @@ class Runtime:
         rt_priority: run the loop under ``SCHED_FIFO`` at this priority (1-99; needs
             CAP_SYS_NICE, e.g. root): other work on the machine then cannot delay a sample.
             ``None``: the normal scheduler. Refused by the system: ``PermissionError``.
+        force_sense: push each reading's load word into the chain (its tendon organs' Ib);
+            False pushes the angle alone (Ib stays at rest at zero force).
     """
 
     def __init__(self, source, *, rate_hz: float = 500.0, backend: str = DEFAULT_BACKEND,
@@ -84,7 +89,8 @@ class Runtime:
                  stages: Sequence[object] | None = None, pulse_encoder: object | None = None,
                  sinks: Sequence[object] = (), log: CsvLog | None = None,
                  status: StatusLine | None = None, duration_s: float | None = None,
-                 info: dict[str, str] | None = None, rt_priority: int | None = None) -> None:
+                 info: dict[str, str] | None = None, rt_priority: int | None = None,
+                 force_sense: bool = True) -> None:
         if not (isinstance(rate_hz, int | float) and math.isfinite(rate_hz)
                 and 0 < rate_hz <= 10_000):
             raise ValueError(f"rate_hz={rate_hz!r} must be a real number in (0, 10000]")
@@ -94,6 +100,7 @@ class Runtime:
                                             and 1 <= rt_priority <= 99):
             raise ValueError(f"rt_priority={rt_priority!r} must be an integer in 1..99")
         self.rt_priority = rt_priority
+        self.force_sense = bool(force_sense)
         stages = [SpindleStage()] if stages is None else list(stages)
         labels, units, self._widths = ["reading_index"], ["1"], []
         for stage in stages:
@@ -208,7 +215,7 @@ class Runtime:
         if reading.status != OK:
             c[reading.status] += 1
             return row
-        out = self._push(t_s, reading.counts)
+        out = self._push(t_s, reading.counts, reading.load_raw if self.force_sense else None)
         if out is None:
             row.status = BEFORE_START
             c[BEFORE_START] += 1
@@ -248,15 +255,16 @@ class Runtime:
                              f"{self.layout.event_fields}")
         return events
 
-    def _push(self, t_s: float, counts: int):
-        """The chain's output for this reading, or None before its first valid reading."""
+    def _push(self, t_s: float, counts: int, load: int | None):
+        """The chain's output for this reading (and load word), or None before its first
+        valid reading (which resets the chain at rest there, as run_chain starts)."""
         if self._started:
-            return self.chain.push_counts(t_s, counts)
+            return self.chain.push_counts(t_s, counts, load)
         cfg = self.chain.config
         if not is_valid_reading(counts, cfg.encoder.max_count):
             return None
         self._started = True
-        return self.chain.reset(float(cfg.calibration.angle_deg(counts)), t_s)
+        return self.chain.reset(float(cfg.calibration.angle_deg(counts)), t_s, load=load)
 
     # -- start and end -------------------------------------------------------------------------
     def _install_signals(self):

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from proprio_env.model import JOINT, SERVO, load_model
-from proprio_env.servo_motion import drive_servo, triangle_deg
+from proprio_env.model import JOINT, load_model
+from proprio_env.servo_motion import drive_servo, servo_full_scale_Nm, triangle_deg
 
 TRACKS = ("scripted", "elbow")
 
@@ -98,17 +98,13 @@ def _inverse_torque_Nm(model, angle_deg: np.ndarray, dt_s: float) -> np.ndarray:
     return np.append(torque, torque[0])
 
 
-def _full_scale_Nm(model) -> float:
-    return float(np.max(np.abs(model.actuator_forcerange[model.actuator(SERVO).id])))
-
-
 def scripted_track() -> ServoTrack:
     """The demo's command (20-110 deg at 130 deg/s, rounded corners) taken as the angle."""
     model = load_model()
     t, command, period = _command_periods(model, 3)
     grid, angle = _one_period(t, command, period)
     torque = _inverse_torque_Nm(model, angle, grid[1] - grid[0])
-    return ServoTrack(grid, angle, torque, _full_scale_Nm(model), grid[-1])
+    return ServoTrack(grid, angle, torque, servo_full_scale_Nm(model), grid[-1])
 
 
 def elbow_track() -> ServoTrack:
@@ -123,7 +119,7 @@ def elbow_track() -> ServoTrack:
     angle = motion.angle_deg[i0:i0 + n + 1].copy()
     angle[-1] = angle[0]
     torque = _inverse_torque_Nm(model, angle, grid[1] - grid[0])
-    return ServoTrack(grid, angle, torque, _full_scale_Nm(model), grid[-1])
+    return ServoTrack(grid, angle, torque, servo_full_scale_Nm(model), grid[-1])
 
 
 def make_track(name: str) -> ServoTrack:

@@ -21,6 +21,7 @@ import numpy as np
 
 from proprio_env.runtime.sources import Reading
 from spindle.chain import MUSCLES, ArmSample
+from spindle.chain.config import SCALAR_OUTPUTS
 
 ACCEPTED, REJECTED, BEFORE_START = "accepted", "rejected", "before_start"
 """Log statuses of a reading that was read (the others are the sources' failures)."""
@@ -196,7 +197,7 @@ _CHAIN_FIELDS = [f.name for f in fields(ArmSample) if f.name not in ("t_s", "cou
 def _chain_columns() -> list[str]:
     out = []
     for name in _CHAIN_FIELDS:
-        if name in ("accepted", "counts_filtered", "angle_deg"):
+        if name == "accepted" or name in SCALAR_OUTPUTS:
             out.append(name)
         else:
             out.extend(f"{m}_{name}" for m in MUSCLES)

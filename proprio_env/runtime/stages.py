@@ -53,10 +53,11 @@ class PulseEncoder(Protocol):
 
 
 class SpindleStage:
-    """The chain's afferents and their drives: Ia, II, gamma static, gamma dynamic per
-    muscle (pps), channels ``BRA_ia_pps, TRImed_ia_pps, BRA_ii_pps, ...``."""
+    """The chain's afferents and their drives: Ia, II, gamma static, gamma dynamic and the
+    tendon organs' Ib (from the servo's load word, which the chain reads with each reading)
+    per muscle (pps), channels ``BRA_ia_pps, TRImed_ia_pps, BRA_ii_pps, ..., TRImed_ib_pps``."""
 
-    FIELDS = ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps")
+    FIELDS = ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps", "ib_pps")
 
     def __init__(self) -> None:
         self.channel_labels = tuple(f"{m}_{f}" for f in self.FIELDS for m in MUSCLES)
@@ -69,7 +70,7 @@ class SpindleStage:
 
 class LoadStage:
     """The servo's present load as a signed fraction of its full torque (channel
-    ``servo_load``): what a force-sensing (Ib) stage starts from."""
+    ``servo_load``), as read (the chain's Ib comes from the same word: SpindleStage)."""
 
     channel_labels = ("servo_load",)
     units = ("fraction",)

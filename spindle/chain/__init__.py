@@ -3,6 +3,8 @@
     counts -> median filter, f(x) (sensor) -> elbow angle -> fitted fibre lengths
     (length_model) -> tracking low-pass (conditioning) -> PI template, gamma_s, gamma_d
     (fusimotor) -> Mileusnic spindles (spindle.core) -> Ia, II per muscle
+    load word (sensor) -> torque -> BRA/TRImed tendon forces (force) -> Golgi tendon
+    organs (spindle.tendon_organ) -> Ib per muscle
 
 :class:`ArmChain` (numpy, :mod:`spindle.chain.arm`) streams sample by sample; its C mirror is
 :class:`spindle.native.chain.CArmChain`. :func:`make_chain` builds the one

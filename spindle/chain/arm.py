@@ -3,6 +3,16 @@
     counts -> median filter (7) -> f(x) -> elbow angle -> fitted BRA/TRImed fibre lengths
            -> tracking low-pass (L, dL/dt) -> PI template -> gamma_s = h, gamma_d = g
            -> Mileusnic spindles (HUMAN gains) -> Ia, II per muscle
+    load word -> joint torque -> BRA/TRImed tendon forces (moment arms at the angle)
+           -> Golgi tendon organs (Lin & Crago 2002, HUMAN) -> Ib per muscle
+
+The force sense (``docs/gto.md``): each accepted sample's load word becomes a joint torque
+(:func:`~spindle.chain.sensor.load_torque_Nm`), split into BRA and TRImed tendon forces at the
+conditioned angle (:func:`~spindle.chain.force.tendon_forces_N`: flexion torque to BRA,
+extension to TRImed, never negative), and the tendon organs are stepped exactly over the
+sample's interval in ONE step (the force a line between the two samples; the step is exact
+for a log stage linear over the step, :mod:`spindle.tendon_organ`), not on the spindles'
+sub-steps. Restarts and resets put them at rest at the sample's force.
 
 This is what would run on the prosthesis, so it needs no MuJoCo. :class:`ArmChain` streams:
 push samples as they come and read the rates. It is the one-arm view (``n_arms = 1``) of
@@ -47,7 +57,15 @@ changes no state and the previous output is returned again with ``accepted=False
   ``max_speed_L0_s`` times it; a faster change (a jump after a gap, a spike the median let
   through) is limited to that and counted;
 - ``angle_clamped``: an angle outside the length model's range (0-130 deg) is clamped to it,
-  the angle given to :meth:`ArmChain.reset` (so :func:`run_chain`'s first sample) included.
+  the angle given to :meth:`ArmChain.reset` (so :func:`run_chain`'s first sample) included;
+- ``invalid_load``: an accepted sample whose load word is not an integer in 0..2047 (the
+  dropout code -1, a corrupted word, NaN, anything not a real number): the torque of the
+  last accepted sample is held (0 after a reset), the sample itself is accepted (its angle
+  is good). At a reset the word's torque is 0 (nothing to hold), counted too;
+- ``missing_load``: an accepted encoder sample pushed without a load word (``load=None``):
+  zero torque, so the tendon organs relax towards rest at zero force (a chain never given a
+  load keeps Ib at 0). Angle and length pushes carry no load: zero torque, not counted.
+  A rejected sample changes nothing, its load word included.
 
 Values that are not one real number (:mod:`spindle.number_rule`: complex numbers, integers too
 large for a float, strings, bytes, bools, ``None``) count as non-finite: a bad sample above, or
@@ -69,7 +87,14 @@ from spindle import core, number_rule
 from spindle.chain.batch import BatchedArmChain
 from spindle.chain.config import COUNTERS, ArmSample, ChainConfig, real_number
 from spindle.chain.length_model import LengthFits
-from spindle.chain.samples import block_inputs, checked_angle, checked_lengths, stack_samples
+from spindle.chain.samples import (
+    block_inputs,
+    check_loads,
+    checked_angle,
+    checked_lengths,
+    stack_samples,
+)
+from spindle.tendon_organ import TendonOrganState
 
 
 class ArmChain:
@@ -103,11 +128,13 @@ class ArmChain:
 
     # -- state ---------------------------------------------------------------------------
     def reset(self, angle_deg: float, t_s: float = 0.0,
-              length_L0: np.ndarray | None = None) -> ArmSample:
+              length_L0: np.ndarray | None = None, load: float | None = None) -> ArmSample:
         """The arm at rest at ``angle_deg`` (and, if given, exact ``length_L0``) at ``t_s``.
 
         Filters start on that angle, the template on those lengths, the spindles at
-        equilibrium with the resulting drive. Counters restart at zero; without
+        equilibrium with the resulting drive, the tendon organs at rest at the force of the
+        load word ``load`` (None: no load, zero torque; an invalid word: zero torque, counted
+        ``invalid_load``). Counters restart at zero; without
         ``length_L0``, an angle outside the length model's range is clamped to it and counted
         (``angle_clamped``), as a pushed angle is. The switch returns to the measured motion.
         """
@@ -122,7 +149,8 @@ class ArmChain:
                 raise ValueError(f"length_L0={length_L0!r} must be 2 finite lengths within "
                                  f"{core.LENGTH_RANGE_L0} L0")
             lengths = lengths[None]
-        self._arms.reset(np.array([angle]), t, lengths)
+        self._arms.reset(np.array([angle]), t, lengths,
+                         load=None if load is None else [real_number(load)])
         self._ready = True
         return self.last
 
@@ -152,11 +180,19 @@ class ArmChain:
         """A copy of the spindles' state (2 spindles: BRA, TRImed)."""
         return self._arms.spindle_state
 
+    @property
+    def tendon_organ_state(self) -> TendonOrganState:
+        """A copy of the tendon organs' state (2 organs: BRA, TRImed)."""
+        return self._arms.tendon_organ_state
+
     # -- pushes ----------------------------------------------------------------------------
-    def push_counts(self, t_s: float, counts: float) -> ArmSample:
-        """One encoder reading taken at ``t_s``."""
+    def push_counts(self, t_s: float, counts: float, load: float | None = None) -> ArmSample:
+        """One encoder reading taken at ``t_s``, with the servo's load word ``load`` read
+        beside it (None: no load reading; the load rules of the module)."""
         self._check_ready()
-        return self._arms.push_counts([real_number(t_s)], [real_number(counts)]).arm(0)
+        return self._arms.push_counts([real_number(t_s)], [real_number(counts)],
+                                      load=None if load is None else [real_number(load)]
+                                      ).arm(0)
 
     def push_angle(self, t_s: float, angle_deg: float) -> ArmSample:
         """One clean elbow-angle sample (deg), skipping the sensor stage."""
@@ -177,12 +213,14 @@ class ArmChain:
         return self._arms.push_lengths([real_number(t_s)], lengths, angle_deg=[angle]).arm(0)
 
     # -- blocks: many samples per call (an env step, a sensor buffer) ---------------------
-    def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray) -> ArmSample:
-        """Push readings ``counts`` (k,) taken at ``t_s`` (k,) in order; return the last output.
+    def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray,
+                          load: np.ndarray | None = None) -> ArmSample:
+        """Push readings ``counts`` (k,) taken at ``t_s`` (k,) in order, with load words
+        ``load`` (k,) (None: no load readings); return the last output.
 
         Exactly ``push_counts`` sample by sample (counters included), in one block pass.
         """
-        return self._block("counts", self._arms.push_counts_block, t_s, counts, ())
+        return self._block("counts", self._arms.push_counts_block, t_s, counts, (), load)
 
     def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray) -> ArmSample:
         """``push_angle`` over (k,) times and angles; return the last output."""
@@ -193,16 +231,19 @@ class ArmChain:
         return self._block("length_L0", self._arms.push_lengths_block, t_s, length_L0, (2,))
 
     def run_trace(self, push: str, t_s: np.ndarray, signal: np.ndarray,
-                  intended_angle_deg: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                  intended_angle_deg: np.ndarray | None = None,
+                  load: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Push a whole trace; every output stacked (what :func:`spindle.chain.run_chain` uses).
 
         ``push`` names the entry point (``"push_counts"``, ``"push_angle"``,
         ``"push_lengths"``); ``intended_angle_deg`` (k,) sets the switch before each sample
-        (NaN: the measured motion). Returns the fields of :class:`ArmSample` stacked over the
-        k samples (rejected ones included). Here a plain loop; the C chain makes one call.
+        (NaN: the measured motion); ``load`` (k,) the load words beside counts (only with
+        ``"push_counts"``). Returns the fields of :class:`ArmSample` stacked over the k
+        samples (rejected ones included). Here a plain loop; the C chain makes one call.
         """
         kind = push.removeprefix("push_")
         t, x = block_inputs(kind, t_s, signal, (2,) if kind == "lengths" else ())
+        words = check_loads(push, load, t.shape)
         if intended_angle_deg is not None:  # a setting, not a sample: the rule raises
             intended_angle_deg = number_rule.real_array("intended_angle_deg", intended_angle_deg)
         if intended_angle_deg is not None and np.shape(intended_angle_deg) != t.shape:
@@ -214,14 +255,18 @@ class ArmChain:
             if intended_angle_deg is not None:
                 angle = intended_angle_deg[i]
                 self.set_intended_angle(None if np.isnan(angle) else angle)
-            samples.append(push_one(t[i], x[i]))
+            samples.append(push_one(t[i], x[i]) if words is None
+                           else push_one(t[i], x[i], words[i]))
         return stack_samples(samples, self.last)
 
     # -- helpers ---------------------------------------------------------------------------
-    def _block(self, name, push_block, t_s, signal, sample_shape) -> ArmSample:
+    def _block(self, name, push_block, t_s, signal, sample_shape, load=None) -> ArmSample:
         self._check_ready()
         t, x = block_inputs(name, t_s, signal, sample_shape)
-        push_block(t[None], x[None])
+        if load is None:
+            push_block(t[None], x[None])
+        else:
+            push_block(t[None], x[None], load=check_loads("push_counts", load, t.shape)[None])
         return self.last
 
     def _check_ready(self) -> None:

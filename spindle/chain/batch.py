@@ -3,7 +3,8 @@
 :class:`BatchedArmChain` is :class:`spindle.chain.arm.ArmChain` for ``n_arms`` independent
 arms (a vector env's): each arm has its own median window, calibration stage, slew limit,
 clamp, tracking low-pass, PI predictor (on its own update grid from its own reset time),
-gamma drive, spindles, counters, handling of bad samples, gaps, bridges, restarts and clock
+gamma drive, spindles, tendon organs (the force sense: load word, torque, tendon forces, Ib),
+counters, handling of bad samples, gaps, bridges, restarts and clock
 resyncs, exactly as the module docstring of :mod:`spindle.chain.arm` describes them. One
 push gives every arm its own sample (or none: ``active``); arm k then equals a single
 ``ArmChain`` fed the same samples in the same order (same counters; same outputs to rounding,
@@ -30,13 +31,26 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from spindle import core, number_rule
+from spindle import core, number_rule, tendon_organ
 from spindle.chain.conditioning import natural_rad_s, tracking_steps
-from spindle.chain.config import COUNTERS, MUSCLES, ArmSample, ChainConfig, real_array
+from spindle.chain.config import (
+    COUNTERS,
+    MUSCLES,
+    SCALAR_OUTPUTS,
+    ArmSample,
+    ChainConfig,
+    real_array,
+)
+from spindle.chain.force import MomentArmFits, load_moment_arm_fits, tendon_forces_N
 from spindle.chain.fusimotor import Fusimotor
 from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.chain.samples import BatchSample, lengths_valid
-from spindle.chain.sensor import MedianFilter, valid_readings
+from spindle.chain.sensor import (
+    MedianFilter,
+    load_torque_Nm,
+    valid_load_words,
+    valid_readings,
+)
 from spindle.methods import get_method
 from spindle.substeps import bounded_hermite_length, slew_limited
 
@@ -68,8 +82,9 @@ def fits_and_ranges(config: ChainConfig, fits: LengthFits | None
 class _Block:
     """A block push's samples once checked (:meth:`BatchedArmChain._block_samples`): times,
     values (each arm's accepted ones first), the accepted mask ``ok`` and intervals ``dt``
-    (n, k), accepted counts ``n_ok`` and rejected counts (None: none) per arm, and the
-    counts of slew-limited and clamped samples the length stage adds."""
+    (n, k), accepted counts ``n_ok`` and rejected counts (None: none) per arm, the
+    counts of slew-limited and clamped samples the length stage adds, and the load words
+    (n, k) (None: the samples carry no load reading)."""
 
     t: np.ndarray
     x: np.ndarray
@@ -80,6 +95,9 @@ class _Block:
     slewed: np.ndarray
     clamped: np.ndarray | None = None
     angle: np.ndarray | None = None
+    load: np.ndarray | None = None
+    invalid_load: np.ndarray | int = 0
+    missing_load: np.ndarray | int = 0
 
 
 class BatchedArmChain:
@@ -95,12 +113,13 @@ class BatchedArmChain:
             ``backend`` may not be ``"c"``: :func:`spindle.chain.make_batched_chain` builds
             the C batch).
         fits: the length fits (default: ``config.fits_path``'s).
+        moment_arms: the moment-arm tables (default: ``config.moment_arm_fits_path``'s).
     """
 
     backend = "numpy"
 
     def __init__(self, n_arms: int, config: ChainConfig | None = None,
-                 fits: LengthFits | None = None):
+                 fits: LengthFits | None = None, moment_arms: MomentArmFits | None = None):
         if (isinstance(n_arms, bool | np.bool_) or not isinstance(n_arms, int | np.integer)
                 or n_arms < 1):
             raise ValueError(f"n_arms={n_arms!r} must be an integer >= 1")
@@ -136,8 +155,17 @@ class BatchedArmChain:
         self._v = np.zeros((n, 2))
         self._a = np.zeros((n, 2))
         self._state = core.equilibrium_state(np.ones(2 * n), 0.0, 0.0, self.config.params)
-        self._out = _read_only({name: np.full((n, 2) if i >= 4 else n, math.nan)
-                                for i, name in enumerate(_OUTPUTS)})
+        self.moment_arms = check_moment_arms(
+            moment_arms if moment_arms is not None
+            else load_moment_arm_fits(self.config.moment_arm_fits_path))
+        # the tendon organs: 2 n_arms, arm-major as the spindles; rebound, never written into
+        self._force_scale = np.tile(self.config.force_scale_N, n)
+        self._gto_c = tendon_organ.state_space(self.config.gto)[2]
+        self._gto = tendon_organ.equilibrium_state(np.zeros(2 * n), self._force_scale,
+                                                   self.config.gto, 2 * n)
+        self._torque = np.zeros(n)  # the last accepted sample's torque (held over bad words)
+        self._out = _read_only({name: np.full(n if name in SCALAR_OUTPUTS else (n, 2), math.nan)
+                                for name in _OUTPUTS})
 
     # -- state ---------------------------------------------------------------------------
     @property
@@ -159,17 +187,24 @@ class BatchedArmChain:
         """A copy of the spindles' state: 2 n_arms spindles, arm i's BRA 2i, TRImed 2i + 1."""
         return self._state.copy()
 
+    @property
+    def tendon_organ_state(self) -> tendon_organ.TendonOrganState:
+        """A copy of the tendon organs' state: 2 n_arms organs, arm-major as the spindles."""
+        return self._gto.copy()
+
     def reset(self, angle_deg: np.ndarray, t_s: float | np.ndarray = 0.0,
               length_L0: np.ndarray | None = None,
-              arms: np.ndarray | None = None) -> BatchSample:
+              arms: np.ndarray | None = None, load: np.ndarray | None = None) -> BatchSample:
         """Arms at rest at ``angle_deg`` (and, if given, exact ``length_L0``) at ``t_s``.
 
         ``arms`` None: every arm, ``angle_deg`` (n_arms,), ``t_s`` a scalar or (n_arms,),
         ``length_L0`` None or (n_arms, 2). ``arms`` an index array (m,): only those arms
         (the others are untouched), the values then (m,), (m,) and (m, 2). Each reset arm is
         :meth:`ArmChain.reset`: filters on its angle, template on its lengths, spindles at
-        equilibrium, counters at zero (``angle_clamped`` counts a clamped angle), the switch
-        back to the measured motion. Bad values raise ``ValueError`` naming the arm; nothing
+        equilibrium, tendon organs at rest at the force of ``load`` ((m,) load words; None:
+        no load, zero torque; an invalid word: zero torque, counted ``invalid_load``),
+        counters at zero (``angle_clamped`` counts a clamped angle), the switch back to the
+        measured motion. Bad values raise ``ValueError`` naming the arm; nothing
         changes then. Returns every arm's output (``accepted`` True for the reset arms).
         """
         rows = self._arms_index(arms)
@@ -191,6 +226,12 @@ class BatchedArmChain:
                 i = int(np.argmax(bad))
                 raise ValueError(f"length_L0 of arm {int(rows[i])} is {L[i]!r}; it must be 2 "
                                  f"finite lengths within {core.LENGTH_RANGE_L0} L0")
+        if load is None:
+            torque, bad_load = np.zeros(m), np.zeros(m, dtype=bool)
+        else:
+            torque, valid = self._load_torques(self._per_arm("load", load, (m,), rows),
+                                               np.zeros(m))
+            bad_load = ~valid
         saved = self._snapshot()
         try:
             self._intended = self._intended.copy()
@@ -198,10 +239,11 @@ class BatchedArmChain:
             self._following = bool(np.isnan(self._intended).all())
             minus_one = np.full(m, -1.0)
             self._rest(rows, np.array(t, dtype=float), recorded, L, self._rest_reading(angle),
-                       minus_one, minus_one)
+                       minus_one, minus_one, torque)
             counters = self._counters.copy()
             counters[rows] = 0
             counters[rows, _COUNTER["angle_clamped"]] = clamped
+            counters[rows, _COUNTER["invalid_load"]] = bad_load
             self._counters = counters
             ready = self._ready.copy()
             ready[rows] = True
@@ -241,13 +283,16 @@ class BatchedArmChain:
 
     # -- pushes ----------------------------------------------------------------------------
     def push_counts(self, t_s: np.ndarray, counts: np.ndarray,
-                    active: np.ndarray | None = None) -> BatchSample:
-        """One encoder reading per arm: ``counts`` (n_arms,) taken at ``t_s`` (n_arms,).
+                    active: np.ndarray | None = None,
+                    load: np.ndarray | None = None) -> BatchSample:
+        """One encoder reading per arm: ``counts`` (n_arms,) taken at ``t_s`` (n_arms,), with
+        the servo's load word ``load`` (n_arms,) read beside it (None: no load reading; the
+        load rules of :mod:`spindle.chain.arm`).
 
         ``active`` (n_arms,) bool, None for all: an inactive arm gets no sample (state and
         counters untouched; its output repeats its last, ``accepted`` False).
         """
-        return self._push("counts", t_s, counts, active, ())
+        return self._push("counts", t_s, counts, active, (), load=load)
 
     def push_angle(self, t_s: np.ndarray, angle_deg: np.ndarray,
                    active: np.ndarray | None = None) -> BatchSample:
@@ -263,16 +308,18 @@ class BatchedArmChain:
         return self._push("length_L0", t_s, length_L0, active, (2,), angle_deg)
 
     def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray,
-                          n_samples: np.ndarray | None = None) -> BatchSample:
-        """Arm i pushes its readings ``counts[i, :n_samples[i]]`` taken at ``t_s[i, ...]``.
+                          n_samples: np.ndarray | None = None,
+                          load: np.ndarray | None = None) -> BatchSample:
+        """Arm i pushes its readings ``counts[i, :n_samples[i]]`` taken at ``t_s[i, ...]``
+        (with load words ``load[i, ...]``, None: no load readings).
 
-        ``t_s`` and ``counts`` are (n_arms, k); ``n_samples`` (n_arms,) integers in 0..k
+        ``t_s``, ``counts`` and ``load`` are (n_arms, k); ``n_samples`` (n_arms,) integers in 0..k
         (None: k each), entries past it are padding and ignored. Exactly
         :meth:`push_counts` column by column; atomic as a whole. Returns each arm's last
         output (as :meth:`ArmChain.push_counts_block`; an arm with no sample repeats its
         last with ``accepted`` False).
         """
-        return self._block("counts", t_s, counts, n_samples, ())
+        return self._block("counts", t_s, counts, n_samples, (), load=load)
 
     def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray,
                          n_samples: np.ndarray | None = None) -> BatchSample:
@@ -288,7 +335,7 @@ class BatchedArmChain:
         return self._block("length_L0", t_s, length_L0, n_samples, (2,), angle_deg)
 
     # -- the push --------------------------------------------------------------------------
-    def _push(self, kind: str, t_s, signal, active, sample_shape, angle_deg=None
+    def _push(self, kind: str, t_s, signal, active, sample_shape, angle_deg=None, load=None
               ) -> BatchSample:
         n = self.n_arms
         t = _shaped("t_s", t_s, (n,), "(n_arms,)")
@@ -301,11 +348,12 @@ class BatchedArmChain:
                                  f"expected ({n},) bool")
             count = active.astype(np.int64)
         angle = None if angle_deg is None else _shaped("angle_deg", angle_deg, (n,), "(n_arms,)")
+        words = None if load is None else _shaped("load", load, (n,), "(n_arms,)")[:, None]
         return self._sample(self._run(kind, t[:, None], x[:, None], count,
-                                      None if angle is None else angle[:, None]))
+                                      None if angle is None else angle[:, None], words))
 
-    def _block(self, kind: str, t_s, signal, n_samples, sample_shape, angle_deg=None
-               ) -> BatchSample:
+    def _block(self, kind: str, t_s, signal, n_samples, sample_shape, angle_deg=None,
+               load=None) -> BatchSample:
         n = self.n_arms
         t = np.array(real_array(t_s), dtype=float)  # a copy: the chain keeps its columns
         if t.ndim != 2 or t.shape[0] != n:
@@ -326,11 +374,12 @@ class BatchedArmChain:
                                  f"{count.min()}..{count.max()}")
         angle = None if angle_deg is None else _shaped("angle_deg", angle_deg, t.shape,
                                                        "(n_arms, k) like t_s")
-        self._run(kind, t, x, count, angle)
+        words = None if load is None else _shaped("load", load, t.shape, "(n_arms, k) like t_s")
+        self._run(kind, t, x, count, angle, words)
         return self._sample(count > 0)
 
     def _run(self, kind: str, t: np.ndarray, x: np.ndarray, count: np.ndarray,
-             angle: np.ndarray | None = None) -> np.ndarray:
+             angle: np.ndarray | None = None, load: np.ndarray | None = None) -> np.ndarray:
         """Arm i's samples ``x[i, :count[i]]`` at ``t[i, ...]`` (n, k) (and recorded angles,
         for lengths), atomically: in one pass (:meth:`_advance`) when the block holds only the
         common case, else column by column (:meth:`_column`). Returns which arms accepted a
@@ -340,14 +389,15 @@ class BatchedArmChain:
             return np.zeros(self.n_arms, dtype=bool)
         saved = self._snapshot()
         try:
-            block = self._block_samples(kind, t, x, count, angle)
+            block = self._block_samples(kind, t, x, count, angle, load)
             if block is not None:
                 self._advance(kind, block)
                 return block.n_ok > 0
             accepted = np.zeros(self.n_arms, dtype=bool)
             for j in range(int(count.max())):
                 accepted |= self._column(kind, t[:, j], x[:, j], count > j,
-                                         None if angle is None else angle[:, j])
+                                         None if angle is None else angle[:, j],
+                                         None if load is None else load[:, j])
         except BaseException:
             self._restore(saved)
             raise
@@ -388,6 +438,7 @@ class BatchedArmChain:
         if kind == "counts":
             self._median.restore(windows)
         self._advance_block(ok, dt, x0, v0, x1, v1, gd, gs)
+        torque, force, ib = self._advance_tendon_organs(kind, block, angle)
         self._count_block(kind, block)
         # -- each arm's last accepted sample: its state and outputs ----------------------------
         n, has = t.shape[0], block.n_ok > 0
@@ -401,9 +452,10 @@ class BatchedArmChain:
         else:
             counts = filtered = self._no_reading(n)
         values = dict(t=t[r, last], angle=angle[r, last], u=L[r, last], x=x1[r, last],
-                      v=v1[r, last], a=a1[r, last])
-        out = (values["t"], counts, filtered, values["angle"], values["x"], values["v"],
-               values["a"], template[r, last], gs[r, last], gd[r, last], ia, ii)
+                      v=v1[r, last], a=a1[r, last], torque=torque[r, last])
+        out = (values["t"], counts, filtered, values["angle"], values["torque"], values["x"],
+               values["v"], values["a"], template[r, last], gs[r, last], gd[r, last], ia, ii,
+               force[r, last], ib)
         if has.all():
             self._set(_ALL, **values)
             self._set_out(_ALL, *out)
@@ -413,7 +465,8 @@ class BatchedArmChain:
             self._set_out(S, *(value[S] for value in out))
 
     def _block_samples(self, kind: str, t: np.ndarray, x: np.ndarray, count: np.ndarray,
-                       angle: np.ndarray | None = None) -> _Block | None:
+                       angle: np.ndarray | None = None, load: np.ndarray | None = None
+                       ) -> _Block | None:
         """The block's samples checked for the common case (None if it is not: a time not
         after the arm's last accepted one, or an interval beyond ``max_bridge_s``), each
         arm's accepted samples moved first, in order; nothing changed."""
@@ -436,13 +489,15 @@ class BatchedArmChain:
             x = np.take_along_axis(x, order if x.ndim == 2 else order[..., None], axis=1)
             if angle is not None:
                 angle = np.take_along_axis(angle, order, axis=1)
+            if load is not None:
+                load = np.take_along_axis(load, order, axis=1)
             ok = cols < n_ok[:, None]
         with np.errstate(invalid="ignore"):
             dt = np.diff(t, axis=1, prepend=self._t[:, None])
         if not bool(np.where(ok, dt, 0.0).max() <= cfg.max_bridge_s):
             return None
         dt = np.where(ok, dt, cfg.spindle_step_s)  # (padding: any valid interval)
-        return _Block(t=t, x=x, ok=ok, dt=dt, n_ok=n_ok, angle=angle,
+        return _Block(t=t, x=x, ok=ok, dt=dt, n_ok=n_ok, angle=angle, load=load,
                       rejected=rejected.sum(axis=1) if any_rejected else None,
                       slewed=np.zeros(t.shape[0], dtype=np.int64))
 
@@ -457,7 +512,7 @@ class BatchedArmChain:
         filtered = windows = None
         if kind == "length_L0":
             L = np.where(okm, x, self._u[:, None])
-            angle = _recorded_angles(block.angle, ok, self._angle)
+            angle = _held_values(block.angle, ok, self._angle)
         else:
             if kind == "counts":
                 filtered, windows = self._median.filter(x, block.n_ok)
@@ -495,7 +550,62 @@ class BatchedArmChain:
         if block.clamped is not None:
             counters[:, _COUNTER["angle_clamped"]] += block.clamped
         counters[:, _COUNTER["slew_limited"]] += block.slewed
+        counters[:, _COUNTER["invalid_load"]] += block.invalid_load
+        counters[:, _COUNTER["missing_load"]] += block.missing_load
         self._counters = counters
+
+    def _load_torques(self, load: np.ndarray, held: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """(torque N m, validity) of load words (any shape): a valid word's torque, ``held``
+        (broadcast) where the word is invalid."""
+        valid = valid_load_words(load)
+        torque = load_torque_Nm(np.where(valid, load, 0.0), self.config.load,
+                                self.config.calibration.sign)
+        return np.where(valid, torque, held), valid
+
+    def _block_torques(self, kind: str, block: _Block) -> np.ndarray:
+        """The torque (N m) of every column of a checked block (the load rules: a valid
+        word's torque, the one before held over an invalid word, 0 without a load reading),
+        their counts into ``block``."""
+        ok = block.ok
+        if block.load is None:
+            if kind == "counts":
+                block.missing_load = block.n_ok
+            return np.zeros(ok.shape)
+        torque, valid = self._load_torques(block.load, math.nan)
+        block.invalid_load = (ok & ~valid).sum(axis=1)
+        return _held_values(torque, ok, self._torque)
+
+    def _advance_tendon_organs(self, kind: str, block: _Block, angle: np.ndarray
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The tendon organs of every arm through a block's accepted columns: the torque of
+        each sample split into BRA and TRImed tendon forces at its conditioned angle, each
+        organ stepped exactly over each interval (one step, the force a line between the
+        samples: :func:`spindle.tendon_organ.step`). Returns the torques (n, k), forces
+        (n, k, 2) and every arm's Ib after its last accepted column (n, 2)."""
+        ok, n = block.ok, block.ok.shape[0]
+        torque = self._block_torques(kind, block)
+        force = tendon_forces_N(torque, np.radians(angle), self.moment_arms, clip=True)
+        state, params = self._gto, self.config.gto
+        if not (force.any() or state.z.any() or state.r_pps.any()):
+            # at rest at zero force, and staying there (no load, or none yet): the steps
+            # would give exact zeros
+            return torque, force, np.zeros((n, 2))
+        for j in range(ok.shape[1]):
+            live = np.repeat(ok[:, j], 2)
+            if not live.any():
+                break
+            new = state.copy()
+            tendon_organ.step(new, force[:, j].reshape(-1), self._force_scale,
+                              tendon_organ.plan_steps(params, np.repeat(block.dt[:, j], 2)))
+            if not live.all():
+                for name in ("z", "force_N", "r_pps"):
+                    setattr(new, name, np.where(live, getattr(new, name),
+                                                getattr(state, name)))
+            state = new
+        self._gto = state
+        ib = tendon_organ.rate_pps(state, self._gto_c).reshape(n, 2)
+        return torque, force, ib
 
     def _advance_block(self, ok, dt, x0, v0, x1, v1, gd, gs) -> None:
         """The spindles of every arm through a block's accepted columns ``ok`` (n, k): the
@@ -544,7 +654,7 @@ class BatchedArmChain:
                     core.commit(state, new, L_q, gd_j, gs_j, where=live[j] & (start[j] <= q))
 
     def _column(self, kind: str, t: np.ndarray, x: np.ndarray, active: np.ndarray,
-                angle: np.ndarray | None = None) -> np.ndarray:
+                angle: np.ndarray | None = None, load: np.ndarray | None = None) -> np.ndarray:
         """One sample per active arm, whatever its time: the time rules (repeated,
         backwards, bad, clock resyncs), the validity rules, restarts; the arms that continue
         then go through :meth:`_advance` as a block of one column. Returns the accepted mask.
@@ -569,25 +679,35 @@ class BatchedArmChain:
         self._behind = np.where(ok, 0, behind)
         restart = ok & ((dt < 0.0) | (dt > cfg.max_bridge_s))
         if restart.any():
-            self._restart(kind, np.flatnonzero(restart), t, x, dt, counters, angle)
+            self._restart(kind, np.flatnonzero(restart), t, x, dt, counters, angle, load)
         self._counters = counters
         going = ok & ~restart
         if going.any():
             self._advance(kind, self._block_samples(
                 kind, t[:, None], x[:, None], going.astype(np.int64),
-                None if angle is None else angle[:, None]))
+                None if angle is None else angle[:, None],
+                None if load is None else load[:, None]))
         return ok
 
     def _restart(self, kind: str, rows: np.ndarray, t: np.ndarray, x: np.ndarray,
-                 dt: np.ndarray, counters: np.ndarray, angle: np.ndarray | None) -> None:
+                 dt: np.ndarray, counters: np.ndarray, angle: np.ndarray | None,
+                 load: np.ndarray | None) -> None:
         """Arms ``rows`` restart at rest at their new sample (an interval beyond
         ``max_bridge_s``, or a clock resync), counted: as :meth:`reset` at its angle (the
-        median window on its own reading, clamped to the length model's range) but keeping
-        the counters and the switch."""
+        median window on its own reading, clamped to the length model's range; the tendon
+        organs at rest at its force, by the load rules) but keeping the counters and the
+        switch."""
         x, t, dt = x[rows], t[rows], dt[rows]
+        if load is None:
+            torque = np.zeros(rows.size)
+            if kind == "counts":
+                counters[rows, _COUNTER["missing_load"]] += 1
+        else:
+            torque, valid = self._load_torques(load[rows], self._torque[rows])
+            counters[rows, _COUNTER["invalid_load"]] += ~valid
         none = np.full(rows.size, -1.0)
         if kind == "length_L0":
-            angle = _recorded_angles(None if angle is None else angle[rows, None],
+            angle = _held_values(None if angle is None else angle[rows, None],
                                      np.ones((rows.size, 1), dtype=bool), self._angle[rows])[:, 0]
             L, counts, filtered = x, none, none
             reading = self._rest_reading(angle)
@@ -605,14 +725,15 @@ class BatchedArmChain:
         counters[rows, _COUNTER["clock_resyncs"]] += dt < 0.0
         counters[rows, _COUNTER["accepted"]] += 1
         counters[rows, _COUNTER["gaps"]] += dt > self.config.gap_s
-        self._rest(rows, t, angle, L, reading, counts, filtered)
+        self._rest(rows, t, angle, L, reading, counts, filtered, torque)
 
     def _no_reading(self, m: int) -> np.ndarray:
         # the outputs share one read-only array of -1 (no encoder reading)
         return self._minus_one if m == self.n_arms else np.full(m, -1.0)
 
-    def _rest(self, rows, t, angle, L, reading, counts, filtered) -> None:
-        """Arms ``rows`` at rest (``ArmChain._rest``): what reset and a restart share."""
+    def _rest(self, rows, t, angle, L, reading, counts, filtered, torque) -> None:
+        """Arms ``rows`` at rest (``ArmChain._rest``): what reset and a restart share; the
+        tendon organs at rest at the force of ``torque`` (N m) at ``angle``."""
         intended = self._intended[rows]
         template_in = np.where(np.isnan(intended), L, intended)
         template, gs, gd = self._fusimotor.reset(t, template_in, rows)
@@ -621,12 +742,21 @@ class BatchedArmChain:
         ia, ii = core.afferents(state, self.config.params)
         self._median.reset(reading, rows)
         _scatter(self._state, _spindles(rows), state)
+        force = tendon_forces_N(torque, np.radians(angle), self.moment_arms, clip=True)
+        organs = _spindles(rows)
+        rest = tendon_organ.equilibrium_state(force.reshape(-1), self._force_scale[organs],
+                                              self.config.gto, organs.size)
+        gto = self._gto.copy()
+        gto.z[:, organs], gto.force_N[organs], gto.r_pps[organs] = rest.z, rest.force_N, \
+            rest.r_pps
+        self._gto = gto
+        ib = tendon_organ.rate_pps(rest, self._gto_c).reshape(-1, 2)
         zeros = np.zeros_like(L)
-        self._set(rows, t=t, angle=angle, u=L, x=L, v=zeros, a=zeros)
+        self._set(rows, t=t, angle=angle, u=L, x=L, v=zeros, a=zeros, torque=torque)
         self._behind = self._behind.copy()
         self._behind[rows] = 0
-        self._set_out(rows, t, counts, filtered, angle, L, zeros, zeros, template, gs, gd,
-                      ia.reshape(-1, 2), ii.reshape(-1, 2))
+        self._set_out(rows, t, counts, filtered, angle, torque, L, zeros, zeros, template, gs,
+                      gd, ia.reshape(-1, 2), ii.reshape(-1, 2), force, ib)
 
     def _set(self, S, **values) -> None:
         for name, value in values.items():
@@ -720,10 +850,11 @@ def _check_finite(name: str, values: np.ndarray, rows: np.ndarray) -> None:
                          "real number")
 
 
-def _recorded_angles(given: np.ndarray | None, ok: np.ndarray, last: np.ndarray
-                     ) -> np.ndarray:
-    """The angles recorded with lengths (n, k): each accepted column's given angle where it
-    is finite, else the one before (from ``last`` (n,))."""
+def _held_values(given: np.ndarray | None, ok: np.ndarray, last: np.ndarray
+                 ) -> np.ndarray:
+    """Values held over the missing ones (n, k): each accepted column's given value where it
+    is finite, else the one before (from ``last`` (n,)). The angles recorded with lengths,
+    the torques of load words."""
     n, k = ok.shape
     if given is None:
         return np.broadcast_to(last[:, None], (n, k))
@@ -736,6 +867,13 @@ def _recorded_angles(given: np.ndarray | None, ok: np.ndarray, last: np.ndarray
 _INVALID = {"counts": "invalid_reading", "angle_deg": "invalid_angle",
             "length_L0": "invalid_length"}
 """The counter of each entry point's invalid samples."""
+
+
+def check_moment_arms(moment_arms: MomentArmFits) -> MomentArmFits:
+    """``moment_arms`` if they are BRA's and TRImed's, in that order, else ValueError."""
+    if moment_arms.muscles != MUSCLES:
+        raise ValueError(f"moment arms are for {moment_arms.muscles}, the chain needs {MUSCLES}")
+    return moment_arms
 
 
 def _valid_samples(kind: str, x: np.ndarray, max_count: int) -> np.ndarray:

@@ -18,7 +18,7 @@ from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 from spindle.backends import BACKENDS as BACKENDS  # re-exported: the one table lives there
 from spindle.chain.conditioning import natural_rad_s
 from spindle.chain.fusimotor import SEED_PAPER, FusimotorParams
-from spindle.chain.sensor import AX12, Calibration, EncoderParams
+from spindle.chain.sensor import AX12, AX12_LOAD, Calibration, EncoderParams, LoadParams
 from spindle.methods import get_method
 from spindle.number_rule import check_fields, positive_int
 
@@ -26,13 +26,20 @@ from spindle.number_rule import check_fields, positive_int
 from spindle.number_rule import sample_array as real_array  # noqa: F401
 from spindle.number_rule import sample_number as real_number  # noqa: F401
 from spindle.params import HUMAN, SpindleParams
+from spindle.tendon_organ_params import (
+    ARM26_MAX_ISOMETRIC_FORCE_N,
+    TendonOrganParams,
+    force_scales_N,
+)
+from spindle.tendon_organ_params import HUMAN as GTO_HUMAN
+from spindle.tendon_organ_params import MAX_STEP_S as GTO_MAX_STEP_S
 
 MUSCLES = ("BRA", "TRImed")
 """The muscles of the arm, in the order of every per-muscle axis of the project."""
 COUNTERS = (
     "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
     "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped", "restarts",
-    "clock_resyncs",
+    "clock_resyncs", "invalid_load", "missing_load",
 )
 """Names of :attr:`ArmChain.counters` (:mod:`spindle.chain.arm` describes each rule)."""
 MAX_RESYNC_AFTER_SAMPLES = 1_000_000
@@ -86,6 +93,15 @@ class ChainConfig:
         max_speed_deg_s: slew limit of the conditioned angle (deg/s).
         max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
         fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
+        load: the servo's load reading (:class:`~spindle.chain.sensor.LoadParams`, default
+            :data:`~spindle.chain.sensor.AX12_LOAD`): the torque a load word stands for.
+        gto: the tendon organs' constants (default the human preset,
+            :data:`spindle.tendon_organ_params.HUMAN`).
+        max_isometric_force_N: BRA's and TRImed's maximum isometric forces (N, default
+            Arm26's), from which each muscle's force scale G2 follows
+            (:func:`~spindle.tendon_organ_params.force_scales_N`).
+        moment_arm_fits_path: the moment-arm tables (``None``: the bundled
+            ``models/moment_arm_fits.json``) that turn joint torque into tendon forces.
         backend: ``"numpy"``, ``"c"`` or ``"auto"`` (:data:`BACKEND_CHOICES`);
             :func:`spindle.chain.make_chain` (and :func:`~spindle.chain.make_batched_chain`)
             builds the chain it names. ``"auto"`` is ``"c"`` when the C library can be used
@@ -108,6 +124,11 @@ class ChainConfig:
     max_speed_deg_s: float = 1000.0
     max_speed_L0_s: float = core.SLEW_LIMIT_L0_S
     fits_path: str | Path | None = None
+    load: LoadParams = AX12_LOAD
+    gto: TendonOrganParams = GTO_HUMAN
+    max_isometric_force_N: tuple[float, float] = (ARM26_MAX_ISOMETRIC_FORCE_N["BRA"],
+                                                  ARM26_MAX_ISOMETRIC_FORCE_N["TRImed"])
+    moment_arm_fits_path: str | Path | None = None
     backend: str = DEFAULT_BACKEND
 
     def __post_init__(self) -> None:
@@ -139,6 +160,16 @@ class ChainConfig:
                 f"max_speed_L0_s={self.max_speed_L0_s!r} must lie in (0, "
                 f"{core.MAX_SPEED_L0_S}] (the spindle's speed limit)"
             )
+        if not float(self.max_bridge_s) <= GTO_MAX_STEP_S:
+            raise ValueError(
+                f"max_bridge_s={self.max_bridge_s!r} must be <= {GTO_MAX_STEP_S} s: the tendon "
+                "organs step each bridged interval in one exact step, at most that long")
+        forces = tuple(float(f) for f in self.max_isometric_force_N)
+        if len(forces) != len(MUSCLES):
+            raise ValueError(f"max_isometric_force_N={self.max_isometric_force_N!r} needs one "
+                             f"force per muscle of {MUSCLES}")
+        force_scales_N(self.gto, forces)  # finite and > 0, or ValueError naming them
+        object.__setattr__(self, "max_isometric_force_N", forces)
         if not isinstance(self.backend, str) or self.backend not in BACKEND_CHOICES:
             raise ValueError(f"backend={self.backend!r} is not one of {BACKEND_CHOICES}")
 
@@ -147,6 +178,11 @@ class ChainConfig:
         if self.max_gap_s is not None:
             return float(self.max_gap_s)
         return self.median_window * self.encoder.period_s
+
+    @property
+    def force_scale_N(self) -> np.ndarray:
+        """G2 (N) of BRA and TRImed: the preset's, scaled by each maximum isometric force."""
+        return force_scales_N(self.gto, self.max_isometric_force_N)
 
     @property
     def spindle_step_s(self) -> float:
@@ -165,11 +201,16 @@ class ArmSample:
         counts: the raw reading (-1 when the sample did not come from the encoder).
         counts_filtered: the median-filtered reading (-1 likewise).
         angle_deg: conditioned elbow angle (deg).
+        torque_Nm: the joint torque the load reading stands for (N m, flexion positive; the
+            last valid one held over an invalid word, 0 without a load reading).
         length_L0: conditioned (low-passed) fibre length.
         velocity_L0_s, acceleration_L0_s2: its first and second time derivatives.
         template_L0: the fusimotor template (PI predictor output).
         gamma_static_pps, gamma_dynamic_pps: fusimotor drive.
         ia_pps, ii_pps: primary and secondary afferent rates.
+        force_N: the tendon forces carrying ``torque_Nm`` at ``angle_deg`` (N, >= 0;
+            :func:`spindle.chain.force.tendon_forces_N`).
+        ib_pps: the Golgi tendon organs' Ib rates (pps, >= 0).
     """
 
     t_s: float
@@ -177,6 +218,7 @@ class ArmSample:
     counts: float
     counts_filtered: float
     angle_deg: float
+    torque_Nm: float
     length_L0: np.ndarray
     velocity_L0_s: np.ndarray
     acceleration_L0_s2: np.ndarray
@@ -185,15 +227,20 @@ class ArmSample:
     gamma_dynamic_pps: np.ndarray
     ia_pps: np.ndarray
     ii_pps: np.ndarray
+    force_N: np.ndarray
+    ib_pps: np.ndarray
 
+
+SCALAR_OUTPUTS = ("t_s", "counts", "counts_filtered", "angle_deg", "torque_Nm")
+"""The outputs of :class:`ArmSample` that are one number per arm (the rest: one per muscle)."""
 
 
 class Chain(Protocol):
     """What both chains (numpy :class:`~spindle.chain.arm.ArmChain`, C
     :class:`~spindle.native.chain.CArmChain`) offer and :func:`spindle.chain.run_chain` uses.
 
-    Both also have the per-sample pushes (``push_counts``, ``push_angle``, ``push_lengths``),
-    their ``*_block`` forms, ``set_intended_angle`` and ``spindle_state``.
+    Both also have the per-sample pushes (``push_counts`` with its ``load``, ``push_angle``,
+    ``push_lengths``), their ``*_block`` forms, ``set_intended_angle`` and ``spindle_state``.
     """
 
     config: ChainConfig
@@ -206,10 +253,13 @@ class Chain(Protocol):
     def last(self) -> ArmSample: ...
 
     def reset(self, angle_deg: float, t_s: float = 0.0,
-              length_L0: np.ndarray | None = None) -> ArmSample: ...
+              length_L0: np.ndarray | None = None, load: float | None = None
+              ) -> ArmSample: ...
 
     def run_trace(self, push: str, t_s: np.ndarray, signal: np.ndarray,
-                  intended_angle_deg: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                  intended_angle_deg: np.ndarray | None = None,
+                  load: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Push a whole trace through entry point ``push`` (``"push_counts"``...), setting
-        the switch from ``intended_angle_deg`` before each sample; the stacked outputs."""
+        the switch from ``intended_angle_deg`` before each sample, with the load words
+        ``load`` beside counts; the stacked outputs."""
         ...

@@ -14,9 +14,10 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from spindle import core
-from spindle.chain.config import ArmSample, real_array, real_number
+from spindle.chain.config import SCALAR_OUTPUTS, ArmSample, real_array, real_number
 
-_OUTPUTS = tuple(f.name for f in fields(ArmSample) if f.name != "accepted")
+_PER_MUSCLE = tuple(f.name for f in fields(ArmSample) if f.name not in
+                    ("accepted", *SCALAR_OUTPUTS))
 
 
 @dataclass(frozen=True)
@@ -25,10 +26,10 @@ class BatchSample:
     fields with a leading axis of arms.
 
     Attributes:
-        t_s, accepted, counts, counts_filtered, angle_deg: (n_arms,) each.
+        t_s, accepted, counts, counts_filtered, angle_deg, torque_Nm: (n_arms,) each.
         length_L0, velocity_L0_s, acceleration_L0_s2, template_L0, gamma_static_pps,
-            gamma_dynamic_pps, ia_pps, ii_pps: (n_arms, 2) each, muscles in ``MUSCLES``
-            order.
+            gamma_dynamic_pps, ia_pps, ii_pps, force_N, ib_pps: (n_arms, 2) each, muscles
+            in ``MUSCLES`` order.
 
     An arm whose sample was rejected, or that got none, repeats its last output with
     ``accepted`` False. The arrays are read-only (the chain shares them with its state).
@@ -39,6 +40,7 @@ class BatchSample:
     counts: np.ndarray
     counts_filtered: np.ndarray
     angle_deg: np.ndarray
+    torque_Nm: np.ndarray
     length_L0: np.ndarray
     velocity_L0_s: np.ndarray
     acceleration_L0_s2: np.ndarray
@@ -47,14 +49,16 @@ class BatchSample:
     gamma_dynamic_pps: np.ndarray
     ia_pps: np.ndarray
     ii_pps: np.ndarray
+    force_N: np.ndarray
+    ib_pps: np.ndarray
 
     def arm(self, k: int) -> ArmSample:
         """Arm ``k``'s output as the single chain's :class:`ArmSample`."""
         return ArmSample(
             t_s=float(self.t_s[k]), accepted=bool(self.accepted[k]),
             counts=float(self.counts[k]), counts_filtered=float(self.counts_filtered[k]),
-            angle_deg=float(self.angle_deg[k]),
-            **{name: getattr(self, name)[k].copy() for name in _OUTPUTS[4:]})
+            angle_deg=float(self.angle_deg[k]), torque_Nm=float(self.torque_Nm[k]),
+            **{name: getattr(self, name)[k].copy() for name in _PER_MUSCLE})
 
 
 
@@ -90,6 +94,20 @@ def block_inputs(name: str, t_s: np.ndarray, signal: np.ndarray,
         raise ValueError(f"{name} has shape {x.shape} and t_s {t.shape}; expected "
                          f"{(t.size, *sample_shape)} for (k,) times")
     return t, x
+
+
+def check_loads(push: str, load: object, shape: tuple[int, ...]) -> np.ndarray | None:
+    """The load words of a block or trace as a float array of ``shape`` (NaN for non-real
+    entries: invalid words), None for no load; ValueError for a wrong shape or a load with
+    another entry point than ``push_counts``."""
+    if load is None:
+        return None
+    if push != "push_counts":
+        raise ValueError(f"load words come with encoder counts (push_counts), not {push}")
+    words = real_array(load)
+    if words.shape != shape:
+        raise ValueError(f"load has shape {words.shape}; expected {shape} like t_s")
+    return words
 
 
 def stack_samples(samples: list[ArmSample], like: ArmSample) -> dict[str, np.ndarray]:

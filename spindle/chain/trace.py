@@ -26,6 +26,7 @@ class ChainTrace:
     counts: np.ndarray
     counts_filtered: np.ndarray
     angle_deg: np.ndarray
+    torque_Nm: np.ndarray
     length_L0: np.ndarray
     velocity_L0_s: np.ndarray
     acceleration_L0_s2: np.ndarray
@@ -34,6 +35,8 @@ class ChainTrace:
     gamma_dynamic_pps: np.ndarray
     ia_pps: np.ndarray
     ii_pps: np.ndarray
+    force_N: np.ndarray
+    ib_pps: np.ndarray
     counters: dict[str, int]
 
     def columns(self) -> dict[str, np.ndarray]:
@@ -56,6 +59,7 @@ def run_chain(
     angle_deg: np.ndarray | None = None,
     length_L0: np.ndarray | None = None,
     intended_angle_deg: np.ndarray | None = None,
+    load: np.ndarray | None = None,
     config: ChainConfig | None = None,
     fits: LengthFits | None = None,
 ) -> ChainTrace:
@@ -69,7 +73,10 @@ def run_chain(
     rest at the first sample that is valid (its output is that rest state, its angle clamped to
     the length model's range and counted like any other sample's); the other samples
     are pushed in order (bad ones are handled by the documented rules). ``intended_angle_deg``
-    (T,) switches the fusimotor template to the intended motion.
+    (T,) switches the fusimotor template to the intended motion. ``load`` (T,) the servo's
+    load words read beside ``counts`` (only with counts; None: no load, Ib at rest at zero
+    force): the first sample's starts the tendon organs at rest (an invalid one at zero
+    torque, counted ``invalid_load``), the others follow the load rules.
     """
     given = [x is not None for x in (counts, angle_deg, length_L0)]
     if sum(given) != 1:
@@ -88,10 +95,19 @@ def run_chain(
         if intended.shape != t.shape:
             raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected {t.shape}")
 
+    words = None
+    if load is not None:
+        if counts is None:
+            raise ValueError("load words come with encoder counts: give counts with load")
+        words = real_array(load)
+        if words.shape != t.shape:
+            raise ValueError(f"load has shape {words.shape}, expected {t.shape}")
+
     chain = make_chain(config, fits)
     start = _first_valid(t, signal, counts is not None, length_L0 is not None, chain)
     if counts is not None:
-        chain.reset(float(chain.config.calibration.angle_deg(signal[start])), t[start])
+        chain.reset(float(chain.config.calibration.angle_deg(signal[start])), t[start],
+                    load=None if words is None else words[start])
         push = "push_counts"
     elif angle_deg is not None:
         chain.reset(signal[start], t[start])
@@ -102,7 +118,8 @@ def run_chain(
         push = "push_lengths"
     first = chain.last
     rest = chain.run_trace(push, t[start + 1:], signal[start + 1:],
-                           None if intended is None else intended[start + 1:])
+                           None if intended is None else intended[start + 1:],
+                           None if words is None else words[start + 1:])
     stacked = {
         f.name: np.concatenate([np.array([getattr(first, f.name)] * (start + 1)),
                                 rest[f.name]]) for f in fields(ArmSample)

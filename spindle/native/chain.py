@@ -29,24 +29,35 @@ from spindle.chain.config import (
     real_array,
     real_number,
 )
+from spindle.chain.force import MomentArmFits, load_moment_arm_fits
 from spindle.chain.length_model import LengthFits, load_length_fits
-from spindle.chain.samples import BatchSample, block_inputs, checked_angle, checked_lengths
+from spindle.chain.samples import (
+    BatchSample,
+    block_inputs,
+    check_loads,
+    checked_angle,
+    checked_lengths,
+)
 from spindle.methods import get_method
 from spindle.native import build
 from spindle.native.abi import Status, params_struct, real_type, status_name
 from spindle.native.abi import structs as spindle_structs
+from spindle.tendon_organ import TendonOrganState
 
 # Constants of proprio.h's chain section (checked against the header by the tests).
 MEDIAN_MAX_WINDOW = 15
 FIT_MAX_COEFFS = 16
 PREDICTOR_MAX_SEGMENTS = 16
 MAX_UPDATES = 1_000_000
+MOMENT_ARM_MAX_POINTS = 320
 
 PER_MUSCLE = ("length_L0", "velocity_L0_s", "acceleration_L0_s2", "template_L0",
-              "gamma_static_pps", "gamma_dynamic_pps", "ia_pps", "ii_pps")
+              "gamma_static_pps", "gamma_dynamic_pps", "ia_pps", "ii_pps", "force_N", "ib_pps")
 """ArmSample's per-muscle fields, in the order ps_arm_sample stores them (contiguous)."""
 SAMPLE_FIELDS = tuple(f.name for f in fields(ArmSample))
-assert SAMPLE_FIELDS[5:] == PER_MUSCLE
+SCALARS = ("counts", "counts_filtered", "angle_deg", "torque_Nm")
+"""ps_arm_sample's real scalars after t_s and accepted, in order."""
+assert SAMPLE_FIELDS[2:6] == SCALARS and SAMPLE_FIELDS[6:] == PER_MUSCLE
 
 
 @cache
@@ -70,9 +81,19 @@ def structs(variant: str = "double") -> dict[str, type]:
         _fields_ = [(name, ctypes.c_ulong) for name in COUNTERS]
 
     class PsArmSample(ctypes.Structure):
-        _fields_ = [("t_s", ctypes.c_double), ("accepted", ctypes.c_int), ("counts", real),
-                    ("counts_filtered", real), ("angle_deg", real),
-                    *[(name, pair) for name in PER_MUSCLE]]
+        _fields_ = [("t_s", ctypes.c_double), ("accepted", ctypes.c_int),
+                    *[(name, real) for name in SCALARS], *[(name, pair) for name in PER_MUSCLE]]
+
+    class PsGtoParams(ctypes.Structure):
+        _fields_ = [("gain_pps", real), ("tau_lowpass_s", real), ("num", real * 3),
+                    ("den", real * 2)]
+
+    class PsGtoPlan(ctypes.Structure):
+        _fields_ = [("phi", (real * 3) * 3), ("g0", real * 3), ("g1", real * 3),
+                    ("c", real * 3), ("gain_pps", real), ("inv_a0", real), ("h", real)]
+
+    class PsGto(ctypes.Structure):
+        _fields_ = [("z", real * 3), ("force_N", real), ("r_pps", real)]
 
     class PsChainConfig(ctypes.Structure):
         _fields_ = [
@@ -89,6 +110,10 @@ def structs(variant: str = "double") -> dict[str, type]:
             ("shortening_threshold_L0", real), ("predictor_rate_hz", real),
             ("predictor_kp_1_s", real), ("predictor_ki_1_s2", real), ("params", PsParams),
             ("theta", real), ("step_s", ctypes.c_double),
+            ("load_Nm_per_count", real), ("gto", PsGtoParams), ("force_scale_N", pair),
+            ("n_moment_arm_points", ctypes.c_int), ("moment_arm_lo_rad", real),
+            ("moment_arm_hi_rad", real),
+            ("moment_arm_m", (real * MOMENT_ARM_MAX_POINTS) * n_muscles),
         ]
 
     class PsChainState(ctypes.Structure):
@@ -96,8 +121,8 @@ def structs(variant: str = "double") -> dict[str, type]:
             ("median", PsMedian), ("predictor", PsPredictor), ("spindle", PsSpindle * n_muscles),
             ("u", pair), ("x", pair), ("v", pair), ("a", pair), ("angle_deg", real),
             ("t_s", ctypes.c_double), ("behind", ctypes.c_long), ("has_intended", ctypes.c_int),
-            ("intended_L0", pair),
-            ("counters", PsCounters), ("last", PsArmSample),
+            ("intended_L0", pair), ("gto", PsGto * n_muscles), ("gto_plan", PsGtoPlan),
+            ("torque_Nm", real), ("counters", PsCounters), ("last", PsArmSample),
         ]
 
     class PsArmChain(ctypes.Structure):
@@ -108,7 +133,8 @@ def structs(variant: str = "double") -> dict[str, type]:
         ]
 
     return {cls.__name__: cls for cls in (PsMedian, PsPredictor, PsCounters, PsArmSample,
-                                          PsChainConfig, PsChainState, PsArmChain)}
+                                          PsGtoParams, PsGtoPlan, PsGto, PsChainConfig,
+                                          PsChainState, PsArmChain)}
 
 
 @cache
@@ -141,6 +167,22 @@ def library(variant: str = "double") -> ctypes.CDLL:
         "ps_chain_init": [chain_p, ctypes.POINTER(s["PsChainConfig"])],
         "ps_chain_length_L0": [chain_p, real, real_p],
         "ps_chain_reset": [chain_p, real, ctypes.c_double, real_p, sample_p],
+        "ps_chain_reset_load": [chain_p, real, ctypes.c_double, real_p, real_p, sample_p],
+        "ps_chain_push_counts_load": [chain_p, ctypes.c_double, real, real_p, sample_p],
+        "ps_chain_push_counts_load_block": [chain_p, ctypes.c_long, ctypes.c_void_p,
+                                            ctypes.c_void_p, ctypes.c_void_p, sample_p, long_p],
+        "ps_chain_run_counts_load": [chain_p, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p,
+                                     ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, long_p],
+        "ps_chain_batch_reset_load": [ctypes.c_void_p, ctypes.c_long, ctypes.c_void_p,
+                                      ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p,
+                                      ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                                      ctypes.c_void_p, long_p],
+        "ps_chain_batch_push_counts_load_block": [
+            ctypes.c_void_p, ctypes.c_long, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p,
+            ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, long_p, long_p],
+        "ps_chain_batch_push_counts_load": [
+            ctypes.c_void_p, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+            ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, long_p],
         "ps_chain_set_intended_angle": [chain_p, real_p],
         "ps_chain_push_counts": [chain_p, ctypes.c_double, real, sample_p],
         "ps_chain_push_angle": [chain_p, ctypes.c_double, real, sample_p],
@@ -176,9 +218,10 @@ def library(variant: str = "double") -> ctypes.CDLL:
     return lib
 
 
-def chain_config_struct(config: ChainConfig, fits: LengthFits,
-                        variant: str = "double") -> ctypes.Structure:
-    """``config`` and ``fits`` resolved into a filled ``ps_chain_config``."""
+def chain_config_struct(config: ChainConfig, fits: LengthFits, variant: str = "double",
+                        moment_arms: MomentArmFits | None = None) -> ctypes.Structure:
+    """``config``, ``fits`` and the moment arms (default: ``config.moment_arm_fits_path``'s)
+    resolved into a filled ``ps_chain_config``."""
     if len(fits.fits) != len(MUSCLES):
         raise ValueError(f"length fits are for {fits.muscles}, the chain needs {MUSCLES}")
     if config.median_window > MEDIAN_MAX_WINDOW:
@@ -218,7 +261,31 @@ def chain_config_struct(config: ChainConfig, fits: LengthFits,
     out.params = params_struct(config.params, variant)
     out.theta = get_method(config.method).theta
     out.step_s = config.spindle_step_s
+    _fill_force_sense(out, config, moment_arms if moment_arms is not None
+                      else load_moment_arm_fits(config.moment_arm_fits_path))
     return out
+
+
+def _fill_force_sense(out: ctypes.Structure, config: ChainConfig,
+                      moment_arms: MomentArmFits) -> None:
+    """The force sense's fields of a ``ps_chain_config``: load resolution, tendon organ
+    constants, force scales and the moment-arm tables."""
+    if moment_arms.muscles != MUSCLES:
+        raise ValueError(f"moment arms are for {moment_arms.muscles}, the chain needs {MUSCLES}")
+    points = len(moment_arms.table_m[0])
+    if points > MOMENT_ARM_MAX_POINTS:
+        raise ValueError(f"the moment-arm tables have {points} points, above the C backend's "
+                         f"PS_MOMENT_ARM_MAX_POINTS={MOMENT_ARM_MAX_POINTS}")
+    gto = config.gto
+    out.load_Nm_per_count = config.load.Nm_per_count
+    out.gto.gain_pps, out.gto.tau_lowpass_s = gto.gain_pps, gto.tau_lowpass_s
+    out.gto.num[:] = list(gto.num)
+    out.gto.den[:] = list(gto.den)
+    out.force_scale_N[:] = config.force_scale_N.tolist()
+    out.n_moment_arm_points = points
+    out.moment_arm_lo_rad, out.moment_arm_hi_rad = moment_arms.valid_range_rad
+    for k, table in enumerate(moment_arms.table_m):
+        out.moment_arm_m[k][:points] = table
 
 
 _float = real_number  # NaN for anything that is not one real number: the C chain's bad-sample rules
@@ -290,6 +357,8 @@ class CArmChain:
         self._pair_p = ctypes.cast(self._pair, ctypes.POINTER(self._real))
         self._scalar = self._real()
         self._scalar_p = ctypes.pointer(self._scalar)
+        self._load = self._real()
+        self._load_p = ctypes.pointer(self._load)
         status = self._lib.ps_chain_init(self._chain_p, ctypes.byref(self._config_struct))
         if status != Status.PS_OK:
             raise ValueError(f"the C chain refused the configuration ({status_name(status)})")
@@ -340,7 +409,7 @@ class CArmChain:
 
     # -- state ---------------------------------------------------------------------------
     def reset(self, angle_deg: float, t_s: float = 0.0,
-              length_L0: np.ndarray | None = None) -> ArmSample:
+              length_L0: np.ndarray | None = None, load: float | None = None) -> ArmSample:
         t = real_number(t_s)
         if not math.isfinite(t):
             raise ValueError(f"t_s={t_s!r} must be a finite real number")
@@ -353,8 +422,8 @@ class CArmChain:
                                  f"{core.LENGTH_RANGE_L0} L0")
             self._pair[:] = L
             lengths_p = self._pair_p
-        status = self._lib.ps_chain_reset(self._chain_p, angle, t, lengths_p,
-                                          self._sample_p)
+        status = self._lib.ps_chain_reset_load(self._chain_p, angle, t, lengths_p,
+                                               self._load_pointer(load), self._sample_p)
         if status == Status.PS_ERR_ANGLE_RANGE:  # the fits' own error and message
             self.fits.length_L0(math.radians(angle))
         self._check(status, "reset")
@@ -398,10 +467,21 @@ class CArmChain:
         return core.SpindleState(fibres("T"), fibres("v"), fibres("z"), fibres("f"),
                                  scalar("L"), scalar("gd"), scalar("gs"))
 
+    @property
+    def tendon_organ_state(self) -> TendonOrganState:
+        """A copy of the tendon organs' state (2 organs: BRA, TRImed)."""
+        if self._last is None:
+            raise RuntimeError("call ArmChain.reset before using the chain")
+        organs = self._chain.state.gto
+        return TendonOrganState(
+            np.array([organs[k].z[:] for k in range(len(MUSCLES))], dtype=float).T,
+            np.array([organs[k].force_N for k in range(len(MUSCLES))], dtype=float),
+            np.array([organs[k].r_pps for k in range(len(MUSCLES))], dtype=float))
+
     # -- pushes ----------------------------------------------------------------------------
-    def push_counts(self, t_s: float, counts: float) -> ArmSample:
-        status = self._lib.ps_chain_push_counts(self._chain_p, _float(t_s), _float(counts),
-                                                self._sample_p)
+    def push_counts(self, t_s: float, counts: float, load: float | None = None) -> ArmSample:
+        status = self._lib.ps_chain_push_counts_load(self._chain_p, _float(t_s), _float(counts),
+                                                     self._load_pointer(load), self._sample_p)
         return self._pushed(status, t_s)
 
     def push_angle(self, t_s: float, angle_deg: float) -> ArmSample:
@@ -421,8 +501,10 @@ class CArmChain:
                                                  angle_p, self._sample_p)
         return self._pushed(status, t_s)
 
-    def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray) -> ArmSample:
-        return self._block(self._lib.ps_chain_push_counts_block, "counts", t_s, counts, ())
+    def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray,
+                          load: np.ndarray | None = None) -> ArmSample:
+        return self._block(self._lib.ps_chain_push_counts_load_block, "counts", t_s, counts, (),
+                           load)
 
     def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray) -> ArmSample:
         return self._block(self._lib.ps_chain_push_angle_block, "angle_deg", t_s, angle_deg,
@@ -433,12 +515,14 @@ class CArmChain:
                            (2,))
 
     def run_trace(self, push: str, t_s: np.ndarray, signal: np.ndarray,
-                  intended_angle_deg: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                  intended_angle_deg: np.ndarray | None = None,
+                  load: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Push a whole trace in one C call; every output stacked (for :func:`run_chain`).
 
         ``push`` names the entry point (``"push_counts"``, ``"push_angle"``,
         ``"push_lengths"``); ``intended_angle_deg`` (k,) sets the switch before each sample
-        (NaN: the measured motion), as :func:`run_chain` does. Returns the fields of
+        (NaN: the measured motion), as :func:`run_chain` does; ``load`` (k,) the load words
+        beside counts (``"push_counts"`` only; None: none). Returns the fields of
         :class:`ArmSample` stacked over the k samples (rejected ones included).
         """
         kind = push.removeprefix("push_")
@@ -446,6 +530,9 @@ class CArmChain:
         t, x = block_inputs(kind, t_s, signal, shape)
         t = np.ascontiguousarray(t, dtype=np.float64)
         x = np.ascontiguousarray(x, dtype=self._np_real)
+        words = check_loads(push, load, t.shape)
+        if words is not None:
+            words = np.ascontiguousarray(words, dtype=self._np_real)
         intended = None
         if intended_angle_deg is not None:
             intended = np.ascontiguousarray(
@@ -455,11 +542,15 @@ class CArmChain:
                 raise ValueError(f"intended_angle_deg has shape {intended.shape}, expected "
                                  f"{t.shape}")
         samples = (self._structs["PsArmSample"] * t.size)()
-        fn = getattr(self._lib, f"ps_chain_run_{kind}")
-        status = fn(self._chain_p, t.size, t.__array_interface__["data"][0],
-                    x.__array_interface__["data"][0],
-                    None if intended is None else intended.__array_interface__["data"][0],
-                    ctypes.addressof(samples), self._n_done_p)
+        intended_p = None if intended is None else intended.__array_interface__["data"][0]
+        if words is None:
+            status = getattr(self._lib, f"ps_chain_run_{kind}")(
+                self._chain_p, t.size, _address(t), _address(x), intended_p,
+                ctypes.addressof(samples), self._n_done_p)
+        else:
+            status = self._lib.ps_chain_run_counts_load(
+                self._chain_p, t.size, _address(t), _address(x), _address(words), intended_p,
+                ctypes.addressof(samples), self._n_done_p)
         done = self._n_done.value
         if self._last is not None:
             self._last = self._sample_from(self._chain.state.last)
@@ -474,13 +565,20 @@ class CArmChain:
         return out
 
     # -- plumbing ----------------------------------------------------------------------------
-    def _block(self, fn, name, t_s, signal, sample_shape) -> ArmSample:
+    def _block(self, fn, name, t_s, signal, sample_shape, load=None) -> ArmSample:
         t, x = block_inputs(name, t_s, signal, sample_shape)
         t = np.ascontiguousarray(t, dtype=np.float64)
         x = np.ascontiguousarray(x, dtype=self._np_real)
         # Raw addresses: the arrays outlive the call, and .ctypes.data_as costs microseconds.
-        status = fn(self._chain_p, t.size, t.__array_interface__["data"][0],
-                    x.__array_interface__["data"][0], self._sample_p, self._n_done_p)
+        if name == "counts":  # the load form (NULL: no load readings)
+            words = check_loads("push_counts", load, t.shape)
+            words = None if words is None else np.ascontiguousarray(words, dtype=self._np_real)
+            status = fn(self._chain_p, t.size, _address(t), _address(x),
+                        None if words is None else _address(words), self._sample_p,
+                        self._n_done_p)
+        else:
+            status = fn(self._chain_p, t.size, _address(t), _address(x), self._sample_p,
+                        self._n_done_p)
         if status != Status.PS_OK:
             i = self._n_done.value
             if self._n_done.value > 0:
@@ -489,6 +587,14 @@ class CArmChain:
         if t.size:
             self._last = self._sample_out(True)
         return self.last
+
+    def _load_pointer(self, load: float | None):
+        """A pointer to the load word (NaN for anything not one real number: an invalid
+        word), or None for no load reading."""
+        if load is None:
+            return None
+        self._load.value = _float(load)
+        return self._load_p
 
     def _pushed(self, status: int, t_s: object) -> ArmSample:
         self._check(status, "push", _float(t_s))
@@ -510,6 +616,10 @@ class CArmChain:
                 f"the sample at t_s={t_s!r} is too far after the last accepted one at "
                 f"{float(self._chain.state.t_s)!r} s: the interval needs more than "
                 f"{MAX_UPDATES} spindle sub-steps or predictor updates; chain left unchanged")
+        if status == Status.PS_ERR_FORCE_RANGE:
+            raise ValueError(
+                f"the sample at t_s={t_s!r} stands for a tendon force above MAX_FORCE_N "
+                f"(the load reading's torque over the moment arm); chain left unchanged")
         if what == "push":
             raise FloatingPointError(
                 f"the C chain failed at t_s={t_s!r} ({status_name(status)}): a spindle "
@@ -529,7 +639,7 @@ class CArmChain:
         # (4 us, as much as the C work of a 10-sample block).
         out.__dict__.update(zip(SAMPLE_FIELDS, (
             float(s.t_s), accepted, float(s.counts), float(s.counts_filtered),
-            float(s.angle_deg), *rows.astype(float)), strict=True))
+            float(s.angle_deg), float(s.torque_Nm), *rows.astype(float)), strict=True))
         return out
 
 
@@ -577,9 +687,10 @@ def _sample_columns(variant: str) -> tuple[int, int] | None:
     cls = structs(variant)["PsArmSample"]
     offsets = [getattr(cls, name).offset for name in SAMPLE_FIELDS[2:]]
     start = offsets[0]
-    expected = [start + 8 * j for j in range(3)] + [start + 24 + 16 * j
-                                                    for j in range(len(PER_MUSCLE))]
-    if offsets != expected or ctypes.sizeof(cls) != start + 24 + 16 * len(PER_MUSCLE) \
+    width = 8 * len(SCALARS)
+    expected = [start + 8 * j for j in range(len(SCALARS))] + [start + width + 16 * j
+                                                               for j in range(len(PER_MUSCLE))]
+    if offsets != expected or ctypes.sizeof(cls) != start + width + 16 * len(PER_MUSCLE) \
             or cls.t_s.offset != 0 or start % 8:
         return None
     return ctypes.sizeof(cls) // 8, start // 8
@@ -594,10 +705,10 @@ def _batch_sample(table: np.ndarray, rows: np.ndarray | None, accepted: np.ndarr
         # One copy of the rows, every field a view of it: a structured field costs ~1.5 us to
         # read, 13 of them most of a small batch's call.
         block = rows.copy()
-        c = rows.shape[1] - 2 * len(PER_MUSCLE) - 3
-        per_muscle = block[:, c + 3:].reshape(-1, len(PER_MUSCLE), 2)
-        values = {"t_s": block[:, 0], "counts": block[:, c], "counts_filtered": block[:, c + 1],
-                  "angle_deg": block[:, c + 2],
+        c = rows.shape[1] - 2 * len(PER_MUSCLE) - len(SCALARS)
+        per_muscle = block[:, c + len(SCALARS):].reshape(-1, len(PER_MUSCLE), 2)
+        values = {"t_s": block[:, 0],
+                  **{name: block[:, c + j] for j, name in enumerate(SCALARS)},
                   **{name: per_muscle[:, j] for j, name in enumerate(PER_MUSCLE)}}
     values["accepted"] = accepted
     out = object.__new__(BatchSample)
@@ -695,7 +806,8 @@ class CBatchedArmChain:
 
     # -- state ---------------------------------------------------------------------------
     def reset(self, angle_deg: np.ndarray, t_s: float | np.ndarray = 0.0,
-              length_L0: np.ndarray | None = None, arms: np.ndarray | None = None):
+              length_L0: np.ndarray | None = None, arms: np.ndarray | None = None,
+              load: np.ndarray | None = None):
         """Arms at rest: every arm, or the arms of the index array ``arms`` (the others
         untouched); see :meth:`spindle.chain.batch.BatchedArmChain.reset`. The first reset
         covers every arm (``arms=None``; a partial one before it raises RuntimeError and
@@ -730,10 +842,12 @@ class CBatchedArmChain:
                                  f"finite lengths within {core.LENGTH_RANGE_L0} L0")
             lengths = np.ascontiguousarray(lengths, dtype=self._np_real)
         angle = np.ascontiguousarray(angle, dtype=self._np_real)
-        status = self._lib.ps_chain_batch_reset(
+        words = None if load is None else np.ascontiguousarray(
+            _batch_real("load", load, (m,)), dtype=self._np_real)
+        status = self._lib.ps_chain_batch_reset_load(
             self._addr[0], self.n_arms, None if index is None else _address(index), m,
             _address(angle), _address(t), None if lengths is None else _address(lengths),
-            self._addr[1], None, self._failed_p[0])
+            None if words is None else _address(words), self._addr[1], None, self._failed_p[0])
         if status != Status.PS_OK:
             raise ValueError(f"the C chain refused the reset of arm {self._failed[0].value} "
                              f"({status_name(status)})")
@@ -780,9 +894,11 @@ class CBatchedArmChain:
             else sp[name].astype(float).reshape(n) for name, attr in _SPINDLE_FIELDS})
 
     # -- pushes ----------------------------------------------------------------------------
-    def push_counts(self, t_s: np.ndarray, counts: np.ndarray, active: np.ndarray | None = None):
-        """One reading per arm (``active`` (n,) bool: only those arms get one)."""
-        return self._push("counts", t_s, counts, (), active)
+    def push_counts(self, t_s: np.ndarray, counts: np.ndarray, active: np.ndarray | None = None,
+                    load: np.ndarray | None = None):
+        """One reading per arm (``active`` (n,) bool: only those arms get one), with its load
+        word ``load`` (n,) (None: no load readings)."""
+        return self._push("counts", t_s, counts, (), active, load)
 
     def push_angle(self, t_s: np.ndarray, angle_deg: np.ndarray,
                    active: np.ndarray | None = None):
@@ -795,9 +911,10 @@ class CBatchedArmChain:
         return self._push("length_L0", t_s, length_L0, (2,), active)
 
     def push_counts_block(self, t_s: np.ndarray, counts: np.ndarray,
-                          n_samples: np.ndarray | None = None):
-        """Arm i pushes its first ``n_samples[i]`` (default k) of (n, k) readings."""
-        return self._block("counts", t_s, counts, (), n_samples)
+                          n_samples: np.ndarray | None = None, load: np.ndarray | None = None):
+        """Arm i pushes its first ``n_samples[i]`` (default k) of (n, k) readings (with the
+        (n, k) load words ``load``; None: no load readings)."""
+        return self._block("counts", t_s, counts, (), n_samples, load)
 
     def push_angle_block(self, t_s: np.ndarray, angle_deg: np.ndarray,
                          n_samples: np.ndarray | None = None):
@@ -810,7 +927,7 @@ class CBatchedArmChain:
         return self._block("length_L0", t_s, length_L0, (2,), n_samples)
 
     # -- plumbing ----------------------------------------------------------------------------
-    def _push(self, name, t_s, signal, sample_shape, active):
+    def _push(self, name, t_s, signal, sample_shape, active, load=None):
         n = self.n_arms
         t = np.ascontiguousarray(_batch_real("t_s", t_s, (n,)), dtype=np.float64)
         x = np.ascontiguousarray(_batch_real(name, signal, (n, *sample_shape)),
@@ -822,14 +939,23 @@ class CBatchedArmChain:
                 raise ValueError(f"active has dtype {mask.dtype}, expected bool")
             _check_shape("active", mask, (n,))
             mask = np.ascontiguousarray(mask)
-        fn = getattr(self._lib, f"ps_chain_batch_push_{_ENTRY[name]}")
-        status = fn(self._addr[0], n, None if mask is None else _address(mask), _address(t),
-                    _address(x), self._addr[1], self._addr[2], self._failed_p[0])
+        mask_p = None if mask is None else _address(mask)
+        if name == "counts":
+            words = None if load is None else np.ascontiguousarray(
+                _batch_real("load", load, (n,)), dtype=self._np_real)
+            status = self._lib.ps_chain_batch_push_counts_load(
+                self._addr[0], n, mask_p, _address(t), _address(x),
+                None if words is None else _address(words), self._addr[1], self._addr[2],
+                self._failed_p[0])
+        else:
+            status = getattr(self._lib, f"ps_chain_batch_push_{_ENTRY[name]}")(
+                self._addr[0], n, mask_p, _address(t), _address(x), self._addr[1],
+                self._addr[2], self._failed_p[0])
         if status != Status.PS_OK:
             self._check(status, t.reshape(n, 1), 0)
         return _batch_sample(self._out_table, self._out_rows, self._out_accepted != 0)
 
-    def _block(self, name, t_s, signal, sample_shape, n_samples):
+    def _block(self, name, t_s, signal, sample_shape, n_samples, load=None):
         n = self.n_arms
         t = real_array(t_s)
         if t.ndim != 2 or t.shape[0] != n:
@@ -850,9 +976,18 @@ class CBatchedArmChain:
                 raise ValueError(f"n_samples[{i}]={int(given[i])} must lie in 0..{k} (k samples "
                                  "per arm in this block)")
             counts = np.ascontiguousarray(given, dtype=_C_LONG)
-        fn = getattr(self._lib, f"ps_chain_batch_push_{_ENTRY[name]}_block")
-        status = fn(self._addr[0], n, k, None if counts is None else _address(counts),
-                    _address(t), _address(x), self._addr[1], self._addr[2], *self._failed_p)
+        counts_p = None if counts is None else _address(counts)
+        if name == "counts":
+            words = None if load is None else np.ascontiguousarray(
+                _batch_real("load", load, (n, k)), dtype=self._np_real)
+            status = self._lib.ps_chain_batch_push_counts_load_block(
+                self._addr[0], n, k, counts_p, _address(t), _address(x),
+                None if words is None else _address(words), self._addr[1], self._addr[2],
+                *self._failed_p)
+        else:
+            status = getattr(self._lib, f"ps_chain_batch_push_{_ENTRY[name]}_block")(
+                self._addr[0], n, k, counts_p, _address(t), _address(x), self._addr[1],
+                self._addr[2], *self._failed_p)
         if status != Status.PS_OK:
             self._check(status, t, self._failed[1].value)
         return _batch_sample(self._out_table, self._out_rows, self._out_accepted != 0)

@@ -3,6 +3,7 @@
  *
  *   counts -> median filter -> f(x) -> angle -> fitted BRA/TRImed lengths -> tracking
  *   low-pass (L, dL/dt) -> PI template -> gamma_s = h, gamma_d = g -> spindles -> Ia, II
+ *   load word -> torque -> BRA/TRImed tendon forces (moment arms) -> tendon organs -> Ib
  *
  * A port of spindle/chain/ (arm.py with sensor.py, length_model.py, conditioning.py and
  * fusimotor.py), in their order of operations, so the double build agrees with the numpy
@@ -353,11 +354,40 @@ static int substeps_ok(const ps_chain_config *cfg)
                   <= (double)PS_CHAIN_MAX_BRIDGE_UPDATES;
 }
 
+/* The force sense: a load resolution, tendon organ constants ps_gto_plan_init accepts (at the
+ * longest interval, which one exact step must cover), force scales, and moment-arm tables
+ * with the flexor's >= PS_MIN_MOMENT_ARM_M and the extensor's <= -PS_MIN_MOMENT_ARM_M. */
+static int force_ok(const ps_chain_config *cfg)
+{
+    ps_gto_plan q;
+    int k, i, n = cfg->n_moment_arm_points;
+    if (!(cfg->load_Nm_per_count > 0 && isfinite(cfg->load_Nm_per_count)
+          && cfg->max_bridge_s <= PS_GTO_MAX_STEP_S
+          && ps_gto_plan_init(&q, &cfg->gto, (ps_real)cfg->max_bridge_s) == PS_OK
+          && n >= 2 && n <= PS_MOMENT_ARM_MAX_POINTS && isfinite(cfg->moment_arm_lo_rad)
+          && isfinite(cfg->moment_arm_hi_rad)
+          && cfg->moment_arm_lo_rad < cfg->moment_arm_hi_rad)) {
+        return 0;
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        if (!(cfg->force_scale_N[k] > 0 && isfinite(cfg->force_scale_N[k]))) {
+            return 0;
+        }
+        for (i = 0; i < n; ++i) {
+            ps_real r = k == 0 ? cfg->moment_arm_m[k][i] : -cfg->moment_arm_m[k][i];
+            if (!(r >= (ps_real)PS_MIN_MOMENT_ARM_M && isfinite(r))) {
+                return 0;
+            }
+        }
+    }
+    return 1;
+}
+
 /* The spindle constants by the spindle's own check (spindle.c), then each stage's rules. */
 static int config_ok(const ps_chain_config *cfg)
 {
     return ps_params_check(&cfg->params) == PS_OK && sensor_ok(cfg) && fits_ok(cfg)
-           && handling_ok(cfg) && fusimotor_ok(cfg) && substeps_ok(cfg);
+           && handling_ok(cfg) && fusimotor_ok(cfg) && substeps_ok(cfg) && force_ok(cfg);
 }
 
 int ps_chain_init(ps_arm_chain *c, const ps_chain_config *config)
@@ -449,14 +479,153 @@ static ps_real clamp_angle(const ps_arm_chain *c, ps_real angle)
                                     : (angle > c->angle_max_deg ? c->angle_max_deg : angle);
 }
 
+/* ======================================================================================
+ * the force sense (sensor.py's load word, force.py, tendon_organ.py in the chain)
+ * ====================================================================================== */
+
+static int load_valid(ps_real word)
+{
+    return isfinite(word) && word == (ps_real)floor((double)word) && word >= 0
+           && word <= PS_LOAD_MAX_WORD;
+}
+
+/* load_torque_Nm of a valid word: the magnitude's torque, negative for a clockwise load, times
+ * the mounting's sign. */
+static ps_real load_torque(const ps_chain_config *cfg, ps_real word)
+{
+    long w = (long)word;
+    ps_real direction = (w & (PS_LOAD_MAGNITUDE_MAX + 1)) ? -1 : 1;
+    return cfg->count_sign * direction * (ps_real)(w & PS_LOAD_MAGNITUDE_MAX)
+           * cfg->load_Nm_per_count;
+}
+
+/* The torque of an accepted sample by the load rules (its counts into st): a valid word's,
+ * the last one held over an invalid word, 0 without one. */
+static ps_real sample_torque(const ps_chain_config *cfg, ps_chain_state *st, int is_counts,
+                             const ps_real *load)
+{
+    if (load == NULL) {
+        st->counters.missing_load += (unsigned long)is_counts;
+        return 0;
+    }
+    if (!load_valid(*load)) {
+        st->counters.invalid_load += 1;
+        return st->torque_Nm;
+    }
+    return load_torque(cfg, *load);
+}
+
+/* MomentArmFits.moment_arms_m with clip: the table at the angle clamped to its range, linear
+ * between the points of numpy.linspace(lo, hi, n) (as numpy.interp). */
+static ps_real moment_arm(const ps_chain_config *cfg, int k, ps_real angle_rad)
+{
+    const int n = cfg->n_moment_arm_points;
+    const ps_real lo = cfg->moment_arm_lo_rad, hi = cfg->moment_arm_hi_rad;
+    const ps_real *table = cfg->moment_arm_m[k];
+    ps_real step = (hi - lo) / (ps_real)(n - 1), x0, x1;
+    long j;
+    if (!(angle_rad > lo)) {
+        return table[0];
+    }
+    if (angle_rad >= hi) {
+        return table[n - 1];
+    }
+    j = (long)((angle_rad - lo) / step);
+    j = j > n - 2 ? n - 2 : j;
+    x0 = (ps_real)j * step + lo;
+    if (angle_rad < x0 && j > 0) { /* the division rounded up past a grid point */
+        j -= 1;
+        x0 = (ps_real)j * step + lo;
+    }
+    x1 = j + 1 == n - 1 ? hi : (ps_real)(j + 1) * step + lo;
+    if (angle_rad >= x1 && j + 1 < n - 1) {
+        j += 1;
+        x0 = x1;
+        x1 = j + 1 == n - 1 ? hi : (ps_real)(j + 1) * step + lo;
+    }
+    return (table[j + 1] - table[j]) / (x1 - x0) * (angle_rad - x0) + table[j];
+}
+
+/* tendon_forces_N: flexion torque on BRA, extension torque on TRImed, never negative. */
+static void tendon_forces(const ps_chain_config *cfg, ps_real torque, ps_real angle_deg,
+                          ps_real force[PS_MUSCLES])
+{
+    ps_real angle = (ps_real)((double)angle_deg * DEG_TO_RAD);
+    ps_real f;
+    force[0] = 0;
+    force[1] = 0;
+    if (torque > 0) {
+        f = torque / moment_arm(cfg, 0, angle);
+        force[0] = f > 0 ? f : 0;
+    } else {
+        f = torque / moment_arm(cfg, 1, angle);
+        force[1] = f > 0 ? f : 0;
+    }
+}
+
+/* The tendon organs at rest at the force of `torque` at the angle; their rates to ib. */
+static int rest_tendon_organs(const ps_chain_config *cfg, ps_chain_state *st, ps_real torque,
+                              ps_real angle_deg, ps_real *force, ps_real *ib)
+{
+    int k, status;
+    tendon_forces(cfg, torque, angle_deg, force);
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        status = ps_gto_init(&st->gto[k], &st->gto_plan, force[k], cfg->force_scale_N[k]);
+        if (status != PS_OK) {
+            return status;
+        }
+        ib[k] = ps_gto_rate(&st->gto[k], &st->gto_plan);
+    }
+    return PS_OK;
+}
+
+/* The tendon organs over an interval dt in ONE exact step to the force of `torque` at the
+ * angle (the force a line over the interval); the plan is remade when the interval changes. */
+static int advance_tendon_organs(const ps_chain_config *cfg, ps_chain_state *st,
+                                 ps_real torque, ps_real angle_deg, ps_time dt,
+                                 ps_real *force, ps_real *ib)
+{
+    int k, status, resting = 1;
+    tendon_forces(cfg, torque, angle_deg, force);
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        resting = resting && force[k] == 0 && st->gto[k].r_pps == 0 && st->gto[k].z[0] == 0
+                  && st->gto[k].z[1] == 0 && st->gto[k].z[2] == 0;
+    }
+    if (resting) { /* at rest at zero force and staying there: the step would give zeros */
+        ib[0] = 0;
+        ib[1] = 0;
+        return PS_OK;
+    }
+    if (st->gto_plan.h != (ps_real)dt) {
+        status = ps_gto_plan_init(&st->gto_plan, &cfg->gto, (ps_real)dt);
+        if (status != PS_OK) {
+            return status;
+        }
+    }
+    for (k = 0; k < PS_MUSCLES; ++k) {
+        status = ps_gto_step(&st->gto[k], &st->gto_plan, force[k], cfg->force_scale_N[k],
+                             &ib[k]);
+        if (status != PS_OK) {
+            return status;
+        }
+    }
+    return PS_OK;
+}
+
 /* ArmChain._rest: at rest at `angle_deg` and lengths L at t, the median window on `reading`,
  * the predictor on its input (the intended lengths when the switch is on); what reset and a
  * restart share. Counters and the switch are left alone. */
 static int rest(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real angle_deg,
-                const ps_real *L, ps_real reading, ps_real counts, ps_real filtered)
+                const ps_real *L, ps_real reading, ps_real counts, ps_real filtered,
+                ps_real torque)
 {
     ps_real gs[PS_MUSCLES], gd[PS_MUSCLES], template_in[PS_MUSCLES];
     int k, status;
+    status = rest_tendon_organs(&c->config, st, torque, angle_deg, st->last.force_N,
+                                st->last.ib_pps);
+    if (status != PS_OK) {
+        return status;
+    }
     for (k = 0; k < PS_MUSCLES; ++k) {
         template_in[k] = st->has_intended ? st->intended_L0[k] : L[k];
     }
@@ -489,11 +658,13 @@ static int rest(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real an
     st->angle_deg = angle_deg;
     st->t_s = t;
     st->behind = 0;
+    st->torque_Nm = torque;
     st->last.t_s = t;
     st->last.accepted = 1;
     st->last.counts = counts;
     st->last.counts_filtered = filtered;
     st->last.angle_deg = angle_deg;
+    st->last.torque_Nm = torque;
     return PS_OK;
 }
 
@@ -529,11 +700,11 @@ static int reset_lengths(const ps_arm_chain *c, ps_real angle_deg, const ps_real
 
 /* The state of `c` reset at rest (ps_chain_reset's work) into `st`; `c` is not written. */
 static int reset_state(const ps_arm_chain *c, ps_real angle_deg, ps_time t_s,
-                       const ps_real *length_L0, ps_chain_state *st)
+                       const ps_real *length_L0, const ps_real *load, ps_chain_state *st)
 {
-    ps_real L[PS_MUSCLES], recorded;
+    ps_real L[PS_MUSCLES], recorded, torque = 0;
     ps_chain_counters zero = {0}; /* the universal zero initializer: every counter */
-    int k, status, clamped;
+    int k, status, clamped, bad_load = load != NULL && !load_valid(*load);
     if (c->stage < 1) {
         return PS_ERR_NOT_RESET;
     }
@@ -548,24 +719,40 @@ static int reset_state(const ps_arm_chain *c, ps_real angle_deg, ps_time t_s,
     for (k = 0; k < PS_MUSCLES; ++k) {
         st->intended_L0[k] = 0;
     }
-    status = rest(c, st, t_s, recorded, L, rest_reading(&c->config, angle_deg), -1, -1);
+    /* any valid step: the plan is remade for the first interval */
+    status = ps_gto_plan_init(&st->gto_plan, &c->config.gto, (ps_real)c->config.max_bridge_s);
+    if (status != PS_OK) {
+        return status;
+    }
+    if (load != NULL && !bad_load) {
+        torque = load_torque(&c->config, *load);
+    }
+    status = rest(c, st, t_s, recorded, L, rest_reading(&c->config, angle_deg), -1, -1,
+                  torque);
     if (status != PS_OK) {
         return status;
     }
     st->counters = zero;
     st->counters.angle_clamped = (unsigned long)clamped;
+    st->counters.invalid_load = (unsigned long)bad_load;
     return PS_OK;
 }
 
 int ps_chain_reset(ps_arm_chain *c, ps_real angle_deg, ps_time t_s, const ps_real *length_L0,
                    ps_arm_sample *out)
 {
+    return ps_chain_reset_load(c, angle_deg, t_s, length_L0, NULL, out);
+}
+
+int ps_chain_reset_load(ps_arm_chain *c, ps_real angle_deg, ps_time t_s,
+                        const ps_real *length_L0, const ps_real *load, ps_arm_sample *out)
+{
     ps_chain_state st;
     int status;
     if (c == NULL) {
         return PS_ERR_NULL;
     }
-    status = reset_state(c, angle_deg, t_s, length_L0, &st);
+    status = reset_state(c, angle_deg, t_s, length_L0, load, &st);
     if (status != PS_OK) {
         return status;
     }
@@ -761,7 +948,7 @@ static void condition(const ps_chain_config *cfg, const ps_chain_state *st,
  * before the slew limit and clamp (the median's reading after a restart). */
 static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
                         const ps_real *L_given, ps_real angle, ps_real counts,
-                        ps_real filtered, ps_real given_angle)
+                        ps_real filtered, ps_real given_angle, ps_real torque)
 {
     const ps_chain_config *cfg = &c->config;
     ps_time dt_time = t - st->t_s;
@@ -778,7 +965,8 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
         st->counters.clock_resyncs += t < st->t_s;
         st->counters.accepted += 1;
         return rest(c, st, t, angle, L_given,
-                    counts >= 0 ? counts : rest_reading(cfg, given_angle), counts, filtered);
+                    counts >= 0 ? counts : rest_reading(cfg, given_angle), counts, filtered,
+                    torque);
     }
     if (!interval_ok(c, st, t)) {
         return PS_ERR_INTERVAL;
@@ -795,6 +983,11 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
     }
     fusimotor_rates(c, &st->predictor, t, tmpl, gs, gd);
     status = advance_spindles(c, st, st->x, st->v, x1, v1, gd, gs, dt_time, ia, ii);
+    if (status != PS_OK) {
+        return status;
+    }
+    status = advance_tendon_organs(cfg, st, torque, angle, dt_time, st->last.force_N,
+                                   st->last.ib_pps);
     if (status != PS_OK) {
         return status;
     }
@@ -815,18 +1008,20 @@ static int length_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t,
     st->angle_deg = angle;
     st->t_s = t;
     st->behind = 0;
+    st->torque_Nm = torque;
     st->counters.accepted += 1;
     st->last.t_s = t;
     st->last.accepted = 1;
     st->last.counts = counts;
     st->last.counts_filtered = filtered;
     st->last.angle_deg = angle;
+    st->last.torque_Nm = torque;
     return PS_OK;
 }
 
 /* ArmChain._angle_stage: slew limit, clamp to the fitted range, fitted lengths. */
 static int angle_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_real angle,
-                       ps_real counts, ps_real filtered)
+                       ps_real counts, ps_real filtered, ps_real torque)
 {
     ps_real limit, L[PS_MUSCLES], given = angle;
     if (!restarts(c, st, t)) { /* a restart starts afresh at the new angle */
@@ -844,7 +1039,7 @@ static int angle_stage(const ps_arm_chain *c, ps_chain_state *st, ps_time t, ps_
         angle = clamp_angle(c, angle);
     }
     fit_lengths(&c->config, (ps_real)((double)angle * DEG_TO_RAD), L);
-    return length_stage(c, st, t, L, angle, counts, filtered, given);
+    return length_stage(c, st, t, L, angle, counts, filtered, given, torque);
 }
 
 enum push_kind { PUSH_COUNTS, PUSH_ANGLE, PUSH_LENGTHS };
@@ -854,7 +1049,7 @@ enum push_kind { PUSH_COUNTS, PUSH_ANGLE, PUSH_LENGTHS };
  * receives whether the sample was accepted (a rejected one only changes a counter). */
 static int push_state(const ps_arm_chain *c, ps_chain_state *st, enum push_kind kind,
                       ps_time t, ps_real value, const ps_real *lengths,
-                      const ps_real *angle_deg, int *accepted)
+                      const ps_real *angle_deg, const ps_real *load, int *accepted)
 {
     int status = PS_OK;
     *accepted = 0;
@@ -868,14 +1063,15 @@ static int push_state(const ps_arm_chain *c, ps_chain_state *st, enum push_kind 
             /* a restart refills the window with this reading instead */
             ps_real filtered = restarts(c, st, t) ? value : ps_median_push(&st->median, value);
             status = angle_stage(c, st, t, calibration_angle_deg(&c->config, filtered), value,
-                                 filtered);
+                                 filtered, sample_torque(&c->config, st, 1, load));
             *accepted = 1;
         }
     } else if (kind == PUSH_ANGLE) {
         if (!isfinite(value)) {
             st->counters.invalid_angle += 1;
         } else {
-            status = angle_stage(c, st, t, value, -1, -1);
+            status = angle_stage(c, st, t, value, -1, -1,
+                                 sample_torque(&c->config, st, 0, load));
             *accepted = 1;
         }
     } else {
@@ -884,7 +1080,8 @@ static int push_state(const ps_arm_chain *c, ps_chain_state *st, enum push_kind 
         } else {
             ps_real angle = (angle_deg == NULL || !isfinite(*angle_deg)) ? st->angle_deg
                                                                          : *angle_deg;
-            status = length_stage(c, st, t, lengths, angle, -1, -1, angle);
+            status = length_stage(c, st, t, lengths, angle, -1, -1, angle,
+                                  sample_torque(&c->config, st, 0, load));
             *accepted = 1;
         }
     }
@@ -894,7 +1091,8 @@ static int push_state(const ps_arm_chain *c, ps_chain_state *st, enum push_kind 
 /* One push on a copy of the state, committed only if it completes. A rejected sample only
  * changes a counter, so it is committed too. */
 static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
-                const ps_real *lengths, const ps_real *angle_deg, ps_arm_sample *out)
+                const ps_real *lengths, const ps_real *angle_deg, const ps_real *load,
+                ps_arm_sample *out)
 {
     ps_chain_state st;
     int status, accepted;
@@ -905,7 +1103,7 @@ static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
         return PS_ERR_NOT_RESET;
     }
     st = c->state;
-    status = push_state(c, &st, kind, t, value, lengths, angle_deg, &accepted);
+    status = push_state(c, &st, kind, t, value, lengths, angle_deg, load, &accepted);
     if (status != PS_OK) {
         return status;
     }
@@ -919,22 +1117,29 @@ static int push(ps_arm_chain *c, enum push_kind kind, ps_time t, ps_real value,
 
 int ps_chain_push_counts(ps_arm_chain *c, ps_time t_s, ps_real counts, ps_arm_sample *out)
 {
-    return push(c, PUSH_COUNTS, t_s, counts, NULL, NULL, out);
+    return push(c, PUSH_COUNTS, t_s, counts, NULL, NULL, NULL, out);
+}
+
+int ps_chain_push_counts_load(ps_arm_chain *c, ps_time t_s, ps_real counts,
+                              const ps_real *load, ps_arm_sample *out)
+{
+    return push(c, PUSH_COUNTS, t_s, counts, NULL, NULL, load, out);
 }
 
 int ps_chain_push_angle(ps_arm_chain *c, ps_time t_s, ps_real angle_deg, ps_arm_sample *out)
 {
-    return push(c, PUSH_ANGLE, t_s, angle_deg, NULL, NULL, out);
+    return push(c, PUSH_ANGLE, t_s, angle_deg, NULL, NULL, NULL, out);
 }
 
 int ps_chain_push_lengths(ps_arm_chain *c, ps_time t_s, const ps_real length_L0[PS_MUSCLES],
                           const ps_real *angle_deg, ps_arm_sample *out)
 {
-    return push(c, PUSH_LENGTHS, t_s, 0, length_L0, angle_deg, out);
+    return push(c, PUSH_LENGTHS, t_s, 0, length_L0, angle_deg, NULL, out);
 }
 
 static int push_block(ps_arm_chain *c, enum push_kind kind, long n, const ps_time *t_s,
-                      const ps_real *values, ps_arm_sample *out, long *n_done)
+                      const ps_real *values, const ps_real *load, ps_arm_sample *out,
+                      long *n_done)
 {
     long i;
     int status = PS_OK;
@@ -949,9 +1154,10 @@ static int push_block(ps_arm_chain *c, enum push_kind kind, long n, const ps_tim
     }
     for (i = 0; i < n; ++i) {
         if (kind == PUSH_LENGTHS) {
-            status = push(c, kind, t_s[i], 0, values + PS_MUSCLES * i, NULL, NULL);
+            status = push(c, kind, t_s[i], 0, values + PS_MUSCLES * i, NULL, NULL, NULL);
         } else {
-            status = push(c, kind, t_s[i], values[i], NULL, NULL, NULL);
+            status = push(c, kind, t_s[i], values[i], NULL, NULL,
+                          load == NULL ? NULL : &load[i], NULL);
         }
         if (status != PS_OK) {
             break;
@@ -969,23 +1175,30 @@ static int push_block(ps_arm_chain *c, enum push_kind kind, long n, const ps_tim
 int ps_chain_push_counts_block(ps_arm_chain *c, long n, const ps_time *t_s,
                                const ps_real *counts, ps_arm_sample *out, long *n_done)
 {
-    return push_block(c, PUSH_COUNTS, n, t_s, counts, out, n_done);
+    return push_block(c, PUSH_COUNTS, n, t_s, counts, NULL, out, n_done);
+}
+
+int ps_chain_push_counts_load_block(ps_arm_chain *c, long n, const ps_time *t_s,
+                                    const ps_real *counts, const ps_real *load,
+                                    ps_arm_sample *out, long *n_done)
+{
+    return push_block(c, PUSH_COUNTS, n, t_s, counts, load, out, n_done);
 }
 
 int ps_chain_push_angle_block(ps_arm_chain *c, long n, const ps_time *t_s,
                               const ps_real *angle_deg, ps_arm_sample *out, long *n_done)
 {
-    return push_block(c, PUSH_ANGLE, n, t_s, angle_deg, out, n_done);
+    return push_block(c, PUSH_ANGLE, n, t_s, angle_deg, NULL, out, n_done);
 }
 
 int ps_chain_push_lengths_block(ps_arm_chain *c, long n, const ps_time *t_s,
                                 const ps_real *length_L0, ps_arm_sample *out, long *n_done)
 {
-    return push_block(c, PUSH_LENGTHS, n, t_s, length_L0, out, n_done);
+    return push_block(c, PUSH_LENGTHS, n, t_s, length_L0, NULL, out, n_done);
 }
 
 static int run_trace(ps_arm_chain *c, enum push_kind kind, long n, const ps_time *t_s,
-                     const ps_real *values, const ps_real *intended_deg,
+                     const ps_real *values, const ps_real *load, const ps_real *intended_deg,
                      ps_arm_sample *samples, long *n_done)
 {
     long i;
@@ -1008,9 +1221,11 @@ static int run_trace(ps_arm_chain *c, enum push_kind kind, long n, const ps_time
             }
         }
         if (kind == PUSH_LENGTHS) {
-            status = push(c, kind, t_s[i], 0, values + PS_MUSCLES * i, NULL, &samples[i]);
+            status = push(c, kind, t_s[i], 0, values + PS_MUSCLES * i, NULL, NULL,
+                          &samples[i]);
         } else {
-            status = push(c, kind, t_s[i], values[i], NULL, NULL, &samples[i]);
+            status = push(c, kind, t_s[i], values[i], NULL, NULL,
+                          load == NULL ? NULL : &load[i], &samples[i]);
         }
         if (status != PS_OK) {
             break;
@@ -1025,19 +1240,27 @@ static int run_trace(ps_arm_chain *c, enum push_kind kind, long n, const ps_time
 int ps_chain_run_counts(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *counts,
                         const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
 {
-    return run_trace(c, PUSH_COUNTS, n, t_s, counts, intended_deg, samples, n_done);
+    return run_trace(c, PUSH_COUNTS, n, t_s, counts, NULL, intended_deg, samples, n_done);
+}
+
+int ps_chain_run_counts_load(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *counts,
+                             const ps_real *load, const ps_real *intended_deg,
+                             ps_arm_sample *samples, long *n_done)
+{
+    return run_trace(c, PUSH_COUNTS, n, t_s, counts, load, intended_deg, samples, n_done);
 }
 
 int ps_chain_run_angle(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *angle_deg,
                        const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
 {
-    return run_trace(c, PUSH_ANGLE, n, t_s, angle_deg, intended_deg, samples, n_done);
+    return run_trace(c, PUSH_ANGLE, n, t_s, angle_deg, NULL, intended_deg, samples, n_done);
 }
 
 int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *length_L0,
                          const ps_real *intended_deg, ps_arm_sample *samples, long *n_done)
 {
-    return run_trace(c, PUSH_LENGTHS, n, t_s, length_L0, intended_deg, samples, n_done);
+    return run_trace(c, PUSH_LENGTHS, n, t_s, length_L0, NULL, intended_deg, samples,
+                     n_done);
 }
 
 
@@ -1087,8 +1310,8 @@ static int batch_ok(const ps_arm_chain *chains, long n_arms, long k, const long 
  * the blocks (ArmChain.last). */
 static int batch_push(ps_arm_chain *chains, enum push_kind kind, long n_arms, long k,
                       const long *n_samples, const unsigned char *active, const ps_time *t_s,
-                      const ps_real *values, ps_chain_state *backup, ps_arm_sample *out,
-                      long *failed_arm, long *failed_sample)
+                      const ps_real *values, const ps_real *load, ps_chain_state *backup,
+                      ps_arm_sample *out, long *failed_arm, long *failed_sample)
 {
     const long width = kind == PUSH_LENGTHS ? PS_MUSCLES : 1;
     const int per_sample = active != NULL || k < 0;
@@ -1119,7 +1342,8 @@ static int batch_push(ps_arm_chain *chains, enum push_kind kind, long n_arms, lo
         for (j = 0; j < n; ++j) {
             long at = i * k + j;
             status = push_state(c, &c->state, kind, t_s[at], width == 1 ? values[at] : 0,
-                                values + width * at, NULL, &accepted);
+                                values + width * at, NULL, load == NULL ? NULL : &load[at],
+                                &accepted);
             if (status != PS_OK) {
                 for (; i >= 0; --i) {
                     chains[i].state = backup[i];
@@ -1142,6 +1366,15 @@ int ps_chain_batch_reset(ps_arm_chain *chains, long n_arms, const long *arms, lo
                          const ps_real *length_L0, ps_chain_state *scratch,
                          ps_arm_sample *out, long *failed_arm)
 {
+    return ps_chain_batch_reset_load(chains, n_arms, arms, m, angle_deg, t_s, length_L0, NULL,
+                                     scratch, out, failed_arm);
+}
+
+int ps_chain_batch_reset_load(ps_arm_chain *chains, long n_arms, const long *arms, long m,
+                              const ps_real *angle_deg, const ps_time *t_s,
+                              const ps_real *length_L0, const ps_real *load,
+                              ps_chain_state *scratch, ps_arm_sample *out, long *failed_arm)
+{
     long j;
     int status;
     set_failed(failed_arm, -1, NULL, 0);
@@ -1162,7 +1395,8 @@ int ps_chain_batch_reset(ps_arm_chain *chains, long n_arms, const long *arms, lo
             return PS_ERR_ARGUMENT;
         }
         status = reset_state(&chains[i], angle_deg[j], t_s[j],
-                             length_L0 == NULL ? NULL : length_L0 + PS_MUSCLES * j, &scratch[j]);
+                             length_L0 == NULL ? NULL : length_L0 + PS_MUSCLES * j,
+                             load == NULL ? NULL : &load[j], &scratch[j]);
         if (status != PS_OK) {
             set_failed(failed_arm, i, NULL, 0);
             return status;
@@ -1220,8 +1454,8 @@ int ps_chain_batch_push_counts_block(ps_arm_chain *chains, long n_arms, long k,
     if (k < 0) {
         return PS_ERR_ARGUMENT;
     }
-    return batch_push(chains, PUSH_COUNTS, n_arms, k, n_samples, NULL, t_s, counts, backup,
-                      out, failed_arm, failed_sample);
+    return batch_push(chains, PUSH_COUNTS, n_arms, k, n_samples, NULL, t_s, counts, NULL,
+                      backup, out, failed_arm, failed_sample);
 }
 
 int ps_chain_batch_push_angle_block(ps_arm_chain *chains, long n_arms, long k,
@@ -1232,8 +1466,8 @@ int ps_chain_batch_push_angle_block(ps_arm_chain *chains, long n_arms, long k,
     if (k < 0) {
         return PS_ERR_ARGUMENT;
     }
-    return batch_push(chains, PUSH_ANGLE, n_arms, k, n_samples, NULL, t_s, angle_deg, backup,
-                      out, failed_arm, failed_sample);
+    return batch_push(chains, PUSH_ANGLE, n_arms, k, n_samples, NULL, t_s, angle_deg, NULL,
+                      backup, out, failed_arm, failed_sample);
 }
 
 int ps_chain_batch_push_lengths_block(ps_arm_chain *chains, long n_arms, long k,
@@ -1245,7 +1479,7 @@ int ps_chain_batch_push_lengths_block(ps_arm_chain *chains, long n_arms, long k,
         return PS_ERR_ARGUMENT;
     }
     return batch_push(chains, PUSH_LENGTHS, n_arms, k, n_samples, NULL, t_s, length_L0,
-                      backup, out, failed_arm, failed_sample);
+                      NULL, backup, out, failed_arm, failed_sample);
 }
 
 /* The one-sample forms: k = -1 tells batch_push to use `active` (NULL: every arm). */
@@ -1253,23 +1487,45 @@ int ps_chain_batch_push_counts(ps_arm_chain *chains, long n_arms, const unsigned
                                const ps_time *t_s, const ps_real *counts,
                                ps_chain_state *backup, ps_arm_sample *out, long *failed_arm)
 {
-    return batch_push(chains, PUSH_COUNTS, n_arms, -1, NULL, active, t_s, counts, backup, out,
-                      failed_arm, NULL);
+    return batch_push(chains, PUSH_COUNTS, n_arms, -1, NULL, active, t_s, counts, NULL, backup,
+                      out, failed_arm, NULL);
 }
 
 int ps_chain_batch_push_angle(ps_arm_chain *chains, long n_arms, const unsigned char *active,
                               const ps_time *t_s, const ps_real *angle_deg,
                               ps_chain_state *backup, ps_arm_sample *out, long *failed_arm)
 {
-    return batch_push(chains, PUSH_ANGLE, n_arms, -1, NULL, active, t_s, angle_deg, backup,
-                      out, failed_arm, NULL);
+    return batch_push(chains, PUSH_ANGLE, n_arms, -1, NULL, active, t_s, angle_deg, NULL,
+                      backup, out, failed_arm, NULL);
 }
 
 int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigned char *active,
                                 const ps_time *t_s, const ps_real *length_L0,
                                 ps_chain_state *backup, ps_arm_sample *out, long *failed_arm)
 {
-    return batch_push(chains, PUSH_LENGTHS, n_arms, -1, NULL, active, t_s, length_L0, backup,
+    return batch_push(chains, PUSH_LENGTHS, n_arms, -1, NULL, active, t_s, length_L0, NULL,
+                      backup, out, failed_arm, NULL);
+}
+int ps_chain_batch_push_counts_load_block(ps_arm_chain *chains, long n_arms, long k,
+                                          const long *n_samples, const ps_time *t_s,
+                                          const ps_real *counts, const ps_real *load,
+                                          ps_chain_state *backup, ps_arm_sample *out,
+                                          long *failed_arm, long *failed_sample)
+{
+    if (k < 0) {
+        return PS_ERR_ARGUMENT;
+    }
+    return batch_push(chains, PUSH_COUNTS, n_arms, k, n_samples, NULL, t_s, counts, load,
+                      backup, out, failed_arm, failed_sample);
+}
+
+int ps_chain_batch_push_counts_load(ps_arm_chain *chains, long n_arms,
+                                    const unsigned char *active, const ps_time *t_s,
+                                    const ps_real *counts, const ps_real *load,
+                                    ps_chain_state *backup, ps_arm_sample *out,
+                                    long *failed_arm)
+{
+    return batch_push(chains, PUSH_COUNTS, n_arms, -1, NULL, active, t_s, counts, load, backup,
                       out, failed_arm, NULL);
 }
 #endif /* PS_NO_BATCH */

@@ -289,6 +289,14 @@ void ps_spindle_fx_afferents(const ps_spindle_fx *s, const ps_plan_fx *q, int32_
 #define PS_CHAIN_MAX_BRIDGE_UPDATES 100000L
 /* Largest resync_after_samples (chain.MAX_RESYNC_AFTER_SAMPLES). */
 #define PS_CHAIN_MAX_RESYNC 1000000L
+/* Longest moment-arm table of the force sense (spindle/chain/force.py; the bundled one: 262). */
+#define PS_MOMENT_ARM_MAX_POINTS 320
+/* The servo's load word (spindle/chain/sensor.py): bits 0-9 the magnitude, bit 10 set for a
+ * clockwise load; valid words are the integers 0..PS_LOAD_MAX_WORD. */
+#define PS_LOAD_MAGNITUDE_MAX 1023
+#define PS_LOAD_MAX_WORD 2047
+/* The shortest moment arm a force is divided by (m; force.MIN_MOMENT_ARM_M). */
+#define PS_MIN_MOMENT_ARM_M 1e-3
 
 /* Times are double in both builds: a float clock cannot resolve 2 ms after a few hours. */
 typedef double ps_time;
@@ -323,6 +331,32 @@ ps_real ps_chebval(ps_real x, const ps_real *coefficients, int n);
 void ps_tracking_step(ps_real x, ps_real v, ps_real u0, ps_real u1, ps_real dt_s,
                       ps_real omega_rad_s, ps_real *x1, ps_real *v1, ps_real *a1);
 
+/* ---- the tendon organ's types (section 4 declares its functions; the chain holds them) ---- */
+
+#define PS_GTO_MAX_FORCE_N 1.0e5 /* larger finite forces: PS_ERR_FORCE_RANGE */
+#define PS_GTO_MAX_STEP_S 0.1    /* longest step (s): PS_ERR_STEP above */
+
+/* Constants of spindle.tendon_organ_params.TendonOrganParams (G2 is per muscle, passed to
+ * each call). num = (b2, b1, b0), den = (a1, a0) of H(s). */
+typedef struct ps_gto_params {
+    ps_real gain_pps, tau_lowpass_s;
+    ps_real num[3], den[2];
+} ps_gto_params;
+
+/* The step's constants for one (params, h), computed by ps_gto_plan_init in double (a
+ * matrix exponential: a 20-term Taylor series after scaling to 1-norm <= 1/2, then
+ * squarings, as spindle.tendon_organ.expm_taylor). Read-only after init. */
+typedef struct ps_gto_plan {
+    ps_real phi[3][3], g0[3], g1[3], c[3];
+    ps_real gain_pps, inv_a0, h;
+} ps_gto_plan;
+
+/* State of one tendon organ: z = (x, w1, w2) (pps, pps s^2, pps s: the numpy state's z),
+ * the rectified force (N) and the log stage (pps) at the state's time. */
+typedef struct ps_gto {
+    ps_real z[3], force_N, r_pps;
+} ps_gto;
+
 /* ---- chain (spindle/chain/arm.py, spindle/chain/fusimotor.py) ---- */
 
 /* Every setting of one arm's chain: chain.ChainConfig resolved to numbers. Fill it (the
@@ -354,6 +388,15 @@ typedef struct ps_chain_config {
     ps_params params;
     ps_real theta;           /* 0, 0.5, 1: forward Euler, trapezoidal, backward Euler */
     ps_time step_s;          /* largest spindle sub-step */
+    /* force sense: load word -> torque (count_sign * direction * magnitude *
+     * load_Nm_per_count) -> tendon forces through the moment arms at the angle (flexion
+     * torque to BRA, extension to TRImed) -> tendon organs; max_bridge_s <= PS_GTO_MAX_STEP_S */
+    ps_real load_Nm_per_count;
+    ps_gto_params gto;
+    ps_real force_scale_N[PS_MUSCLES]; /* G2 per muscle */
+    int n_moment_arm_points;           /* 2..PS_MOMENT_ARM_MAX_POINTS, a uniform grid */
+    ps_real moment_arm_lo_rad, moment_arm_hi_rad;
+    ps_real moment_arm_m[PS_MUSCLES][PS_MOMENT_ARM_MAX_POINTS]; /* flexor positive */
 } ps_chain_config;
 
 /* The down-sampled PI predictor of both muscles (MotionPredictor): the last segments
@@ -369,7 +412,8 @@ typedef struct ps_predictor {
 /* chain.COUNTERS, in that order (see docs/c_chain.md for each rule). */
 typedef struct ps_chain_counters {
     unsigned long accepted, invalid_reading, invalid_angle, invalid_length, repeated_time,
-        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs;
+        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs,
+        invalid_load, missing_load;
 } ps_chain_counters;
 
 /* chain.ArmSample: the output after one sample; per-muscle arrays are BRA, TRImed. */
@@ -378,10 +422,12 @@ typedef struct ps_arm_sample {
     int accepted; /* 0: the sample was rejected and every other field repeats the last */
     ps_real counts, counts_filtered; /* -1 when the sample did not come from the encoder */
     ps_real angle_deg;
+    ps_real torque_Nm; /* the load reading's joint torque (N m, flexion positive) */
     ps_real length_L0[PS_MUSCLES], velocity_L0_s[PS_MUSCLES],
         acceleration_L0_s2[PS_MUSCLES], template_L0[PS_MUSCLES];
     ps_real gamma_static_pps[PS_MUSCLES], gamma_dynamic_pps[PS_MUSCLES];
     ps_real ia_pps[PS_MUSCLES], ii_pps[PS_MUSCLES];
+    ps_real force_N[PS_MUSCLES], ib_pps[PS_MUSCLES]; /* tendon forces (N), Ib (pps) */
 } ps_arm_sample;
 
 /* Everything a chain changes while it runs. */
@@ -396,6 +442,10 @@ typedef struct ps_chain_state {
     long behind; /* samples with an earlier time than t_s since the last accepted one */
     int has_intended;
     ps_real intended_L0[PS_MUSCLES];
+    ps_gto gto[PS_MUSCLES];  /* the tendon organs */
+    ps_gto_plan gto_plan;    /* their step for the last interval (gto_plan.h), kept while the
+                                intervals repeat */
+    ps_real torque_Nm;       /* the last accepted sample's torque, held over invalid words */
     ps_chain_counters counters;
     ps_arm_sample last;
 } ps_chain_state;
@@ -463,6 +513,26 @@ int ps_chain_run_angle(ps_arm_chain *c, long n, const ps_time *t_s, const ps_rea
 int ps_chain_run_lengths(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *length_L0,
                          const ps_real *intended_deg, ps_arm_sample *samples, long *n_done);
 
+/* The force sense's entry points: the forms above with the servo's load word read beside the
+ * counts (`load` one word, or n words; NULL: no load reading). The load rules
+ * (docs/faults.md): an accepted sample with an invalid word (not an integer in
+ * 0..PS_LOAD_MAX_WORD) holds the last torque (invalid_load); an accepted counts sample
+ * without one has zero torque (missing_load); a rejected sample changes nothing. The tendon
+ * organs step once over each interval (ps_gto_step at h = the interval); restarts and resets
+ * put them at rest at the sample's force (a reset's invalid word: zero torque, counted). The
+ * forms without load are these with load NULL (angle and length pushes: zero torque, not
+ * counted). */
+int ps_chain_reset_load(ps_arm_chain *c, ps_real angle_deg, ps_time t_s,
+                        const ps_real *length_L0, const ps_real *load, ps_arm_sample *out);
+int ps_chain_push_counts_load(ps_arm_chain *c, ps_time t_s, ps_real counts,
+                              const ps_real *load, ps_arm_sample *out);
+int ps_chain_push_counts_load_block(ps_arm_chain *c, long n, const ps_time *t_s,
+                                    const ps_real *counts, const ps_real *load,
+                                    ps_arm_sample *out, long *n_done);
+int ps_chain_run_counts_load(ps_arm_chain *c, long n, const ps_time *t_s, const ps_real *counts,
+                             const ps_real *load, const ps_real *intended_deg,
+                             ps_arm_sample *samples, long *n_done);
+
 
 /* ---- batches: the chains of many arms in one array, advanced by one call ----------------
  * `chains` is an array of n_arms chains, each set up by ps_chain_init and ps_chain_reset (or
@@ -525,6 +595,23 @@ int ps_chain_batch_push_angle(ps_arm_chain *chains, long n_arms, const unsigned 
 int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigned char *active,
                                 const ps_time *t_s, const ps_real *length_L0,
                                 ps_chain_state *backup, ps_arm_sample *out, long *failed_arm);
+
+/* The batch forms with load words: load[j] (reset, m words), load (n_arms, k) beside the
+ * counts (block) or load[i] (one sample per arm); NULL: no load readings. */
+int ps_chain_batch_reset_load(ps_arm_chain *chains, long n_arms, const long *arms, long m,
+                              const ps_real *angle_deg, const ps_time *t_s,
+                              const ps_real *length_L0, const ps_real *load,
+                              ps_chain_state *scratch, ps_arm_sample *out, long *failed_arm);
+int ps_chain_batch_push_counts_load_block(ps_arm_chain *chains, long n_arms, long k,
+                                          const long *n_samples, const ps_time *t_s,
+                                          const ps_real *counts, const ps_real *load,
+                                          ps_chain_state *backup, ps_arm_sample *out,
+                                          long *failed_arm, long *failed_sample);
+int ps_chain_batch_push_counts_load(ps_arm_chain *chains, long n_arms,
+                                    const unsigned char *active, const ps_time *t_s,
+                                    const ps_real *counts, const ps_real *load,
+                                    ps_chain_state *backup, ps_arm_sample *out,
+                                    long *failed_arm);
 #endif /* PS_NO_BATCH */
 
 /* ---- end of chain section ---- */
@@ -538,29 +625,8 @@ int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigne
  *     computed as alpha = r0 + (2 G1/3) ln cosh((r1 - r0) / (2 G1)).
  * ====================================================================================== */
 
-#define PS_GTO_MAX_FORCE_N 1.0e5 /* larger finite forces: PS_ERR_FORCE_RANGE */
-#define PS_GTO_MAX_STEP_S 0.1    /* longest step (s): PS_ERR_STEP above */
-
-/* Constants of spindle.tendon_organ_params.TendonOrganParams (G2 is per muscle, passed to
- * each call). num = (b2, b1, b0), den = (a1, a0) of H(s). */
-typedef struct ps_gto_params {
-    ps_real gain_pps, tau_lowpass_s;
-    ps_real num[3], den[2];
-} ps_gto_params;
-
-/* The step's constants for one (params, h), computed by ps_gto_plan_init in double (a
- * matrix exponential: a 20-term Taylor series after scaling to 1-norm <= 1/2, then
- * squarings, as spindle.tendon_organ.expm_taylor). Read-only after init. */
-typedef struct ps_gto_plan {
-    ps_real phi[3][3], g0[3], g1[3], c[3];
-    ps_real gain_pps, inv_a0, h;
-} ps_gto_plan;
-
-/* State of one tendon organ: z = (x, w1, w2) (pps, pps s^2, pps s: the numpy state's z),
- * the rectified force (N) and the log stage (pps) at the state's time. */
-typedef struct ps_gto {
-    ps_real z[3], force_N, r_pps;
-} ps_gto;
+/* The types above (PS_GTO_MAX_*, ps_gto_params, ps_gto_plan, ps_gto) are declared before
+ * the chain section, whose state holds them. */
 
 /* PS_ERR_NULL; PS_ERR_CONFIG (a constant not finite, gain or tau <= 0, a1 <= 0, a0 <= 0,
  * b0 <= 0); PS_ERR_STEP (h not finite or outside (0, PS_GTO_MAX_STEP_S]). q untouched on
