@@ -51,3 +51,18 @@ def test_demo_runs_the_chain_and_writes_a_figure_and_finite_signals(tmp_path):
     # the exact (MuJoCo lengths) and reduced (fits) chains agree to a fraction of a pps
     diffs = [float(x) for x in re.findall(r"exact vs reduced RMS Ia ([0-9.]+)", run.stdout)]
     assert len(diffs) == 2 and max(diffs) < 0.5
+    # the stimulator stage: frequency-coded pulses of every channel, charge-balanced, as many
+    # over the run as the integral of the channel's requested rate (each sample's rate held
+    # to the next sample), within one pulse; computed here from the written signals
+    with (tmp_path / "demo_pulses.csv").open() as fh:
+        pulses = list(csv.DictReader(fh))
+    assert pulses
+    t = col["t_s"]
+    dt = np.append(np.diff(t), t[-1] - t[-2])
+    for label in {p["label"] for p in pulses} | {"BRA ia", "TRImed ib"}:
+        muscle, afferent = label.split()
+        requested = float(np.sum(col[f"{muscle}_{afferent}_pps"] * dt))
+        delivered = sum(p["label"] == label for p in pulses)
+        assert abs(delivered - requested) <= 1.0, (label, delivered, requested)
+    for p in pulses:  # one amplitude for both phases: balanced when the phases are equal
+        assert int(p["cathodic_us"]) == int(p["anodic_us"]) > 0 and int(p["amplitude_uA"]) > 0

@@ -19,8 +19,10 @@ tendon-derived fibre lengths (exact). The summary reports the exact-vs-reduced d
 (what the fitted length model costs) and the encoder-vs-clean difference (what the sensor
 stage costs), in pps.
 
-:func:`run` writes ``demo.png`` (one column per muscle) and ``demo_signals.csv`` (every
-signal); the command line is ``python scripts/demo.py [--out DIR] [--duration S] [--seed N]``.
+:func:`run` writes ``demo.png`` (one column per muscle), ``demo_signals.csv`` (every
+signal) and ``demo_pulses.csv`` (the stimulator's pulse events: the rates of BRA and TRImed Ia,
+II and Ib frequency-coded into charge-balanced pulses, ``spindle.stimulation``); the command
+line is ``python scripts/demo.py [--out DIR] [--duration S] [--seed N]``.
 """
 
 from __future__ import annotations
@@ -37,6 +39,19 @@ from proprio_env.model import load_model
 from proprio_env.servo_motion import drive_servo, servo_load_params, triangle_deg
 from spindle.chain import MUSCLES, ChainConfig, ChainTrace, run_chain
 from spindle.chain.sensor import Calibration
+from spindle.stimulation import (
+    ELBOW_ALL,
+    StimConfig,
+    afferent_rates,
+    intervals_from_times,
+    make_stimulator,
+    plot_raster,
+)
+from spindle.stimulation.events import save_csv as save_pulses_csv
+
+STIMULATION = StimConfig(channels=ELBOW_ALL)
+"""The demo's stimulator: frequency coding of BRA and TRImed Ia, II and Ib, one channel each
+(``docs/stimulation.md``)."""
 
 
 def run_chains(duration_s: float, seed: int) -> dict[str, object]:
@@ -58,9 +73,15 @@ def run_chains(duration_s: float, seed: int) -> dict[str, object]:
     prosthesis = run_chain(t_s, counts=counts, load=load, config=config)
     reduced = run_chain(t_s, angle_deg=true_angle)
     exact = run_chain(t_s, length_L0=exact_L)
+    rates = STIMULATION.channels.gather(afferent_rates(
+        MUSCLES, ia=prosthesis.ia_pps, ii=prosthesis.ii_pps, ib=prosthesis.ib_pps))
+    stimulator = make_stimulator(STIMULATION, t0_s=float(t_s[0]))
+    events = stimulator.run(rates, intervals_from_times(t_s))  # each rate held to the next
     return {"t_s": t_s, "true_angle_deg": true_angle, "true_torque_Nm": true_torque,
             "load_counts": load, "exact_length_L0": exact_L,
-            "prosthesis": prosthesis, "reduced": reduced, "exact": exact}
+            "prosthesis": prosthesis, "reduced": reduced, "exact": exact,
+            "channel_rates_pps": rates, "pulses": events,
+            "stimulator_counters": stimulator.counters}
 
 
 def rms(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -98,16 +119,19 @@ def plot(result: dict[str, object], path: Path) -> None:
     t = result["t_s"]
     cal = Calibration()
     raw_deg = np.where(pro.counts >= 0, cal.angle_deg(pro.counts), np.nan)
-    rows = ["encoder", "length", "gamma_s", "gamma_d", "ia", "ii", "torque", "force", "ib"]
-    fig, axes = plt.subplots(len(rows), 2, figsize=(11, 17), sharex=True)
+    rows = ["encoder", "length", "gamma_s", "gamma_d", "ia", "ii", "torque", "force", "ib",
+            "pulses"]
+    fig, axes = plt.subplots(len(rows), 2, figsize=(11, 19), sharex=True)
     for k, muscle in enumerate(MUSCLES):
         ax = axes[0, k]
-        ax.plot(t, raw_deg, ".", ms=1.5, color="0.6", label="encoder raw")
+        # the raw readings under the lines (they show where they leave them); the legend's
+        # markerscale makes their entry visible
+        ax.plot(t, raw_deg, ".", ms=2, color="0.55", label="encoder raw")
         ax.plot(t, pro.angle_deg, lw=1, label="median filtered, f(x)")
         ax.plot(t, result["true_angle_deg"], lw=0.8, ls="--", color="k", label="MuJoCo")
         ax.set_ylim(0, 130)
         ax.set_ylabel("elbow angle (deg)")
-        ax.set_title(f"{muscle}")
+        ax.set_title(f"{muscle}", loc="right")
         ax = axes[1, k]
         ax.plot(t, pro.length_L0[:, k], label="fitted (encoder)")
         ax.plot(t, exact.length_L0[:, k], ls="--", lw=0.8, color="k", label="exact (MuJoCo)")
@@ -132,12 +156,19 @@ def plot(result: dict[str, object], path: Path) -> None:
         axes[7, k].set_ylabel("tendon force (N)")
         axes[8, k].plot(t, pro.ib_pps[:, k], lw=1, color="C3")
         axes[8, k].set_ylabel("Ib (pps)")
+        channels = [STIMULATION.channels.index(muscle, a) for a in ("ia", "ii", "ib")]
+        plot_raster(axes[9, k], result["pulses"], STIMULATION.channels.labels, t,
+                    result["channel_rates_pps"], channels=channels)
+        axes[9, k].set_ylabel("pulses")
         axes[-1, k].set_xlabel("time (s)")
-    for row in (0, 1, 4, 6):
-        axes[row, 0].legend(fontsize=7, loc="upper right")
+    # legends above their panels, over no data, on both columns
+    for row in (0, 1, 4, 5, 6):
+        for k in range(2):
+            axes[row, k].legend(fontsize=7, loc="lower left", bbox_to_anchor=(0.0, 1.0),
+                                ncol=3, frameon=False, borderaxespad=0.1, markerscale=6)
     fig.suptitle("Seed paper Fig. 8 protocol: servo-driven flexion-extension at ~130°/s, "
-                 "HUMAN spindles and tendon organs")
-    fig.tight_layout()
+                 "HUMAN spindles and tendon organs, frequency-coded pulses")
+    fig.tight_layout(rect=(0, 0, 1, 0.985))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -160,6 +191,9 @@ class DemoNumbers:
     """muscle -> (Ia, II)"""
     encoder_vs_clean_rms_pps: dict[str, tuple[float, float]]
     """muscle -> (Ia, II)"""
+    pulses: dict[str, tuple[int, float]]
+    """stimulation channel -> (pulses delivered, the integral of its requested rate)"""
+    stimulator_counters: dict[str, int]
 
     def report(self) -> str:
         lines = [f"{self.duration_s:g} s of servo motion, {self.samples} encoder samples "
@@ -176,8 +210,12 @@ class DemoNumbers:
                          f" | exact vs reduced RMS Ia {ex_ia:.3f}, II "
                          f"{ex_ii:.3f} pps | encoder vs clean RMS Ia {enc_ia:.2f}, II "
                          f"{enc_ii:.2f} pps")
-        lines.append(f"wrote {self.out_dir / 'demo.png'} and "
-                     f"{self.out_dir / 'demo_signals.csv'}")
+        lines.append("pulses (frequency coding) vs the integral of the requested rate: "
+                     + ", ".join(f"{label} {n} / {integral:.1f}"
+                                 for label, (n, integral) in self.pulses.items()))
+        lines.append(f"stimulator limits: {self.stimulator_counters}")
+        lines.append(f"wrote {self.out_dir / 'demo.png'}, {self.out_dir / 'demo_signals.csv'} "
+                     f"and {self.out_dir / 'demo_pulses.csv'}")
         return "\n".join(lines)
 
     def summary_md(self) -> str:
@@ -187,8 +225,8 @@ class DemoNumbers:
 def run(out_dir: Path, quick: bool = False, duration_s: float | None = None,
         seed: int = 0) -> DemoNumbers:
     """Run the chains on ``duration_s`` of servo motion (default 6 s, ``quick`` 1.5 s) with
-    encoder noise seed ``seed``; write ``demo.png`` and ``demo_signals.csv`` into
-    ``out_dir``."""
+    encoder noise seed ``seed``, and the stimulator on the prosthesis chain's rates; write
+    ``demo.png``, ``demo_signals.csv`` and ``demo_pulses.csv`` into ``out_dir``."""
     if duration_s is None:
         duration_s = 1.5 if quick else 6.0
     if not duration_s > 0:
@@ -199,7 +237,13 @@ def run(out_dir: Path, quick: bool = False, duration_s: float | None = None,
     result = run_chains(duration_s, seed)
     elapsed = time.perf_counter() - start
     write_csv(result, out_dir / "demo_signals.csv")
+    save_pulses_csv(out_dir / "demo_pulses.csv", result["pulses"], STIMULATION.channels.labels)
     plot(result, out_dir / "demo.png")
+    # what frequency coding promises: the pulses of a channel over the run equal the integral
+    # of its requested rate (each sample's rate held until the next) within one pulse
+    dt = intervals_from_times(result["t_s"])
+    integrals = (result["channel_rates_pps"] * dt[:, None]).sum(axis=0)
+    delivered = np.bincount(result["pulses"]["channel"], minlength=len(STIMULATION.channels))
     pro, red, ex = result["prosthesis"], result["reduced"], result["exact"]
     ex_ia, ex_ii = rms(ex.ia_pps, red.ia_pps), rms(ex.ii_pps, red.ii_pps)
     enc_ia, enc_ii = rms(pro.ia_pps, red.ia_pps), rms(pro.ii_pps, red.ii_pps)
@@ -211,4 +255,7 @@ def run(out_dir: Path, quick: bool = False, duration_s: float | None = None,
         {m: (pro.ib_pps[:, k].min(), pro.ib_pps[:, k].max()) for k, m in enumerate(MUSCLES)},
         {m: (ex_ia[k], ex_ii[k]) for k, m in enumerate(MUSCLES)},
         {m: (enc_ia[k], enc_ii[k]) for k, m in enumerate(MUSCLES)},
+        {label: (int(delivered[c]), float(integrals[c]))
+         for c, label in enumerate(STIMULATION.channels.labels)},
+        {k: v for k, v in result["stimulator_counters"].items() if v},
     )
