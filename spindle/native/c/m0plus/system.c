@@ -1,0 +1,569 @@
+/*
+ * system.c -- the whole prosthesis on a Cortex-M0+: one call per encoder sample.
+ *
+ *   reading -> median -> f(x) -> fitted lengths -> tracking low-pass -> predictor and
+ *   fusimotor drive -> BRA/TRImed spindles (fixed point) [-> tendon organs] [-> pulses]
+ *   -> output record
+ *
+ * fw_sample() is what a 500 Hz timer interrupt would run: it reads the sample in fw_in (time,
+ * counts and, for the tendon organs, the load) and runs the stages of fw_stages[] in order,
+ * each a function of the sample context (the table is what the bench's per-stage breakdown
+ * follows: a stage is everything from its entry to the next stage's). The tendon organs and
+ * the stimulation encoder slot in as two more rows (FW_GTO, FW_STIM sections below).
+ *
+ * Everything after the time rules is integer arithmetic (no FPU on the part; soft float costs
+ * 30-100 instructions per operation): angles Q16 deg, lengths Q24 L0, velocities Q20 L0/s,
+ * drives Q8 pps, rates Q16 pps, intervals in whole microseconds. Only the time rules compare
+ * the sample's time as a double, as the host chain does (ps_time), so the bad-sample rules and
+ * counters are those of spindle/chain/arm.py and chain.c (see fw_counters).
+ *
+ * The spindles run on a fixed grid of FW_SPINDLE_STEP_US (the plan's h, generated on the host
+ * by ps_plan_fx_init), the two muscles' grids offset by half a step so that a sample at the
+ * nominal rate steps one spindle; at each grid point in the sample's interval the length
+ * follows the cubic Hermite curve through the interval's ends (as chain.c's sub-steps), and a
+ * muscle's output holds its last grid point's rates.
+ *
+ * The configuration (fw_system_config.h: const fw_config fw_cfg, const ps_plan_fx fw_plan) is
+ * generated on the host by spindle.native.m0plus.system_config from a ChainConfig.
+ */
+#include "proprio.h"
+
+#include <stdint.h>
+
+/* ---- configuration (generated) -------------------------------------------------------- */
+
+typedef struct fw_config {
+    double gap_s, max_bridge_s;  /* the chain's interval rules (s) */
+    int32_t resync_after_samples;
+    int32_t max_count;           /* valid readings: integers 0..max_count */
+    int32_t median_window;
+    int32_t zero_Q16;            /* zero_count (counts, Q16) */
+    int32_t deg_per_count_Q30;   /* count_sign * deg_per_count (deg, Q30) */
+    int32_t angle_min_Q16, angle_max_Q16;       /* the fitted range (deg, Q16) */
+    int32_t fit_mid_Q16, fit_scale_Q30;         /* x = (angle - mid) * scale, scale in 1/deg */
+    int32_t n_coefficients[PS_MUSCLES];
+    int32_t coefficients_Q28[PS_MUSCLES][PS_FIT_MAX_COEFFS];
+    int32_t max_speed_deg_Q32_us;               /* max_speed_deg_s: deg per us, Q32 */
+    int32_t max_speed_L0_Q40_us;                /* max_speed_L0_s: L0 per us, Q40 */
+    int32_t omega_Q16;                          /* tracking low-pass (rad/s) */
+    int32_t two_over_omega_Q32;                 /* 2 / omega (s) */
+    int32_t predictor_period_us, predictor_keep;
+    int32_t predictor_period_Q30;               /* 1 / predictor_rate_hz (s) */
+    int32_t kp_Q16, ki_dt_Q16;                  /* 1/s; ki * period (1/s) */
+    int32_t delay_us, threshold_Q24;
+    int32_t gs_min_Q8, gs_max_Q8, gd_Q8;
+    int32_t length_max_Q24[PS_MUSCLES];         /* h(x): gs = min + gain (Lmax - template) */
+    int32_t gs_gain_Q16[PS_MUSCLES];            /* span / (Lmax - Lmin) (pps/L0) */
+    int32_t spindle_step_us;                    /* the plan's h */
+} fw_config;
+
+#include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; */
+
+/* ---- state ----------------------------------------------------------------------------- */
+
+/* chain.COUNTERS, in that order (only the rules a counts-only entry can reach increment
+ * invalid_angle and invalid_length: never). */
+typedef struct fw_counters {
+    uint32_t accepted, invalid_reading, invalid_angle, invalid_length, repeated_time,
+        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs;
+} fw_counters;
+
+#define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz) */
+
+typedef struct fw_state {
+    int32_t median[PS_MEDIAN_MAX_WINDOW];
+    int32_t median_next;
+    double t_s, epoch_s;          /* last accepted time; times below count from the epoch */
+    uint32_t t_us;                /* last accepted time since the epoch */
+    int32_t behind;
+    int32_t angle_Q16;
+    int32_t u_Q24[PS_MUSCLES], x_Q24[PS_MUSCLES], v_Q20[PS_MUSCLES];
+    /* predictor: the last segments (t, p, u), oldest first from seg_first */
+    uint32_t seg_t_us[FW_SEGMENTS];
+    int32_t seg_p_Q24[FW_SEGMENTS][PS_MUSCLES], seg_u_Q20[FW_SEGMENTS][PS_MUSCLES];
+    int32_t integral_Q20[PS_MUSCLES];
+    int32_t seg_first, seg_count;
+    /* spindles */
+    ps_spindle_fx spindle[PS_MUSCLES];
+    uint32_t next_step_us[PS_MUSCLES];
+    int32_t last_L_Q24[PS_MUSCLES];
+    int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
+    int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
+    int32_t started;
+} fw_state;
+
+/* One sample as the interrupt gets it. */
+typedef struct fw_input {
+    double t_s;
+    float counts;
+    float load[PS_MUSCLES]; /* the load reading, for the tendon organs (FW_GTO) */
+} fw_input;
+
+/* What a sample leaves in the output ring. */
+typedef struct fw_record {
+    uint32_t t_us;
+    int32_t accepted; /* 0: rejected (counted), 1: accepted, 2: restarted at rest */
+    int32_t status;   /* PS_OK or a spindle step's failure */
+    int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
+    int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
+    int32_t steps;    /* spindle steps taken in this sample */
+} fw_record;
+
+#define FW_RING 8
+
+fw_input fw_in;
+fw_counters fw_count;
+fw_record fw_out[FW_RING];
+uint32_t fw_out_head; /* records written so far; the newest is fw_out[(head - 1) % FW_RING] */
+static fw_state st;
+
+/* The working values of one sample, passed from stage to stage. */
+typedef struct fw_ctx {
+    int32_t counts, filtered, angle_Q16, restart;
+    uint32_t t_us;
+    int32_t dt_us, dt_Q30, inv_dt_Q12;
+    int32_t L_Q24[PS_MUSCLES], x1_Q24[PS_MUSCLES], v1_Q20[PS_MUSCLES], tmpl_Q24[PS_MUSCLES];
+    int32_t status, steps;
+} fw_ctx;
+
+enum { FW_NEXT = 0, FW_DONE = 1 }; /* a stage's return: go on, or the sample is finished */
+
+/* ---- arithmetic ------------------------------------------------------------------------ */
+
+/* round(a b / 2^shift): the M0+ multiplies 32x32->32, so this is libgcc's __aeabi_lmul. */
+static int32_t mul_q(int32_t a, int32_t b, int shift)
+{
+    return (int32_t)(((int64_t)a * b + ((int64_t)1 << (shift - 1))) >> shift);
+}
+
+static int32_t clamp_i32(int32_t x, int32_t lo, int32_t hi) { return x < lo ? lo : x > hi ? hi : x; }
+
+/* An interval in us (<= 2^21) as seconds in Q30. */
+static int32_t us_to_Q30(int32_t us) { return mul_q(us, 1099512, 10); /* 2^40 / 1e6 */ }
+
+/* exp(-y) in Q30 for 0 <= y (Q28) < 8: Taylor series of exp(-y/8) to z^8 (the first term
+ * left out is below 2^-31 for z < 1), then three squarings. */
+static int32_t exp_neg_Q30(int32_t y_Q28)
+{
+    static const int32_t inv_k_Q30[9] = {0, 1073741824, 536870912, 357913941, 268435456,
+                                         214748365, 178956971, 153391689, 134217728};
+    int32_t z = y_Q28 >> 1; /* y / 8 in Q30 */
+    int32_t term = 1 << 30, sum = 1 << 30;
+    int k;
+    for (k = 1; k <= 8; ++k) {
+        term = -mul_q(mul_q(term, z, 30), inv_k_Q30[k], 30);
+        sum += term;
+    }
+    for (k = 0; k < 3; ++k) {
+        sum = mul_q(sum, sum, 30);
+    }
+    return sum;
+}
+
+/* ---- stages ---------------------------------------------------------------------------- */
+
+static int rest_spindles(fw_ctx *c);
+
+/* ArmChain._time and the reading check: the bad-sample rules that reject a sample. */
+static int stage_reading(fw_ctx *c)
+{
+    const double t = fw_in.t_s;
+    const float x = fw_in.counts;
+    if (!(t - t == 0.0)) { /* NaN or infinite */
+        fw_count.bad_time += 1;
+        return FW_DONE;
+    }
+    if (st.started && t == st.t_s) {
+        fw_count.repeated_time += 1;
+        return FW_DONE;
+    }
+    if (st.started && t < st.t_s) {
+        st.behind += 1;
+        if (st.behind < fw_cfg.resync_after_samples) {
+            fw_count.time_backwards += 1;
+            return FW_DONE;
+        }
+    }
+    if (!(x >= 0.0f && x <= (float)fw_cfg.max_count && (float)(int32_t)x == x)) {
+        fw_count.invalid_reading += 1;
+        return FW_DONE;
+    }
+    if (!st.started) { /* the host's reset: counters from zero */
+        fw_counters zero = {0};
+        fw_count = zero;
+    }
+    c->counts = (int32_t)x;
+    /* before the first valid sample there is no interval: it starts the arm at rest, as the
+     * host's reset does (no gap, restart or accepted sample counted) */
+    c->restart = !st.started || t < st.t_s || t - st.t_s > fw_cfg.max_bridge_s;
+    if (st.started && t - st.t_s > fw_cfg.gap_s) {
+        fw_count.gaps += 1;
+    }
+    if (c->restart) {
+        st.epoch_s = t;
+        c->t_us = 0;
+        c->dt_us = 0;
+    } else {
+        c->t_us = (uint32_t)((t - st.epoch_s) * 1e6 + 0.5);
+        c->dt_us = (int32_t)(c->t_us - st.t_us);
+    }
+    c->dt_Q30 = us_to_Q30(c->dt_us);
+    c->inv_dt_Q12 = c->dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)c->dt_us) : 0;
+    return FW_NEXT;
+}
+
+/* MedianFilter: the window's middle value (a restart refills the window instead). */
+static int stage_median(fw_ctx *c)
+{
+    int32_t sorted[PS_MEDIAN_MAX_WINDOW];
+    int i, j, n = fw_cfg.median_window;
+    if (c->restart) {
+        for (i = 0; i < n; ++i) {
+            st.median[i] = c->counts;
+        }
+        st.median_next = 0;
+        c->filtered = c->counts;
+        return FW_NEXT;
+    }
+    st.median[st.median_next] = c->counts;
+    st.median_next = st.median_next + 1 == n ? 0 : st.median_next + 1;
+    for (i = 0; i < n; ++i) {
+        int32_t v = st.median[i];
+        for (j = i; j > 0 && sorted[j - 1] > v; --j) {
+            sorted[j] = sorted[j - 1];
+        }
+        sorted[j] = v;
+    }
+    c->filtered = sorted[n / 2];
+    return FW_NEXT;
+}
+
+/* f(x), the angle's slew limit and the clamp to the fitted range. */
+static int stage_angle(fw_ctx *c)
+{
+    int32_t angle = mul_q(c->filtered * 65536 - fw_cfg.zero_Q16, fw_cfg.deg_per_count_Q30, 30);
+    if (!c->restart) {
+        int32_t limit = mul_q(fw_cfg.max_speed_deg_Q32_us, c->dt_us, 16);
+        int32_t change = angle - st.angle_Q16;
+        if (change > limit || change < -limit) {
+            fw_count.slew_limited += 1;
+            angle = st.angle_Q16 + (change < 0 ? -limit : limit);
+        }
+    }
+    if (angle < fw_cfg.angle_min_Q16 || angle > fw_cfg.angle_max_Q16) {
+        fw_count.angle_clamped += 1;
+        angle = clamp_i32(angle, fw_cfg.angle_min_Q16, fw_cfg.angle_max_Q16);
+    }
+    c->angle_Q16 = angle;
+    return FW_NEXT;
+}
+
+/* The length fits: Chebyshev series in the scaled angle (Clenshaw), Q28. */
+static int stage_lengths(fw_ctx *c)
+{
+    int32_t x = mul_q(c->angle_Q16 - fw_cfg.fit_mid_Q16, fw_cfg.fit_scale_Q30, 18); /* Q28 */
+    int m, k;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        const int32_t *a = fw_cfg.coefficients_Q28[m];
+        int n = fw_cfg.n_coefficients[m];
+        int32_t b1 = 0, b2 = 0, x2 = 2 * x;
+        for (k = n - 1; k >= 1; --k) {
+            int32_t b0 = a[k] + mul_q(x2, b1, 28) - b2;
+            b2 = b1;
+            b1 = b0;
+        }
+        c->L_Q24[m] = (a[0] + mul_q(x, b1, 28) - b2 + 8) >> 4;
+    }
+    return FW_NEXT;
+}
+
+/* The lengths' slew limit and the tracking low-pass (conditioning.tracking_step's closed
+ * form: the input linear over the interval). */
+static int stage_tracking(fw_ctx *c)
+{
+    int32_t limit, decay, m, limited = 0;
+    if (c->restart) {
+        return FW_NEXT;
+    }
+    limit = mul_q(fw_cfg.max_speed_L0_Q40_us, c->dt_us, 16);
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        int32_t change = c->L_Q24[m] - st.u_Q24[m];
+        limited |= change > limit || change < -limit;
+    }
+    if (limited) {
+        fw_count.slew_limited += 1;
+        for (m = 0; m < PS_MUSCLES; ++m) {
+            c->L_Q24[m] = st.u_Q24[m] + clamp_i32(c->L_Q24[m] - st.u_Q24[m], -limit, limit);
+        }
+    }
+    decay = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, c->dt_Q30, 18));
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m];
+        int32_t slope = mul_q(u1 - u0, c->inv_dt_Q12, 16);                 /* Q20 */
+        int32_t offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);      /* Q24 */
+        int32_t A = st.x_Q24[m] - u0 + offset;                             /* Q24 */
+        int32_t B = st.v_Q20[m] - slope + mul_q(fw_cfg.omega_Q16, A, 20);  /* Q20 */
+        int32_t AB = A + mul_q(B, c->dt_Q30, 26);                          /* Q24 */
+        if (c->dt_us == 0) { /* an interval below 1 us: nothing moves */
+            c->x1_Q24[m] = st.x_Q24[m];
+            c->v1_Q20[m] = st.v_Q20[m];
+            continue;
+        }
+        c->x1_Q24[m] = u1 - offset + mul_q(AB, decay, 30);
+        c->v1_Q20[m] = slope + mul_q(B - mul_q(fw_cfg.omega_Q16, AB, 20), decay, 30);
+    }
+    return FW_NEXT;
+}
+
+static int seg_index(int i) { return (st.seg_first + i) % FW_SEGMENTS; }
+
+/* The template of segment s at time t (us). */
+static int32_t seg_template(int s, int m, uint32_t t_us)
+{
+    int32_t elapsed = (int32_t)(t_us - st.seg_t_us[s]);
+    return st.seg_p_Q24[s][m] + mul_q(st.seg_u_Q20[s][m], us_to_Q30(elapsed), 26);
+}
+
+/* MotionPredictor (the down-sampled PI template) and Fusimotor: gamma_s = h(x), gamma_d =
+ * g(x) from the template now and delay_s ago. */
+static int stage_fusimotor(fw_ctx *c)
+{
+    const int32_t *in = c->restart ? c->L_Q24 : c->x1_Q24;
+    int32_t delayed[PS_MUSCLES];
+    uint32_t t_d = c->t_us - (uint32_t)fw_cfg.delay_us;
+    int m, i;
+    if (c->restart) {
+        st.seg_first = 0;
+        st.seg_count = 1;
+        st.seg_t_us[0] = c->t_us;
+        for (m = 0; m < PS_MUSCLES; ++m) {
+            st.seg_p_Q24[0][m] = in[m];
+            st.seg_u_Q20[0][m] = 0;
+            st.integral_Q20[m] = 0;
+        }
+    }
+    for (;;) {
+        int newest = seg_index(st.seg_count - 1), slot;
+        if ((int32_t)(c->t_us - st.seg_t_us[newest]) < fw_cfg.predictor_period_us) {
+            break;
+        }
+        if (st.seg_count == fw_cfg.predictor_keep) {
+            st.seg_first = (st.seg_first + 1) % FW_SEGMENTS;
+            st.seg_count -= 1;
+            newest = seg_index(st.seg_count - 1);
+        }
+        slot = seg_index(st.seg_count);
+        st.seg_t_us[slot] = st.seg_t_us[newest] + (uint32_t)fw_cfg.predictor_period_us;
+        for (m = 0; m < PS_MUSCLES; ++m) {
+            int32_t p = st.seg_p_Q24[newest][m]
+                        + mul_q(st.seg_u_Q20[newest][m], fw_cfg.predictor_period_Q30, 26);
+            int32_t error = in[m] - p;
+            st.integral_Q20[m] += mul_q(fw_cfg.ki_dt_Q16, error, 20);
+            st.seg_p_Q24[slot][m] = p;
+            st.seg_u_Q20[slot][m] = mul_q(fw_cfg.kp_Q16, error, 20) + st.integral_Q20[m];
+        }
+        st.seg_count += 1;
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        c->tmpl_Q24[m] = seg_template(seg_index(st.seg_count - 1), m, c->t_us);
+        delayed[m] = st.seg_p_Q24[st.seg_first][m];
+    }
+    for (i = st.seg_count - 1; i >= 0; --i) {
+        int s = seg_index(i);
+        if ((int32_t)(st.seg_t_us[s] - t_d) <= 0) {
+            for (m = 0; m < PS_MUSCLES; ++m) {
+                delayed[m] = seg_template(s, m, t_d);
+            }
+            break;
+        }
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        int32_t gs = fw_cfg.gs_min_Q8 + (int32_t)(((int64_t)(fw_cfg.length_max_Q24[m]
+                                                   - c->tmpl_Q24[m]) * fw_cfg.gs_gain_Q16[m]
+                                                  + ((int64_t)1 << 31)) >> 32);
+        st.gs_Q8[m] = clamp_i32(gs, fw_cfg.gs_min_Q8, fw_cfg.gs_max_Q8);
+        st.gd_Q8[m] = delayed[m] - c->tmpl_Q24[m] > fw_cfg.threshold_Q24 ? 0 : fw_cfg.gd_Q8;
+    }
+    return FW_NEXT;
+}
+
+/* The length at grid time tau of the Hermite curve through the interval's ends. */
+static int32_t hermite_Q24(const fw_ctx *c, int m, uint32_t tau_us)
+{
+    int32_t s = (int32_t)((((uint32_t)(tau_us - st.t_us)) << 15) / (uint32_t)c->dt_us) << 9;
+    int32_t s2 = mul_q(s, s, 24), s3 = mul_q(s2, s, 24);
+    int32_t w1 = 3 * s2 - 2 * s3, w2 = s3 - 2 * s2 + s, w3 = s3 - s2;
+    int32_t x0 = st.x_Q24[m], x1 = c->x1_Q24[m];
+    int32_t slopes = mul_q(w2, st.v_Q20[m], 24) + mul_q(w3, c->v1_Q20[m], 24); /* Q20 */
+    return x0 + mul_q(w1, x1 - x0, 24) + mul_q(slopes, c->dt_Q30, 26);
+}
+
+/* The spindles at every grid point of the interval, in fixed point. */
+static int stage_spindles(fw_ctx *c)
+{
+    const int32_t reach = mul_q(fw_cfg.max_speed_L0_Q40_us, fw_cfg.spindle_step_us, 16);
+    int m;
+    if (c->restart) {
+        return rest_spindles(c);
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        while ((int32_t)(c->t_us - st.next_step_us[m]) >= 0) {
+            int32_t L = (st.next_step_us[m] == c->t_us) ? c->x1_Q24[m]
+                                                         : hermite_Q24(c, m, st.next_step_us[m]);
+            int status;
+            L = clamp_i32(L, st.last_L_Q24[m] - reach, st.last_L_Q24[m] + reach);
+            L = clamp_i32(L, PS_FX_ONE / 2, PS_FX_ONE + PS_FX_ONE / 2);
+            status = ps_spindle_step_fx(&st.spindle[m], &fw_plan, L, st.gd_Q8[m], st.gs_Q8[m],
+                                        &st.ia_Q16[m], &st.ii_Q16[m]);
+            if (status != PS_OK) {
+                c->status = status;
+                return FW_NEXT;
+            }
+            st.last_L_Q24[m] = L;
+            st.next_step_us[m] += (uint32_t)fw_cfg.spindle_step_us;
+            c->steps += 1;
+        }
+    }
+    return FW_NEXT;
+}
+
+/* At rest at the sample: the spindles' equilibrium, their grids restarting from now. */
+static int rest_spindles(fw_ctx *c)
+{
+    int m;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        int status = ps_spindle_fx_init(&st.spindle[m], &fw_plan, c->L_Q24[m], st.gd_Q8[m],
+                                        st.gs_Q8[m]);
+        if (status != PS_OK) {
+            c->status = status;
+            return FW_NEXT;
+        }
+        ps_spindle_fx_afferents(&st.spindle[m], &fw_plan, &st.ia_Q16[m], &st.ii_Q16[m]);
+        st.last_L_Q24[m] = c->L_Q24[m];
+        st.next_step_us[m] = c->t_us + (uint32_t)(fw_cfg.spindle_step_us * (m + 1) / 2);
+        c->x1_Q24[m] = c->L_Q24[m];
+        c->v1_Q20[m] = 0;
+    }
+    return FW_NEXT;
+}
+
+#ifdef FW_GTO
+/* The tendon organs (Ib) from the load reading fw_in.load: branch gto's fixed-point step
+ * (ps_gto_step_fx of tendon_organ.c) slots in here. */
+#error "FW_GTO: the tendon-organ stage needs tendon_organ.c (branch gto)"
+#endif
+
+#ifdef FW_STIM
+/* The stimulation encoder: branch stim's fixed-point encoder (ps_stim_fx_* of stimulation.c)
+ * turns the rates into pulse events appended to the output record here. */
+#error "FW_STIM: the pulse-encoder stage needs stimulation.c (branch stim)"
+#endif
+
+/* Commit the sample and write its record. */
+static int stage_output(fw_ctx *c)
+{
+    fw_record *r = &fw_out[fw_out_head % FW_RING];
+    int m;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        st.u_Q24[m] = c->L_Q24[m];
+        st.x_Q24[m] = c->x1_Q24[m];
+        st.v_Q20[m] = c->v1_Q20[m];
+        r->ia_Q16[m] = st.ia_Q16[m];
+        r->ii_Q16[m] = st.ii_Q16[m];
+        r->gs_Q8[m] = st.gs_Q8[m];
+        r->gd_Q8[m] = st.gd_Q8[m];
+    }
+    if (st.started) {
+        fw_count.accepted += 1;
+        if (c->restart) {
+            fw_count.restarts += 1;
+            fw_count.clock_resyncs += fw_in.t_s < st.t_s ? 1u : 0u;
+        }
+    }
+    st.started = 1;
+    st.angle_Q16 = c->angle_Q16;
+    st.t_s = fw_in.t_s;
+    st.t_us = c->t_us;
+    st.behind = 0;
+    r->t_us = c->t_us;
+    r->accepted = c->restart ? 2 : 1;
+    r->status = c->status;
+    r->steps = c->steps;
+    fw_out_head += 1;
+    return FW_DONE;
+}
+
+typedef int (*fw_stage_fn)(fw_ctx *c);
+
+/* The per-sample pipeline, in order (the bench attributes instructions to these). */
+static const fw_stage_fn fw_stages[] = {
+    stage_reading, stage_median, stage_angle, stage_lengths, stage_tracking, stage_fusimotor,
+    stage_spindles,
+#ifdef FW_GTO
+    stage_tendon,
+#endif
+#ifdef FW_STIM
+    stage_stim,
+#endif
+    stage_output,
+};
+
+/* One encoder sample (fw_in): the timer interrupt's work. Returns PS_OK, or the status of a
+ * failed spindle step (the sample is then still committed, its record says so). */
+int fw_sample(void)
+{
+    fw_ctx c;
+    unsigned k;
+    c.status = PS_OK;
+    c.steps = 0;
+    for (k = 0; k < sizeof fw_stages / sizeof fw_stages[0]; ++k) {
+        if (fw_stages[k](&c) == FW_DONE) {
+            break;
+        }
+    }
+    return c.status;
+}
+
+/* Before the first sample: the first sample restarts the chain at rest (the host's
+ * run_chain resets at the first valid sample: the same outputs and counters). */
+int fw_init(void)
+{
+    st.started = 0;
+    st.t_s = 0.0;
+    st.behind = 0;
+    fw_out_head = 0;
+    return PS_OK;
+}
+
+/* The emulator returns here (a breakpoint target); on hardware it is never reached. */
+__attribute__((noinline)) void fw_halt(void)
+{
+    for (;;) {
+    }
+}
+
+/* ---- start-up --------------------------------------------------------------------- */
+
+extern unsigned int _sidata, _sdata, _edata, _sbss, _ebss, _estack;
+int main(void);
+void Reset_Handler(void);
+void Default_Handler(void);
+
+void Reset_Handler(void)
+{
+    unsigned int *src = &_sidata, *dst = &_sdata;
+    while (dst < &_edata) *dst++ = *src++;
+    for (dst = &_sbss; dst < &_ebss; ++dst) *dst = 0;
+    (void)main();
+    fw_halt();
+}
+
+void Default_Handler(void) { fw_halt(); }
+
+typedef void (*fw_vector)(void);
+__attribute__((section(".vectors"), used)) const fw_vector fw_vectors[16] = {
+    (fw_vector)(unsigned long)&_estack, Reset_Handler, Default_Handler, Default_Handler,
+    0, 0, 0, 0, 0, 0, 0, Default_Handler, 0, 0, Default_Handler, Default_Handler,
+};
+
+int main(void) { return fw_init(); }
