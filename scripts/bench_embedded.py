@@ -41,6 +41,22 @@ step and inputs, and against the chain's own rates (numpy, trapezoidal 1 ms). It
 line `demo_mips_per_muscle=... demo_peak_mips=... demo_rms_vs_double_pps=...` precedes the
 last line, which stays the Fig. 3 figure.
 
+The whole system (spindle/native/c/m0plus/system.c, spindle.native.m0plus.system): one
+fw_sample call per encoder sample, as the 500 Hz timer interrupt would make it, running the
+whole chain (time and reading rules, median, f(x), fitted lengths, tracking low-pass,
+predictor and fusimotor drive, the fixed-point BRA and TRImed spindles on a 4 ms grid) in
+integer arithmetic, the configuration generated on the host (system_config). Measured on the
+demo motion (the triangle above, read by an ideal encoder at 500 Hz) and on a recorded servo
+trace with the encoder's jitter, noise and invalid readings and injected faults
+(proprio_env.fault_injection, counts entries): instructions and Cortex-M0+ cycles per sample
+(spindle.native.m0plus.cycles: ARM DDI 0484C instruction timings, flash wait states of the
+EFM32ZG), mean and worst, per stage; flash, RAM, stack; the lowest EFM32ZG clock meeting every
+sample's 2 ms deadline with a 25 % margin and its power (EFM32ZG datasheet, 114 uA/MHz at
+3 V); Ia and II against the host double chain (CArmChain) on the same samples, RMS, and the
+bad-sample counters of both. Its line is the last:
+    system_mips=... system_peak_cycles_per_sample=... clock_mhz=... power_mw=...
+    flash_bytes=... ram_bytes=... rms_vs_host_pps=...
+
 Usage:
     PYTHONPATH=. python scripts/bench_embedded.py            # all levers, all 9 runs (~10 min)
     PYTHONPATH=. python scripts/bench_embedded.py --quick    # final configuration, 2 runs
@@ -130,6 +146,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="indices of the lever rows to measure")
     ap.add_argument("--no-demo", action="store_true",
                     help="skip the demo motion (the fixed-point step with moving drives)")
+    ap.add_argument("--system-only", action="store_true",
+                    help="only the whole-system firmware")
     args = ap.parse_args(argv)
     try:
         import unicorn
@@ -142,6 +160,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"unicorn {unicorn.__version__}; instruction-set probe:")
     for what, outcome in isa_probe().items():
         print(f"  {what}: {outcome}")
+    if args.system_only:
+        return run_system(args.quick, build_dir)
     refs = references(all_runs)
     print(f"reference (scipy Radau, HUMAN, 9 runs): {time.perf_counter() - t0:.0f} s")
     configs = [FINAL] if args.quick else LEVERS
@@ -184,7 +204,97 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"no ARMv7-M-only instruction; total {time.perf_counter() - t0:.0f} s")
     print(f"m0plus_mips_per_muscle={final.mips:.4f} rms_pps={final.rms_pps:.4f} "
           f"flash_bytes={final.flash} ram_bytes={final.ram}")
-    return 0
+    return run_system(args.quick, build_dir)
+
+
+def _stage_table(results) -> None:
+    stages = list(dict.fromkeys(k for c in results.values() for k in c.run.by_stage))
+    print("\n| stage | " + " | ".join(f"{name}: instr/sample | cycles/sample (0 WS)"
+                                     for name in results) + " |")
+    print("|---|" + "---:|---:|" * len(results))
+    for stage in stages:
+        cells = []
+        for c in results.values():
+            n = len(c.run.instructions)
+            row = c.run.by_stage.get(stage, [0, 0, 0, 0])
+            cells += [f"{row[0] / n:.0f}", f"{row[1] / n:.0f}"]
+        print(f"| {stage} | " + " | ".join(cells) + " |")
+
+
+def run_system(quick: bool, build_dir: Path) -> int:
+    """The whole-system firmware on the demo motion and the faulty trace; the last line."""
+    from spindle.native.m0plus import cycles as cyc
+    from spindle.native.m0plus import system as sysfw
+    from spindle.native.m0plus.isa import objdump_violations
+    from spindle.native.m0plus.system_config import DEVICE_CONFIG, SPINDLE_STEP_S
+
+    t0 = time.perf_counter()
+    elf = sysfw.build_system(build_dir)
+    fw = sysfw.SystemFirmware(elf)
+    demo_s, fault_n = (1.5, 1500) if quick else (DEMO_CYCLES * 2 * 90 / 130, 10000)
+    inputs = {"demo motion": sysfw.demo_samples(demo_s)}
+    t_f, c_f, faults = sysfw.fault_samples(fault_n, seed=1)
+    inputs["servo trace, jitter + faults"] = (t_f, c_f)
+    results = {name: sysfw.compare(fw, t, c) for name, (t, c) in inputs.items()}
+    seen, bad = objdump_violations(elf)
+    violations = sorted(fw.emu.violations) + bad
+    flash, ram = sysfw.firmware_sizes(elf, fw.emu.stack_used(), build_dir)
+    period = sysfw.SAMPLE_PERIOD_S
+    print(f"\nwhole system (system.c, chain config max_bridge_s={DEVICE_CONFIG.max_bridge_s:g} s, "
+          f"spindles fixed point on a {SPINDLE_STEP_S * 1e3:g} ms grid) vs the host double "
+          f"chain (CArmChain, trapezoidal {DEVICE_CONFIG.spindle_step_s * 1e3:g} ms); "
+          f"faults injected: {len(faults)} ({', '.join(sorted(set(faults)))})")
+    print("| input | samples | instr/sample mean | max | MIPS | cycles/sample mean (0 WS) | "
+          "max (0 WS) | max (1 WS) | RMS vs host (pps) | max abs (pps) | counters equal |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    for name, c in results.items():
+        r = c.run
+        print(f"| {name} | {len(r.instructions)} | {r.instructions.mean():.0f} | "
+              f"{r.instructions.max()} | {r.instructions.mean() / period / 1e6:.3f} | "
+              f"{r.cycles.mean():.0f} | {r.cycles.max()} | {r.cycles_at(1).max()} | "
+              f"{c.worst_rms_pps:.3f} | {c.max_abs_pps:.3f} | {c.counters_equal} |")
+        print(f"  RMS per afferent: " + ", ".join(f"{k} {v:.3f}" for k, v in c.rms_pps.items()))
+        print(f"  counters firmware: {r.counters}")
+        if not c.counters_equal:
+            print(f"  counters host:     {c.host_counters}")
+        print(f"  spindle steps per sample: {np.bincount(r.steps).tolist()}; statuses "
+              f"{sorted(set(r.status.tolist()))}")
+    _stage_table(results)
+    peak0 = max(int(c.run.cycles.max()) for c in results.values())
+    peak1 = max(int(c.run.cycles_at(1).max()) for c in results.values())
+    clock = cyc.lowest_clock_mhz(peak0, peak1, period)
+    mips = results["demo motion"].run.instructions.mean() / period / 1e6
+    rms = max(c.worst_rms_pps for c in results.values())
+    if clock is None:
+        need = cyc.needed_clock_mhz(peak1, period)
+        print(f"deadline: the costliest sample ({peak1} cycles at 1 WS) needs {need:.1f} MHz "
+              f"for {period * 1e3:g} ms with a {cyc.DEADLINE_MARGIN:.0%} margin: above the "
+              f"EFM32ZG's {cyc.MAX_CLOCK_MHZ:g} MHz (no band meets every deadline)")
+        clock_used, peak = need, peak1
+    else:
+        peak = peak0 if cyc.wait_states(clock) == 0 else peak1
+        print(f"deadline: lowest EFM32ZG HFRCO band meeting every sample's {period * 1e3:g} ms "
+              f"with a {cyc.DEADLINE_MARGIN:.0%} margin: {clock:g} MHz "
+              f"({cyc.wait_states(clock)} wait states; costliest sample {peak} cycles = "
+              f"{peak / clock:.0f} us)")
+        clock_used = clock
+    power = cyc.active_power_mw(clock_used)
+    busy = results["demo motion"].run.cycles_at(cyc.wait_states(clock_used)).mean() / (
+        clock_used * 1e6 * period)
+    print(f"power: {cyc.SUPPLY_V:g} V x {cyc.ACTIVE_UA_PER_MHZ:g} uA/MHz x {clock_used:.1f} MHz "
+          f"= {power:.2f} mW running continuously (the paper: under 10 mW); busy "
+          f"{busy:.0%} of each period on the demo motion, so with EM1 sleep between samples "
+          f"the average would be lower")
+    print(f"flash {flash} B, RAM {ram} B (stack high-water {fw.emu.stack_used()} B); "
+          f"ARMv6-M: {seen} instructions disassembled, "
+          f"{len(violations)} ARMv7-M-only; {time.perf_counter() - t0:.0f} s")
+    if violations:
+        print("  ARMv7-M-only instructions:", *violations[:10], sep="\n    ")
+        return 1
+    print(f"system_mips={mips:.4f} system_peak_cycles_per_sample={peak} "
+          f"clock_mhz={clock_used:.1f} power_mw={power:.3f} flash_bytes={flash} "
+          f"ram_bytes={ram} rms_vs_host_pps={rms:.4f}")
+    return 0 if all(c.counters_equal for c in results.values()) else 1
 
 
 if __name__ == "__main__":

@@ -1,0 +1,238 @@
+"""The whole-system firmware (``c/m0plus/system.c``) on the emulator, beside the host chain.
+
+:func:`build_system` cross-compiles ``system.c`` with the fixed-point spindle of
+``spindle.c`` and the configuration :mod:`.system_config` generates; :class:`SystemFirmware`
+feeds it one encoder sample per ``fw_sample`` call (as the 500 Hz timer interrupt would) and
+reads back its output record, its bad-sample counters and the instructions, Cortex-M0+
+cycles (:mod:`.cycles`) and flash accesses of every call, per stage. :func:`host_chain` runs
+the host's double C chain (``spindle.native.chain.CArmChain``, the numpy chain's twin) with
+the same configuration on the same samples; :func:`measure_system` compares the two.
+
+Inputs: :func:`demo_samples` (the seed paper's rapid flexion-extension read by an ideal
+encoder at exactly 500 Hz) and :func:`fault_samples` (a recorded servo trace with the
+encoder's jitter, noise and invalid readings and the faults of
+``proprio_env.fault_injection``, its counts entries only: what the encoder port delivers).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+
+from spindle.chain.config import COUNTERS, MUSCLES, ChainConfig
+from spindle.chain.length_model import load_length_fits
+from spindle.native.chain import CArmChain
+from spindle.native.fixed import FX_DRIVE, FX_RATE
+from spindle.native.m0plus.build import ARM_FLAGS, C_DIR, FW_DIR, LINK_FLAGS, key, sizes, tool
+from spindle.native.m0plus.emulator import M0Plus
+from spindle.native.m0plus.system_config import (
+    DEVICE_CONFIG,
+    SPINDLE_STEP_S,
+    system_config_source,
+)
+
+STAGES = {"stage_reading": "reading and time rules", "stage_median": "median filter",
+          "stage_angle": "f(x), angle slew and clamp", "stage_lengths": "fitted lengths",
+          "stage_tracking": "length slew, tracking low-pass",
+          "stage_fusimotor": "predictor, fusimotor drive", "stage_spindles": "spindles",
+          "rest_spindles": "spindles", "stage_tendon": "tendon organs (FW_GTO)",
+          "stage_stim": "pulse encoder (FW_STIM)", "stage_output": "commit, output record"}
+"""system.c's stage functions and the names the breakdown gives them."""
+SAMPLE_PERIOD_S = 2e-3
+STACK_BYTES = 0x400
+RECORD = struct.Struct("<3i8ii")  # fw_record: t_us, accepted, status, ia, ii, gs, gd, steps
+RING = 8
+
+
+def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
+                 spindle_step_s: float = SPINDLE_STEP_S, stack_bytes: int = STACK_BYTES,
+                 defines: tuple[str, ...] = ()) -> Path:
+    """The system firmware's ELF for ``config`` at ``spindle_step_s``."""
+    source = system_config_source(config, spindle_step_s=spindle_step_s)
+    tag = key(source, stack_bytes, defines, (FW_DIR / "system.c").read_bytes())
+    header_dir = build_dir / f"system_{tag}"
+    header_dir.mkdir(parents=True, exist_ok=True)
+    (header_dir / "fw_system_config.h").write_text(source)
+    elf = build_dir / f"system_{tag}.elf"
+    if not elf.exists():
+        roots = [f"-Wl,-u,{name}" for name in ("fw_sample", "fw_in", "fw_count", "fw_out",
+                                                "fw_out_head")]
+        cmd = [tool("gcc"), *ARM_FLAGS, *(f"-D{d}" for d in defines), "-I", str(C_DIR),
+               "-I", str(header_dir), str(C_DIR / "spindle.c"), str(FW_DIR / "system.c"),
+               "-T", str(FW_DIR / "m0plus.ld"), f"-Wl,--defsym=FW_STACK_SIZE={stack_bytes}",
+               *roots, *LINK_FLAGS, "-o", str(elf)]
+        subprocess.run(cmd, check=True)
+    return elf
+
+
+@dataclasses.dataclass
+class Run:
+    """The firmware along one input: per sample (T,) or (T, 2)."""
+
+    ia_pps: np.ndarray
+    ii_pps: np.ndarray
+    gs_pps: np.ndarray
+    gd_pps: np.ndarray
+    accepted: np.ndarray  # 0 rejected, 1 accepted, 2 restarted at rest
+    status: np.ndarray
+    steps: np.ndarray     # spindle steps in the sample
+    instructions: np.ndarray
+    cycles: np.ndarray    # at zero wait states
+    fetches: np.ndarray   # 32-bit words fetched from flash
+    flash_reads: np.ndarray
+    counters: dict[str, int]
+    by_stage: dict[str, list[int]]  # stage -> [instructions, cycles, fetches, flash reads]
+
+    def cycles_at(self, wait_states: int) -> np.ndarray:
+        return self.cycles + wait_states * (self.fetches + self.flash_reads)
+
+
+class SystemFirmware:
+    """The system firmware in the emulator."""
+
+    def __init__(self, elf: Path):
+        self.emu = M0Plus(elf, cycles=True, stages=STAGES)
+        self.elf = elf
+
+    def run(self, t_s: np.ndarray, counts: np.ndarray) -> Run:
+        """fw_init, then one fw_sample per sample."""
+        emu, uc, sym = self.emu, self.emu.uc, self.emu.sym
+        emu.call("fw_init")
+        emu.by_stage.clear()
+        n = len(t_s)
+        out = {name: np.zeros(n, dtype=np.int64) for name in
+               ("accepted", "status", "steps", "instructions", "cycles", "fetches",
+                "flash_reads")}
+        rates = np.zeros((4, n, 2))
+        head_addr, ring_addr, in_addr = sym["fw_out_head"][0], sym["fw_out"][0], sym["fw_in"][0]
+        last = None
+        for j in range(n):
+            uc.mem_write(in_addr, struct.pack("<dfff", float(t_s[j]), float(counts[j]), 0, 0))
+            before = (emu.cycles, emu.fetches, emu.flash_reads)
+            status, instructions = emu.call("fw_sample")
+            out["instructions"][j] = instructions
+            out["cycles"][j] = emu.cycles - before[0]
+            out["fetches"][j] = emu.fetches - before[1]
+            out["flash_reads"][j] = emu.flash_reads - before[2]
+            out["status"][j] = status if status < 2**31 else status - 2**32
+            head, = struct.unpack("<I", bytes(uc.mem_read(head_addr, 4)))
+            if head and (last is None or head != last[0]):
+                raw = bytes(uc.mem_read(ring_addr + RECORD.size * ((head - 1) % RING),
+                                        RECORD.size))
+                last = (head, RECORD.unpack(raw))
+                out["accepted"][j] = last[1][1]
+                out["steps"][j] = last[1][11]
+            if last is not None:
+                fields = last[1]
+                rates[:, j] = np.array(fields[3:11]).reshape(4, 2) / (
+                    np.array([FX_RATE, FX_RATE, FX_DRIVE, FX_DRIVE])[:, None])
+        raw = bytes(uc.mem_read(sym["fw_count"][0], 4 * len(COUNTERS)))
+        counters = dict(zip(COUNTERS, struct.unpack(f"<{len(COUNTERS)}I", raw), strict=True))
+        return Run(rates[0], rates[1], rates[2], rates[3], counters=counters,
+                   by_stage={k: list(v) for k, v in emu.by_stage.items()}, **out)
+
+
+def host_chain(t_s: np.ndarray, counts: np.ndarray,
+               config: ChainConfig = DEVICE_CONFIG) -> tuple[dict[str, np.ndarray], dict]:
+    """The host's double C chain on the same samples: reset at rest at the first sample (as
+    the firmware's first sample), then every other pushed. (outputs (T, ...), counters)."""
+    chain = CArmChain(config, load_length_fits(config.fits_path))
+    rest = chain.reset(float(config.calibration.angle_deg(float(counts[0]))), float(t_s[0]))
+    out = chain.run_trace("push_counts", np.asarray(t_s[1:], dtype=float),
+                          np.asarray(counts[1:], dtype=float))
+    stacked = {}
+    for name in ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps"):
+        stacked[name] = np.concatenate((np.asarray(getattr(rest, name))[None], out[name]))
+    return stacked, dict(chain.counters)
+
+
+def demo_samples(duration_s: float, low_deg: float = 20.0, high_deg: float = 110.0,
+                 speed_deg_s: float = 130.0) -> tuple[np.ndarray, np.ndarray]:
+    """The seed paper's repeated rapid flexion-extension (a triangle at ``speed_deg_s``) read
+    by the encoder without noise, jitter or glitches at exactly 500 Hz: (t_s, counts)."""
+    from proprio_env.servo_motion import triangle_deg
+    from spindle.chain.sensor import AX12, Calibration
+
+    t = np.arange(round(duration_s / SAMPLE_PERIOD_S) + 1) * SAMPLE_PERIOD_S
+    angle = triangle_deg(t, low_deg, high_deg, speed_deg_s)
+    cal = Calibration(deg_per_count=AX12.deg_per_count)
+    counts = np.clip(np.round(cal.zero_count + cal.sign * angle / cal.deg_per_count), 0,
+                     AX12.max_count)
+    return t, counts
+
+
+def _as_float(x: object) -> float:
+    try:
+        return float(x)
+    except OverflowError:  # the Python int 10**400
+        return math.inf if x > 0 else -math.inf
+    except TypeError:
+        return math.nan
+
+
+def fault_samples(n_samples: int, seed: int = 0,
+                  fault_probability: float = 0.2) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """A recorded servo trace with jitter, noise, invalid readings and injected faults
+    (proprio_env.fault_injection.fault_stream, its counts entries), starting at its first
+    valid sample: (t_s, counts as float32, the faults injected)."""
+    from proprio_env.fault_injection import fault_stream
+    from spindle.chain.sensor import AX12, is_valid_reading
+
+    fits = load_length_fits(None)
+    t, x, faults = [], [], []
+    for seg in fault_stream(np.random.default_rng(seed), n_samples, fits, fault_probability):
+        if seg.entry != "counts":
+            continue
+        t += [_as_float(v) for v in seg.t_s]
+        x += [_as_float(v) for v in seg.values]
+        if seg.fault:
+            faults.append(seg.fault)
+    t_arr = np.array(t)
+    x_arr = np.array(x, dtype=np.float32).astype(float)
+    first = next(i for i in range(len(t)) if math.isfinite(t_arr[i])
+                 and is_valid_reading(x_arr[i], AX12.max_count))
+    return t_arr[first:], x_arr[first:], faults
+
+
+@dataclasses.dataclass
+class Compared:
+    run: Run
+    host_counters: dict[str, int]
+    rms_pps: dict[str, float]  # "BRA Ia" ...: firmware vs host double chain
+    max_abs_pps: float
+
+    @property
+    def counters_equal(self) -> bool:
+        return self.run.counters == self.host_counters
+
+    @property
+    def worst_rms_pps(self) -> float:
+        return max(self.rms_pps.values())
+
+
+def compare(fw: SystemFirmware, t_s: np.ndarray, counts: np.ndarray,
+            config: ChainConfig = DEVICE_CONFIG) -> Compared:
+    """The firmware and the host double chain on the same samples."""
+    run = fw.run(t_s, counts)
+    host, host_counters = host_chain(t_s, counts, config)
+    rms, worst = {}, 0.0
+    for k, muscle in enumerate(MUSCLES):
+        for name, got, ref in (("Ia", run.ia_pps, host["ia_pps"]),
+                               ("II", run.ii_pps, host["ii_pps"])):
+            d = got[:, k] - ref[:, k]
+            rms[f"{muscle} {name}"] = float(np.sqrt(np.mean(d**2)))
+            worst = max(worst, float(np.max(np.abs(d))))
+    return Compared(run, host_counters, rms, worst)
+
+
+def firmware_sizes(elf: Path, stack_used: int, build_dir: Path,
+                   config: ChainConfig = DEVICE_CONFIG,
+                   spindle_step_s: float = SPINDLE_STEP_S) -> tuple[int, int]:
+    """(flash, RAM) bytes, the stack re-linked to the high-water mark + 64 B (64 B units)."""
+    stack = (stack_used + 64 + 63) // 64 * 64
+    return sizes(build_system(build_dir, config, spindle_step_s, stack_bytes=stack))
