@@ -253,7 +253,7 @@ def run_system(quick: bool, build_dir: Path) -> int:
               f"{r.instructions.max()} | {r.instructions.mean() / period / 1e6:.3f} | "
               f"{r.cycles.mean():.0f} | {r.cycles.max()} | {r.cycles_at(1).max()} | "
               f"{c.worst_rms_pps:.3f} | {c.max_abs_pps:.3f} | {c.counters_equal} |")
-        print(f"  RMS per afferent: " + ", ".join(f"{k} {v:.3f}" for k, v in c.rms_pps.items()))
+        print("  RMS per afferent: " + ", ".join(f"{k} {v:.3f}" for k, v in c.rms_pps.items()))
         print(f"  counters firmware: {r.counters}")
         if not c.counters_equal:
             print(f"  counters host:     {c.host_counters}")

@@ -60,7 +60,7 @@ def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
     (header_dir / "fw_system_config.h").write_text(source)
     elf = build_dir / f"system_{tag}.elf"
     if not elf.exists():
-        roots = [f"-Wl,-u,{name}" for name in ("fw_sample", "fw_in", "fw_count", "fw_out",
+        roots = [f"-Wl,-u,{name}" for name in ("fw_sample", "fw_in", "fw_count", "fw_out", "fw_overruns",
                                                 "fw_out_head")]
         cmd = [tool("gcc"), *ARM_FLAGS, *(f"-D{d}" for d in defines), "-I", str(C_DIR),
                "-I", str(header_dir), str(C_DIR / "spindle.c"), str(FW_DIR / "system.c"),

@@ -67,7 +67,7 @@ def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -
         "omega_Q16": _q(c.lowpass_rad_s, 16),
         "two_over_omega_Q32": _q(2.0 / c.lowpass_rad_s, 32),
         "predictor_period_us": round(period_s * 1e6),
-        "predictor_keep": int(math.ceil(c.delay_s * c.predictor_rate_hz)) + 2,
+        "predictor_keep": math.ceil(c.delay_s * c.predictor_rate_hz) + 2,
         "predictor_period_Q30": _q(period_s, 30),
         "kp_Q16": _q(c.predictor_kp_1_s, 16),
         "ki_dt_Q16": _q(c.predictor_ki_1_s2 * period_s, 16),
@@ -103,7 +103,7 @@ def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits |
     fixed.declare_fixed(lib, "double")
     plan = fixed.make_plan(lib, config.params, round(spindle_step_s * 1e6) * 1e-6, 0.5, "double")
     plan_fields = []
-    for name, ctype in type(plan)._fields_:
+    for name, _ctype in type(plan)._fields_:
         value = getattr(plan, name)
         plan_fields.append(f".{name} = " + _literal(list(value) if hasattr(value, "__len__")
                                                    else int(value)))

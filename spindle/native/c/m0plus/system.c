@@ -21,7 +21,10 @@
  * by ps_plan_fx_init), the two muscles' grids offset by half a step so that a sample at the
  * nominal rate steps one spindle; at each grid point in the sample's interval the length
  * follows the cubic Hermite curve through the interval's ends (as chain.c's sub-steps), and a
- * muscle's output holds its last grid point's rates.
+ * muscle's output holds its last step's rates. A sample runs at most FW_MAX_STEPS (1) spindle
+ * steps, the oldest queued grid point first: one step is the worst case of a sample (with the
+ * grids offset, a sample at the nominal rate has one grid point; jitter and bridged intervals
+ * queue the others for the next samples).
  *
  * The configuration (fw_system_config.h: const fw_config fw_cfg, const ps_plan_fx fw_plan) is
  * generated on the host by spindle.native.m0plus.system_config from a ChainConfig.
@@ -69,6 +72,7 @@ typedef struct fw_counters {
 } fw_counters;
 
 #define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz) */
+#define FW_PENDING 8  /* queued spindle grid points per muscle */
 
 typedef struct fw_state {
     int32_t median[PS_MEDIAN_MAX_WINDOW];
@@ -86,7 +90,9 @@ typedef struct fw_state {
     /* spindles */
     ps_spindle_fx spindle[PS_MUSCLES];
     uint32_t next_step_us[PS_MUSCLES];
-    int32_t last_L_Q24[PS_MUSCLES];
+    int32_t last_L_Q24[PS_MUSCLES]; /* the last grid point's length */
+    int32_t pending_L_Q24[PS_MUSCLES][FW_PENDING], pending_n[PS_MUSCLES]; /* queued grid points */
+    uint32_t pending_t_us[PS_MUSCLES][FW_PENDING];
     int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
     int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
     int32_t started;
@@ -115,6 +121,7 @@ fw_input fw_in;
 fw_counters fw_count;
 fw_record fw_out[FW_RING];
 uint32_t fw_out_head; /* records written so far; the newest is fw_out[(head - 1) % FW_RING] */
+uint32_t fw_overruns;  /* samples that ran more than FW_MAX_STEPS spindle steps */
 static fw_state st;
 
 /* The working values of one sample, passed from stage to stage. */
@@ -398,11 +405,41 @@ static int32_t hermite_Q24(const fw_ctx *c, int m, uint32_t tau_us)
     return x0 + mul_q(w1, x1 - x0, 24) + mul_q(slopes, c->dt_Q30, 26);
 }
 
-/* The spindles at every grid point of the interval, in fixed point. */
+#ifndef FW_MAX_STEPS
+#define FW_MAX_STEPS 1 /* spindle steps per sample: what bounds a sample's worst case */
+#endif
+/* Step the muscle whose oldest queued grid point is the earliest. */
+static int step_oldest(fw_ctx *c)
+{
+    int m = 0, k, status;
+    int32_t L;
+    if (st.pending_n[1] > 0 && (st.pending_n[0] == 0 || (int32_t)(st.pending_t_us[1][0]
+                                                        - st.pending_t_us[0][0]) < 0)) {
+        m = 1;
+    }
+    L = st.pending_L_Q24[m][0];
+    status = ps_spindle_step_fx(&st.spindle[m], &fw_plan, L, st.gd_Q8[m], st.gs_Q8[m],
+                                &st.ia_Q16[m], &st.ii_Q16[m]);
+    if (status != PS_OK) {
+        c->status = status;
+    }
+    st.pending_n[m] -= 1;
+    for (k = 0; k < st.pending_n[m]; ++k) {
+        st.pending_L_Q24[m][k] = st.pending_L_Q24[m][k + 1];
+        st.pending_t_us[m][k] = st.pending_t_us[m][k + 1];
+    }
+    c->steps += 1;
+    return status;
+}
+
+/* The spindles: every grid point of the interval queues its length (the Hermite curve, within
+ * the slew limit of the previous grid point and the spindle's range); at most FW_MAX_STEPS of
+ * the queued steps run in this sample, oldest first (a queue that fills runs its oldest at
+ * once, counted in fw_overruns). */
 static int stage_spindles(fw_ctx *c)
 {
     const int32_t reach = mul_q(fw_cfg.max_speed_L0_Q40_us, fw_cfg.spindle_step_us, 16);
-    int m;
+    int m, k;
     if (c->restart) {
         return rest_spindles(c);
     }
@@ -410,18 +447,22 @@ static int stage_spindles(fw_ctx *c)
         while ((int32_t)(c->t_us - st.next_step_us[m]) >= 0) {
             int32_t L = (st.next_step_us[m] == c->t_us) ? c->x1_Q24[m]
                                                          : hermite_Q24(c, m, st.next_step_us[m]);
-            int status;
             L = clamp_i32(L, st.last_L_Q24[m] - reach, st.last_L_Q24[m] + reach);
             L = clamp_i32(L, PS_FX_ONE / 2, PS_FX_ONE + PS_FX_ONE / 2);
-            status = ps_spindle_step_fx(&st.spindle[m], &fw_plan, L, st.gd_Q8[m], st.gs_Q8[m],
-                                        &st.ia_Q16[m], &st.ii_Q16[m]);
-            if (status != PS_OK) {
-                c->status = status;
-                return FW_NEXT;
+            if (st.pending_n[m] == FW_PENDING) {
+                fw_overruns += 1;
+                (void)step_oldest(c);
             }
+            st.pending_L_Q24[m][st.pending_n[m]] = L;
+            st.pending_t_us[m][st.pending_n[m]] = st.next_step_us[m];
+            st.pending_n[m] += 1;
             st.last_L_Q24[m] = L;
             st.next_step_us[m] += (uint32_t)fw_cfg.spindle_step_us;
-            c->steps += 1;
+        }
+    }
+    for (k = 0; k < FW_MAX_STEPS && st.pending_n[0] + st.pending_n[1] > 0; ++k) {
+        if (step_oldest(c) != PS_OK) {
+            break;
         }
     }
     return FW_NEXT;
@@ -440,6 +481,7 @@ static int rest_spindles(fw_ctx *c)
         }
         ps_spindle_fx_afferents(&st.spindle[m], &fw_plan, &st.ia_Q16[m], &st.ii_Q16[m]);
         st.last_L_Q24[m] = c->L_Q24[m];
+        st.pending_n[m] = 0;
         st.next_step_us[m] = c->t_us + (uint32_t)(fw_cfg.spindle_step_us * (m + 1) / 2);
         c->x1_Q24[m] = c->L_Q24[m];
         c->v1_Q20[m] = 0;
