@@ -1,0 +1,52 @@
+"""The whole-system Cortex-M0+ firmware (spindle/native/c/m0plus/system.c) in the emulator
+against the host double C chain (CArmChain, the numpy chain's twin to 1e-13 pps) on the same
+encoder samples: rates within the issue's 1.5 pps RMS, bad-sample counters equal, ARMv6-M
+only. Skipped without arm-none-eabi-gcc or unicorn."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+pytest.importorskip("unicorn", reason="the emulator needs unicorn >= 2.1")
+if shutil.which("arm-none-eabi-gcc") is None:
+    pytest.skip("arm-none-eabi-gcc not installed (apt-get install gcc-arm-none-eabi "
+                "libnewlib-arm-none-eabi)", allow_module_level=True)
+
+from spindle.native.m0plus import system as sysfw  # noqa: E402
+
+RMS_LIMIT_PPS = 1.5  # the issue's target
+
+
+@pytest.fixture(scope="module")
+def firmware(tmp_path_factory):
+    return sysfw.SystemFirmware(sysfw.build_system(tmp_path_factory.mktemp("system_fw")))
+
+
+def test_demo_motion_rates_match_the_host_double_chain(firmware):
+    t, counts = sysfw.demo_samples(0.8)
+    c = sysfw.compare(firmware, t, counts)
+    # measured: worst RMS 0.35 pps (TRImed Ia) over 0.8 s; 0.40 (BRA Ia) over 1.5 s
+    assert c.worst_rms_pps <= RMS_LIMIT_PPS, c.rms_pps
+    assert c.counters_equal, (c.run.counters, c.host_counters)
+    assert c.run.counters["accepted"] == len(t) - 1
+    assert set(c.run.status.tolist()) == {0}
+    # the rates move (measured ranges 9.3 and 35.9 pps of Ia): the comparison is not of two
+    # rest outputs
+    assert np.ptp(c.run.ia_pps, axis=0).min() > 5.0
+    assert not firmware.emu.violations
+
+
+def test_faulty_trace_counts_every_bad_sample_as_the_host(firmware):
+    t, counts, faults = sysfw.fault_samples(700, seed=1)
+    assert faults  # the seeded stream injects some
+    c = sysfw.compare(firmware, t, counts)
+    assert c.counters_equal, (c.run.counters, c.host_counters)
+    rejected = sum(c.run.counters[k] for k in ("invalid_reading", "bad_time",
+                                                "repeated_time", "time_backwards"))
+    assert rejected > 0  # measured 6 (3 invalid readings, 3 bad times)
+    assert c.worst_rms_pps <= RMS_LIMIT_PPS, c.rms_pps  # measured 0.48 pps over 1269 samples of this seed
+    # one spindle step per sample at most: the worst sample is bounded
+    assert c.run.steps.max() <= 1
