@@ -47,22 +47,24 @@ SAMPLE_PERIOD_S = 2e-3
 STACK_BYTES = 0x400
 RECORD = struct.Struct("<3i8ii")  # fw_record: t_us, accepted, status, ia, ii, gs, gd, steps
 RING = 8
+DEFINES = ("PS_FX_INLINE_MUL",)
+"""The system build's options: fx_mul inlined into the fixed-point step (same results)."""
 
 
 def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
                  spindle_step_s: float = SPINDLE_STEP_S, stack_bytes: int = STACK_BYTES,
-                 defines: tuple[str, ...] = ()) -> Path:
+                 defines: tuple[str, ...] = DEFINES, opt: str = "-Os") -> Path:
     """The system firmware's ELF for ``config`` at ``spindle_step_s``."""
     source = system_config_source(config, spindle_step_s=spindle_step_s)
-    tag = key(source, stack_bytes, defines, (FW_DIR / "system.c").read_bytes())
+    tag = key(source, stack_bytes, defines, opt, (FW_DIR / "system.c").read_bytes())
     header_dir = build_dir / f"system_{tag}"
     header_dir.mkdir(parents=True, exist_ok=True)
     (header_dir / "fw_system_config.h").write_text(source)
     elf = build_dir / f"system_{tag}.elf"
     if not elf.exists():
-        roots = [f"-Wl,-u,{name}" for name in ("fw_sample", "fw_in", "fw_count", "fw_out", "fw_overruns",
-                                                "fw_out_head")]
-        cmd = [tool("gcc"), *ARM_FLAGS, *(f"-D{d}" for d in defines), "-I", str(C_DIR),
+        roots = [f"-Wl,-u,{name}" for name in ("fw_sample", "fw_in", "fw_count", "fw_out",
+                                                "fw_overruns", "fw_out_head")]
+        cmd = [tool("gcc"), *ARM_FLAGS, opt, *(f"-D{d}" for d in defines), "-I", str(C_DIR),
                "-I", str(header_dir), str(C_DIR / "spindle.c"), str(FW_DIR / "system.c"),
                "-T", str(FW_DIR / "m0plus.ld"), f"-Wl,--defsym=FW_STACK_SIZE={stack_bytes}",
                *roots, *LINK_FLAGS, "-o", str(elf)]
@@ -87,6 +89,8 @@ class Run:
     flash_reads: np.ndarray
     counters: dict[str, int]
     by_stage: dict[str, list[int]]  # stage -> [instructions, cycles, fetches, flash reads]
+    peak_by_stage: dict[str, list[int]]  # the same in the costliest sample (cycles at 1 WS)
+    overruns: int  # samples whose queue of spindle grid points was full (fw_overruns)
 
     def cycles_at(self, wait_states: int) -> np.ndarray:
         return self.cycles + wait_states * (self.fetches + self.flash_reads)
@@ -110,8 +114,9 @@ class SystemFirmware:
                 "flash_reads")}
         rates = np.zeros((4, n, 2))
         head_addr, ring_addr, in_addr = sym["fw_out_head"][0], sym["fw_out"][0], sym["fw_in"][0]
-        last = None
+        last, peak, peak_stages = None, -1, {}
         for j in range(n):
+            stages_before = {k: list(v) for k, v in emu.by_stage.items()}
             uc.mem_write(in_addr, struct.pack("<dfff", float(t_s[j]), float(counts[j]), 0, 0))
             before = (emu.cycles, emu.fetches, emu.flash_reads)
             status, instructions = emu.call("fw_sample")
@@ -119,6 +124,12 @@ class SystemFirmware:
             out["cycles"][j] = emu.cycles - before[0]
             out["fetches"][j] = emu.fetches - before[1]
             out["flash_reads"][j] = emu.flash_reads - before[2]
+            ws1 = out["cycles"][j] + out["fetches"][j] + out["flash_reads"][j]
+            if ws1 > peak:
+                peak = ws1
+                peak_stages = {k: [a - b for a, b in zip(v, stages_before.get(k, [0] * 4),
+                                                         strict=True)]
+                               for k, v in emu.by_stage.items()}
             out["status"][j] = status if status < 2**31 else status - 2**32
             head, = struct.unpack("<I", bytes(uc.mem_read(head_addr, 4)))
             if head and (last is None or head != last[0]):
@@ -133,8 +144,10 @@ class SystemFirmware:
                     np.array([FX_RATE, FX_RATE, FX_DRIVE, FX_DRIVE])[:, None])
         raw = bytes(uc.mem_read(sym["fw_count"][0], 4 * len(COUNTERS)))
         counters = dict(zip(COUNTERS, struct.unpack(f"<{len(COUNTERS)}I", raw), strict=True))
-        return Run(rates[0], rates[1], rates[2], rates[3], counters=counters,
-                   by_stage={k: list(v) for k, v in emu.by_stage.items()}, **out)
+        overruns, = struct.unpack("<I", bytes(uc.mem_read(sym["fw_overruns"][0], 4)))
+        return Run(rates[0], rates[1], rates[2], rates[3], counters=counters, overruns=overruns,
+                   by_stage={k: list(v) for k, v in emu.by_stage.items()},
+                   peak_by_stage=peak_stages, **out)
 
 
 def host_chain(t_s: np.ndarray, counts: np.ndarray,

@@ -56,7 +56,7 @@ typedef struct fw_config {
     int32_t delay_us, threshold_Q24;
     int32_t gs_min_Q8, gs_max_Q8, gd_Q8;
     int32_t length_max_Q24[PS_MUSCLES];         /* h(x): gs = min + gain (Lmax - template) */
-    int32_t gs_gain_Q16[PS_MUSCLES];            /* span / (Lmax - Lmin) (pps/L0) */
+    int32_t gs_gain_Q8[PS_MUSCLES];             /* span / (Lmax - Lmin) (pps/L0) */
     int32_t spindle_step_us;                    /* the plan's h */
 } fw_config;
 
@@ -78,6 +78,7 @@ typedef struct fw_state {
     int32_t median[PS_MEDIAN_MAX_WINDOW];
     int32_t median_next;
     double t_s, epoch_s;          /* last accepted time; times below count from the epoch */
+    int64_t t_key;                /* order_key(t_s) */
     uint32_t t_us;                /* last accepted time since the epoch */
     int32_t behind;
     int32_t angle_Q16;
@@ -126,6 +127,7 @@ static fw_state st;
 
 /* The working values of one sample, passed from stage to stage. */
 typedef struct fw_ctx {
+    int64_t t_key;
     int32_t counts, filtered, angle_Q16, restart;
     uint32_t t_us;
     int32_t dt_us, dt_Q30, inv_dt_Q12;
@@ -137,10 +139,23 @@ enum { FW_NEXT = 0, FW_DONE = 1 }; /* a stage's return: go on, or the sample is 
 
 /* ---- arithmetic ------------------------------------------------------------------------ */
 
-/* round(a b / 2^shift): the M0+ multiplies 32x32->32, so this is libgcc's __aeabi_lmul. */
+/* round(a b / 2^shift) for 0 < shift < 32 and a result within int32: the 64-bit product
+ * from 16-bit halves (the M0+ multiplies 32x32->32; libgcc's __muldi3 took ~40 instructions
+ * and a call per product), floored after adding 2^(shift-1), exactly as (a b + 2^(shift-1))
+ * >> shift in int64. a = ah 2^16 + al (al unsigned), likewise b, so every partial product
+ * fits in 32 bits. */
 static int32_t mul_q(int32_t a, int32_t b, int shift)
 {
-    return (int32_t)(((int64_t)a * b + ((int64_t)1 << (shift - 1))) >> shift);
+    int32_t ah = a >> 16, bh = b >> 16;
+    uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
+    int32_t hl = ah * (int32_t)bl, lh = (int32_t)al * bh;
+    uint32_t ll = al * bl;
+    uint32_t mid = ((uint32_t)hl & 0xFFFFu) + ((uint32_t)lh & 0xFFFFu) + (ll >> 16);
+    int32_t hi = ah * bh + (hl >> 16) + (lh >> 16) + (int32_t)(mid >> 16);
+    uint32_t lo = (mid << 16) | (ll & 0xFFFFu);
+    uint32_t rounded = lo + (1u << (shift - 1));
+    hi += rounded < lo; /* the carry */
+    return (int32_t)(((uint32_t)hi << (32 - shift)) | (rounded >> shift));
 }
 
 static int32_t clamp_i32(int32_t x, int32_t lo, int32_t hi) { return x < lo ? lo : x > hi ? hi : x; }
@@ -157,7 +172,7 @@ static int32_t exp_neg_Q30(int32_t y_Q28)
     int32_t z = y_Q28 >> 1; /* y / 8 in Q30 */
     int32_t term = 1 << 30, sum = 1 << 30;
     int k;
-    for (k = 1; k <= 8; ++k) {
+    for (k = 1; k <= 8 && term != 0; ++k) { /* a term that rounds to 0 ends the series */
         term = -mul_q(mul_q(term, z, 30), inv_k_Q30[k], 30);
         sum += term;
     }
@@ -171,27 +186,66 @@ static int32_t exp_neg_Q30(int32_t y_Q28)
 
 static int rest_spindles(fw_ctx *c);
 
+/* A double's order as an int64 (IEEE sign-magnitude to two's complement; -0 and +0 alike):
+ * the time rules compare times exactly as doubles without a soft-float call. NaN excluded. */
+static int64_t order_key(double x)
+{
+    union { double d; uint64_t u; } v;
+    v.d = x;
+    return (v.u >> 63) ? -(int64_t)(v.u & 0x7FFFFFFFFFFFFFFFull) : (int64_t)v.u;
+}
+
+static int is_finite_time(double x)
+{
+    union { double d; uint64_t u; } v;
+    v.d = x;
+    return ((uint32_t)(v.u >> 52) & 0x7FFu) != 0x7FFu;
+}
+
+/* is_valid_reading on the float's bits: an integer in 0..max_count (-0 reads 0), else -1. */
+static int32_t valid_reading(float x, int32_t max_count)
+{
+    union { float f; uint32_t u; } v;
+    uint32_t mantissa;
+    int32_t e;
+    v.f = x;
+    if ((v.u & 0x7FFFFFFFu) == 0) {
+        return 0;
+    }
+    e = (int32_t)((v.u >> 23) & 0xFFu) - 127;
+    if ((v.u >> 31) || e < 0 || e > 23) { /* negative, NaN, inf, below 1 or above 2^24 */
+        return -1;
+    }
+    mantissa = (v.u & 0x7FFFFFu) | 0x800000u;
+    if (mantissa & ((1u << (23 - e)) - 1u)) {
+        return -1; /* a fraction */
+    }
+    return (int32_t)(mantissa >> (23 - e)) <= max_count ? (int32_t)(mantissa >> (23 - e)) : -1;
+}
+
 /* ArmChain._time and the reading check: the bad-sample rules that reject a sample. */
 static int stage_reading(fw_ctx *c)
 {
     const double t = fw_in.t_s;
-    const float x = fw_in.counts;
-    if (!(t - t == 0.0)) { /* NaN or infinite */
+    int64_t t_key, dt_key = 0;
+    if (!is_finite_time(t)) {
         fw_count.bad_time += 1;
         return FW_DONE;
     }
-    if (st.started && t == st.t_s) {
+    t_key = order_key(t);
+    if (st.started && t_key == st.t_key) {
         fw_count.repeated_time += 1;
         return FW_DONE;
     }
-    if (st.started && t < st.t_s) {
+    if (st.started && t_key < st.t_key) {
         st.behind += 1;
         if (st.behind < fw_cfg.resync_after_samples) {
             fw_count.time_backwards += 1;
             return FW_DONE;
         }
     }
-    if (!(x >= 0.0f && x <= (float)fw_cfg.max_count && (float)(int32_t)x == x)) {
+    c->counts = valid_reading(fw_in.counts, fw_cfg.max_count);
+    if (c->counts < 0) {
         fw_count.invalid_reading += 1;
         return FW_DONE;
     }
@@ -199,19 +253,21 @@ static int stage_reading(fw_ctx *c)
         fw_counters zero = {0};
         fw_count = zero;
     }
-    c->counts = (int32_t)x;
+    if (st.started && t_key > st.t_key) {
+        dt_key = order_key(t - st.t_s); /* the host's interval, to the bit */
+    }
     /* before the first valid sample there is no interval: it starts the arm at rest, as the
      * host's reset does (no gap, restart or accepted sample counted) */
-    c->restart = !st.started || t < st.t_s || t - st.t_s > fw_cfg.max_bridge_s;
-    if (st.started && t - st.t_s > fw_cfg.gap_s) {
+    c->restart = !st.started || t_key < st.t_key || dt_key > order_key(fw_cfg.max_bridge_s);
+    if (st.started && dt_key > order_key(fw_cfg.gap_s)) {
         fw_count.gaps += 1;
     }
+    c->t_key = t_key;
     if (c->restart) {
-        st.epoch_s = t;
         c->t_us = 0;
         c->dt_us = 0;
     } else {
-        c->t_us = (uint32_t)((t - st.epoch_s) * 1e6 + 0.5);
+        c->t_us = ((uint32_t)((t - st.epoch_s) * 2e6) + 1u) >> 1; /* rounded to the us */
         c->dt_us = (int32_t)(c->t_us - st.t_us);
     }
     c->dt_Q30 = us_to_Q30(c->dt_us);
@@ -385,9 +441,8 @@ static int stage_fusimotor(fw_ctx *c)
         }
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
-        int32_t gs = fw_cfg.gs_min_Q8 + (int32_t)(((int64_t)(fw_cfg.length_max_Q24[m]
-                                                   - c->tmpl_Q24[m]) * fw_cfg.gs_gain_Q16[m]
-                                                  + ((int64_t)1 << 31)) >> 32);
+        int32_t gs = fw_cfg.gs_min_Q8 + mul_q(fw_cfg.length_max_Q24[m] - c->tmpl_Q24[m],
+                                              fw_cfg.gs_gain_Q8[m], 24);
         st.gs_Q8[m] = clamp_i32(gs, fw_cfg.gs_min_Q8, fw_cfg.gs_max_Q8);
         st.gd_Q8[m] = delayed[m] - c->tmpl_Q24[m] > fw_cfg.threshold_Q24 ? 0 : fw_cfg.gd_Q8;
     }
@@ -519,12 +574,16 @@ static int stage_output(fw_ctx *c)
         fw_count.accepted += 1;
         if (c->restart) {
             fw_count.restarts += 1;
-            fw_count.clock_resyncs += fw_in.t_s < st.t_s ? 1u : 0u;
+            fw_count.clock_resyncs += c->t_key < st.t_key ? 1u : 0u;
         }
     }
     st.started = 1;
     st.angle_Q16 = c->angle_Q16;
+    if (c->restart) {
+        st.epoch_s = fw_in.t_s;
+    }
     st.t_s = fw_in.t_s;
+    st.t_key = c->t_key;
     st.t_us = c->t_us;
     st.behind = 0;
     r->t_us = c->t_us;
@@ -574,6 +633,7 @@ int fw_init(void)
     st.t_s = 0.0;
     st.behind = 0;
     fw_out_head = 0;
+    fw_overruns = 0;
     return PS_OK;
 }
 
