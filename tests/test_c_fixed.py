@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from c_layout import c_layout
 from sanitized_build import SANITIZER_REPORT, build
 
 import spindle
@@ -81,18 +82,8 @@ def test_q_scales_and_layouts_match_the_header(tmp_path):
     checks = [("ps_plan_fx", PsPlanFx, "dg_shift"), ("ps_plan_fx", PsPlanFx, "sec_off"),
               ("ps_plan_fx", PsPlanFx, "root10"), ("ps_spindle_fx", PsSpindleFx, "target"),
               ("ps_spindle_fx", PsSpindleFx, "gs")]
-    lines = "".join(f'printf("%lu %lu\\n", (unsigned long)sizeof({c}), '
-                    f"(unsigned long)offsetof({c}, {field}));\n" for c, _, field in checks)
-    src = tmp_path / "layout_fx.c"
-    src.write_text('#include <stdio.h>\n#include <stddef.h>\n#include "proprio.h"\n'
-                   f"int main(void) {{\n{lines}return 0;\n}}\n")
-    subprocess.run([*native_build.compiler_command(), *native_build.WARNING_FLAGS, "-I",
-                    str(native_build.SOURCE_DIR), str(src), "-o", str(tmp_path / "layout_fx")],
-                   check=True)
-    out = subprocess.run([str(tmp_path / "layout_fx")], capture_output=True, text=True,
-                         check=True).stdout.split()
     got = [(ctypes.sizeof(py), getattr(py, field).offset) for _, py, field in checks]
-    assert got == [(int(out[2 * k]), int(out[2 * k + 1])) for k in range(len(checks))]
+    assert got == c_layout([(c, field) for c, _, field in checks], tmp_path)
 
 
 def make_plan(lib, params, h: float, theta: float = 0.5):

@@ -24,6 +24,7 @@ from proprio_env.experiments import (
     length_fits,
     obstruction,
     spindle_accuracy,
+    stimulation,
 )
 
 PNG_COLOURS = 128
@@ -69,6 +70,7 @@ def validation_steps(jobs: int = 1) -> tuple[Step, ...]:
              partial(spindle_accuracy.run, jobs=jobs)),
         Step("length_fits", "Length fits (the paper's Fig. 5)", length_fits.run),
         Step("demo", "Chain demo (the paper's Fig. 8)", demo.run),
+        Step("stimulation", "Stimulator stage on the demo motion", stimulation.run),
     )
 
 

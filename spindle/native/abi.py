@@ -38,6 +38,8 @@ class Status(enum.IntEnum):
     PS_ERR_NOT_RESET = 11
     PS_ERR_INTERVAL = 12
     PS_ERR_ARGUMENT = 13
+    PS_ERR_BUFFER_FULL = 14
+    PS_ERR_CHARGE = 15
 
 
 def status_name(code: int) -> str:

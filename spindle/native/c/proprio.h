@@ -7,7 +7,8 @@
  *
  * Sections: (1) common types and status codes, (2) the Mileusnic 2006 spindle
  * (spindle.c), (3) the on-prosthesis chain: median filter, f(x), fitted lengths, tracking
- * low-pass, fusimotor, one arm (chain.c).
+ * low-pass, fusimotor, one arm (chain.c), (4) the stimulator stage: rates into
+ * charge-balanced pulse events (stimulation.c).
  */
 #ifndef PROPRIO_H
 #define PROPRIO_H
@@ -44,9 +45,13 @@ enum ps_status {
     PS_ERR_INTERVAL = 12,     /* an interval needing more than PS_CHAIN_MAX_UPDATES spindle
                                  sub-steps or predictor updates: a guard, not reached with a
                                  config ps_chain_init accepted (longer intervals restart) */
-    PS_ERR_ARGUMENT = 13      /* a count or index argument out of range (batch calls: a
+    PS_ERR_ARGUMENT = 13,     /* a count or index argument out of range (batch calls: a
                                  negative n_arms or k, n_samples[i] outside 0..k, an arm
                                  index outside 0..n_arms-1) */
+    PS_ERR_BUFFER_FULL = 14,  /* an event buffer cannot hold a call's pulses (stimulation):
+                                 nothing was changed */
+    PS_ERR_CHARGE = 15        /* a channel's largest pulse exceeds a charge-safety limit
+                                 (charge per phase, or the Shannon criterion) */
 };
 
 #define PS_LENGTH_MIN_L0 0.5
@@ -521,6 +526,167 @@ int ps_chain_batch_push_lengths(ps_arm_chain *chains, long n_arms, const unsigne
 #endif /* PS_NO_BATCH */
 
 /* ---- end of chain section ---- */
+
+/* ======================================================================================
+ * (4) Stimulation (stimulation.c) -- spindle/stimulation/ (encoder.py, generator.py,
+ *     safety.py, modes.py): afferent rates (pps) into charge-balanced biphasic pulse events
+ *     per electrode channel, within the stimulator's limits. Times are double (ps_time)
+ *     and rates double in both builds: the double form equals the numpy encoder (same
+ *     operations in the same order); the fixed-point form (ps_stim_fx_*) is the integer
+ *     twin for the Cortex-M0+ (no float on its step's path).
+ * ====================================================================================== */
+
+#define PS_STIM_MAX_CHANNELS 16      /* channels of one configuration (config.MAX_CHANNELS) */
+#define PS_STIM_COUNTERS 7           /* encoder.COUNTERS, in the order of PS_STIM_COUNT_* */
+#define PS_STIM_MAX_GAMMA_SHAPE 16
+#define PS_STIM_MAX_DT_S 1.0         /* longest interval of one call (config.MAX_DT_S) */
+#define PS_STIM_MAX_RATE_PPS 10000.0 /* largest max_rate_pps (safety.MAX_RATE_CEILING_PPS) */
+#define PS_STIM_MAX_AMPLITUDE_UA 10000
+#define PS_STIM_MAX_PHASE_US 10000
+/* modes (modes.MODES[...].code) */
+#define PS_STIM_MODE_FREQUENCY 0
+#define PS_STIM_MODE_STOCHASTIC 1
+#define PS_STIM_MODE_AMPLITUDE 2
+#define PS_STIM_MODE_BIOMIMETIC 3
+/* counters: indices of ps_stim_state.counts[channel][.] */
+#define PS_STIM_COUNT_PULSES 0
+#define PS_STIM_COUNT_RATE_NONFINITE 1
+#define PS_STIM_COUNT_RATE_NEGATIVE 2
+#define PS_STIM_COUNT_RATE_CLIPPED 3
+#define PS_STIM_COUNT_AMPLITUDE_CLIPPED 4
+#define PS_STIM_COUNT_DROPPED_INTERVAL 5
+#define PS_STIM_COUNT_DROPPED_TOTAL_RATE 6
+
+/* One electrode channel (channels.Channel without its names). */
+typedef struct ps_stim_channel {
+    int32_t threshold_uA, max_uA; /* 1 <= threshold <= max <= PS_STIM_MAX_AMPLITUDE_UA */
+    int32_t phase_us, gap_us;     /* each phase; interphase gap */
+    double area_cm2;              /* geometric area (Shannon criterion) */
+} ps_stim_channel;
+
+/* Everything an encoder needs (config.StimConfig resolved to numbers). */
+typedef struct ps_stim_config {
+    int32_t n_channels;           /* 1..PS_STIM_MAX_CHANNELS */
+    int32_t mode;                 /* PS_STIM_MODE_* */
+    int32_t gamma_shape;          /* stochastic: 1..PS_STIM_MAX_GAMMA_SHAPE (1: Poisson) */
+    int32_t min_interval_us;      /* extra wait after a pulse's last phase, >= 0 */
+    ps_stim_channel channel[PS_STIM_MAX_CHANNELS];
+    double max_rate_pps;          /* per channel, (0, PS_STIM_MAX_RATE_PPS] */
+    double max_total_rate_pps;    /* summed over channels; 0: no limit */
+    double shannon_k;             /* k_max of the Shannon criterion */
+    double max_charge_nC;         /* charge per phase limit */
+    double full_scale_pps, full_scale_change_pps_s, carrier_pps;
+    double rate_level, rate_change, amp_level, amp_change; /* biomimetic weights */
+    double dead_time_s;           /* stochastic */
+    uint64_t seed;                /* stochastic */
+} ps_stim_config;
+
+/* One delivered pulse (events.PULSE_DTYPE): cathodic amplitude_uA for cathodic_us, gap_us
+ * at zero, anodic amplitude_uA for anodic_us (= cathodic_us): charges equal exactly. */
+typedef struct ps_pulse {
+    ps_time time_s;
+    int32_t channel, amplitude_uA, cathodic_us, gap_us, anodic_us;
+} ps_pulse;
+
+/* An encoder's state (encoder.EncoderState), per-channel arrays by channel index. */
+typedef struct ps_stim_state {
+    ps_time t_s, last_any_s;
+    double phase[PS_STIM_MAX_CHANNELS], threshold[PS_STIM_MAX_CHANNELS];
+    ps_time resume_s[PS_STIM_MAX_CHANNELS], last_pulse_s[PS_STIM_MAX_CHANNELS];
+    double previous_pps[PS_STIM_MAX_CHANNELS];
+    uint64_t draws[PS_STIM_MAX_CHANNELS];
+    uint64_t counts[PS_STIM_MAX_CHANNELS][PS_STIM_COUNTERS];
+    int32_t ready;                /* 1 after ps_stim_init */
+} ps_stim_state;
+
+/* The generator (generator.py): 64 bits of draw `index` of `channel`, the uniform in (0, 1)
+ * they give, log(u) by the series both languages share, and the gamma(shape, 1/shape)
+ * threshold of draw `draw`. */
+uint64_t ps_stim_bits(uint64_t seed, uint64_t channel, uint64_t index);
+double ps_stim_uniform(uint64_t seed, uint64_t channel, uint64_t index);
+double ps_stim_log_unit(double u);
+double ps_stim_gamma_threshold(uint64_t seed, uint64_t channel, uint64_t draw, int32_t shape);
+
+/* PS_OK for a usable configuration; PS_ERR_NULL; PS_ERR_CHARGE for a channel whose largest
+ * pulse exceeds max_charge_nC or shannon_k; PS_ERR_CONFIG for anything else out of range
+ * (the checks of config.StimConfig). */
+int ps_stim_config_check(const ps_stim_config *c);
+
+/* Every channel at rest at t0_s (encoder.initial_state); counters zero. The status of
+ * ps_stim_config_check, or PS_ERR_NONFINITE for t0_s; s is untouched on failure. */
+int ps_stim_init(ps_stim_state *s, const ps_stim_config *c, ps_time t0_s);
+
+/* At most this many pulses come out of one ps_stim_step of dt_s (a buffer this large never
+ * fills); -1 for a bad config or dt_s. */
+long ps_stim_max_events(const ps_stim_config *c, ps_time dt_s);
+
+/* One interval [t, t + dt_s) with rates_pps[n_channels] held over it (encoder.step): the
+ * delivered pulses in time order into events[0 .. *n_events - 1]. Errors (nothing changed,
+ * *n_events = 0): PS_ERR_NULL, PS_ERR_NOT_RESET, PS_ERR_STEP (dt_s not finite or outside
+ * (0, PS_STIM_MAX_DT_S]), PS_ERR_BUFFER_FULL (more pulses than capacity). Bad rates are
+ * handled by the counted rules, never an error. */
+int ps_stim_step(ps_stim_state *s, const ps_stim_config *c, const double *rates_pps,
+                 ps_time dt_s, ps_pulse *events, long capacity, long *n_events);
+
+/* n intervals: rates_pps is n rows of n_channels, dt_s[i] the interval of row i; the steps
+ * in order, their events one after another. Stops at the first failing step (its status);
+ * *n_done (if not NULL) receives the steps completed and *n_events their events. */
+int ps_stim_run(ps_stim_state *s, const ps_stim_config *c, long n, const double *rates_pps,
+                const ps_time *dt_s, ps_pulse *events, long capacity, long *n_events,
+                long *n_done);
+
+/* ---- fixed point (the Cortex-M0+ device build) ---------------------------------------
+ * The same encoders in integers: rates in Q16 pps (PS_STIM_FX_RATE_ONE), intervals and
+ * times in whole µs, the phase in units of PS_STIM_FX_PULSE = 10^6 * 2^16 per pulse
+ * (rate_q16 * dt_us adds exactly), the stochastic thresholds from the same 64-bit draws
+ * with an integer log. A pulse comes at the first whole µs at or after
+ * the crossing and keeps the overshoot, so the integral is exact (no drift against the
+ * double form: times agree to a microsecond, amplitudes to 1 µA). Rates are int32:
+ * negative ones are 0 (rate_negative), no rate is non-finite. */
+#define PS_STIM_FX_RATE_ONE 65536L
+#define PS_STIM_FX_PULSE 65536000000LL
+
+typedef struct ps_stim_fx_config {
+    int32_t n_channels, mode, gamma_shape;
+    int32_t threshold_uA[PS_STIM_MAX_CHANNELS], max_uA[PS_STIM_MAX_CHANNELS];
+    int32_t phase_us[PS_STIM_MAX_CHANNELS], gap_us[PS_STIM_MAX_CHANNELS];
+    int32_t min_interval_us[PS_STIM_MAX_CHANNELS]; /* between a channel's pulse starts */
+    int32_t max_rate_q16, carrier_q16, full_scale_q16;
+    int32_t full_scale_change_pps_s;  /* whole pps/s */
+    int32_t rate_level_q16, rate_change_q16, amp_level_q16, amp_change_q16;
+    int32_t dead_us, min_total_us;    /* min_total_us 0: no total-rate limit */
+    uint64_t seed;
+} ps_stim_fx_config;
+
+typedef struct ps_stim_fx_state {
+    int64_t t_us, last_any_us;
+    int64_t phase[PS_STIM_MAX_CHANNELS], threshold[PS_STIM_MAX_CHANNELS];
+    int64_t resume_us[PS_STIM_MAX_CHANNELS], last_pulse_us[PS_STIM_MAX_CHANNELS];
+    int32_t previous_q16[PS_STIM_MAX_CHANNELS]; /* -1: none */
+    uint64_t draws[PS_STIM_MAX_CHANNELS];
+    uint32_t counts[PS_STIM_MAX_CHANNELS][PS_STIM_COUNTERS];
+    int32_t ready;
+} ps_stim_fx_state;
+
+/* One pulse of the fixed form: start in whole µs since the clock's zero. */
+typedef struct ps_pulse_fx {
+    int64_t time_us;
+    int32_t channel, amplitude_uA, cathodic_us, gap_us, anodic_us;
+} ps_pulse_fx;
+
+/* The fixed-point config of a checked double config (host or start-up): rates rounded to
+ * Q16, dead time and the total-rate spacing to whole µs (rounded up). The status of
+ * ps_stim_config_check; q is untouched on failure. */
+int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c);
+/* -log(u) in Q30 of the double form's uniform u = (2 (bits >> 12) + 1) / 2^53. */
+int64_t ps_stim_fx_neg_log(uint64_t bits);
+int ps_stim_fx_init(ps_stim_fx_state *s, const ps_stim_fx_config *q, int64_t t0_us);
+/* ps_stim_step in integers: PS_ERR_NULL, PS_ERR_NOT_RESET, PS_ERR_STEP (dt_us outside
+ * 1..10^6), PS_ERR_BUFFER_FULL; nothing changed on an error. */
+int ps_stim_fx_step(ps_stim_fx_state *s, const ps_stim_fx_config *q, const int32_t *rates_q16,
+                    int32_t dt_us, ps_pulse_fx *events, long capacity, long *n_events);
+
+/* ---- end of stimulation section ---- */
 
 #ifdef __cplusplus
 }

@@ -1,0 +1,87 @@
+"""Cost of the stimulator stage per channel per sample, beside the spindle's step per
+spindle per sample, measured in one run; a script, not a timed test.
+
+    PYTHONPATH=. python scripts/bench_stimulation.py [--seconds S] [--repeats N]
+
+Samples every 2 ms (the AX-12's ~500 Hz). The stimulator encodes smooth rates in 0-150 pps
+(each channel its own phase) through ``make_stimulator(config, backend).run`` (numpy: a
+loop of vectorised steps over the channels; C: one ``ps_stim_run`` call) for 4 channels
+(the demo's map) and 16 (``PS_STIM_MAX_CHANNELS``), every mode. The spindle runs
+``spindle.simulate`` (HUMAN, trapezoidal, its default 1 ms internal step: 2 sub-steps per
+sample) for 4 and 16 spindles on smooth lengths, on numpy and on C. Each figure is the
+median of ``--repeats`` wall-time runs divided by samples x channels (or spindles).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+import spindle
+from spindle.stimulation import MODES, EncoderParams, StimConfig, channel_map, make_stimulator
+
+DT_S = 2e-3
+
+
+def timed(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def rates(n: int, samples: int) -> np.ndarray:
+    t = np.arange(samples)[:, None] * DT_S
+    return 75.0 + 75.0 * np.sin(2 * np.pi * 0.7 * t + np.arange(n)[None, :])
+
+
+def stimulator_cost(mode: str, n: int, samples: int, backend: str, repeats: int) -> float:
+    config = StimConfig(channel_map([(f"M{k}", "ia") for k in range(n)]),
+                        params=EncoderParams(mode=mode))
+    r = rates(n, samples)
+
+    def run():
+        make_stimulator(config, backend).run(r, DT_S)
+
+    return timed(run, repeats) / (samples * n)
+
+
+def spindle_cost(n: int, samples: int, backend: str, repeats: int) -> float:
+    t = np.arange(samples)[:, None] * DT_S
+    length = 1.0 + 0.1 * np.sin(2 * np.pi * 0.7 * t + np.arange(n)[None, :])
+
+    def run():
+        spindle.simulate(length, DT_S, gamma_dyn=70.0, gamma_stat=70.0, params=spindle.HUMAN,
+                         backend=backend)
+
+    return timed(run, repeats) / (samples * n)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per run")
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args(argv)
+    samples = int(round(args.seconds / DT_S))
+    print(f"{samples} samples of {DT_S * 1e3:g} ms, median of {args.repeats} runs, wall time")
+    print(f"{'stage':26s}{'n':>4s}{'numpy (ns)':>14s}{'C (ns)':>10s}{'numpy/C':>9s}   per "
+          "channel (spindle) per sample")
+    for n in (4, 16):
+        spin_np = spindle_cost(n, samples, "numpy", args.repeats)
+        spin_c = spindle_cost(n, samples, "c", args.repeats)
+        print(f"{'spindle step (HUMAN)':26s}{n:4d}{spin_np * 1e9:14.0f}{spin_c * 1e9:10.0f}"
+              f"{spin_np / spin_c:9.1f}")
+        for mode in MODES:
+            np_s = stimulator_cost(mode, n, samples, "numpy", args.repeats)
+            c_s = stimulator_cost(mode, n, samples, "c", args.repeats)
+            print(f"{'stimulator ' + mode:26s}{n:4d}{np_s * 1e9:14.0f}{c_s * 1e9:10.0f}"
+                  f"{np_s / c_s:9.1f}   C: {c_s / spin_c:.3f}x the C spindle step")
+
+
+if __name__ == "__main__":
+    main()
