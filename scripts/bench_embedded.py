@@ -223,90 +223,123 @@ def _stage_table(results) -> None:
         print(f"| {stage} | " + " | ".join(cells) + " |")
 
 
-def run_system(quick: bool, build_dir: Path) -> int:
-    """The whole-system firmware on the demo motion and the faulty trace; the last line."""
-    from spindle.native.m0plus import cycles as cyc
-    from spindle.native.m0plus import system as sysfw
-    from spindle.native.m0plus.isa import objdump_violations
-    from spindle.native.m0plus.system_config import DEVICE_CONFIG, SPINDLE_STEP_S
-
-    t0 = time.perf_counter()
-    elf = sysfw.build_system(build_dir)
-    fw = sysfw.SystemFirmware(elf)
-    demo_s, fault_n = (1.5, 1500) if quick else (DEMO_CYCLES * 2 * 90 / 130, 10000)
-    inputs = {"demo motion": sysfw.demo_samples(demo_s)}
-    t_f, c_f, faults = sysfw.fault_samples(fault_n, seed=1)
-    inputs["servo trace, jitter + faults"] = (t_f, c_f)
-    results = {name: sysfw.compare(fw, t, c) for name, (t, c) in inputs.items()}
-    seen, bad = objdump_violations(elf)
-    violations = sorted(fw.emu.violations) + bad
-    flash, ram = sysfw.firmware_sizes(elf, fw.emu.stack_used(), build_dir)
-    period = sysfw.SAMPLE_PERIOD_S
-    print(f"\nwhole system (system.c, chain config max_bridge_s={DEVICE_CONFIG.max_bridge_s:g} s, "
-          f"spindles fixed point on a {SPINDLE_STEP_S * 1e3:g} ms grid) vs the host double "
-          f"chain (CArmChain, trapezoidal {DEVICE_CONFIG.spindle_step_s * 1e3:g} ms); "
-          f"faults injected: {len(faults)} ({', '.join(sorted(set(faults)))})")
+def _input_table(results, period: float) -> None:
     print("| input | samples | instr/sample mean | max | MIPS | cycles/sample mean (0 WS) | "
-          "max (0 WS) | max (1 WS) | RMS vs host (pps) | max abs (pps) | counters equal |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+          "max (0 WS) | max (1 WS) | RMS vs host (pps) | max abs (pps) | counters equal | "
+          "pulses fw / host | max count diff per channel-second |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|")
     for name, c in results.items():
         r = c.run
         print(f"| {name} | {len(r.instructions)} | {r.instructions.mean():.0f} | "
               f"{r.instructions.max()} | {r.instructions.mean() / period / 1e6:.3f} | "
               f"{r.cycles.mean():.0f} | {r.cycles.max()} | {r.cycles_at(1).max()} | "
-              f"{c.worst_rms_pps:.3f} | {c.max_abs_pps:.3f} | {c.counters_equal} |")
+              f"{c.worst_rms_pps:.3f} | {c.max_abs_pps:.3f} | {c.counters_equal} | "
+              f"{len(r.pulses)} / {len(c.host_pulses)} | {c.pulse_count_diff} |")
         print("  RMS per afferent: " + ", ".join(f"{k} {v:.3f}" for k, v in c.rms_pps.items()))
         print(f"  counters firmware: {r.counters}")
         if not c.counters_equal:
             print(f"  counters host:     {c.host_counters}")
         print(f"  spindle steps per sample: {np.bincount(r.steps).tolist()}; statuses "
-              f"{sorted(set(r.status.tolist()))}; queue overruns {r.overruns}")
-    _stage_table(results)
+              f"{sorted(set(r.status.tolist()))}; queue overruns {r.overruns}; pulse samples "
+              f"lost {r.pulses_lost}")
+
+
+def _clock(results, period: float) -> tuple[float, int]:
+    """The clock the costliest sample allows (printed with its margin) and that sample's
+    cycles at the clock's wait states."""
+    from spindle.native.m0plus import cycles as cyc
+
     peak0 = max(int(c.run.cycles.max()) for c in results.values())
     peak1 = max(int(c.run.cycles_at(1).max()) for c in results.values())
+
+    def margin(f: float) -> float:
+        return 1 - (peak0 if cyc.wait_states(f) == 0 else peak1) / (f * 1e6 * period)
+
     clock = cyc.lowest_clock_mhz(peak0, peak1, period)
-    mips = results["demo motion"].run.instructions.mean() / period / 1e6
-    rms = max(c.worst_rms_pps for c in results.values())
-    if clock is None:
-        # no band with the margin: the band with the largest margin, if it meets the deadline
-        clock = max(cyc.HFRCO_BANDS_MHZ, key=lambda f: 1 - (
-            peak0 if cyc.wait_states(f) == 0 else peak1) / (f * 1e6 * period))
-        if cyc.lowest_clock_mhz(peak0, peak1, period, margin=0.0) is None:
-            need = cyc.needed_clock_mhz(peak1, period)
-            print(f"deadline: the costliest sample ({peak1} cycles at 1 WS) needs {need:.1f} MHz "
-                  f"with a {cyc.DEADLINE_MARGIN:.0%} margin: above the EFM32ZG's "
-                  f"{cyc.MAX_CLOCK_MHZ:g} MHz, and no band meets every deadline")
-            clock_used, peak = need, peak1
-        else:
-            peak = peak0 if cyc.wait_states(clock) == 0 else peak1
-            print(f"deadline: no EFM32ZG band keeps the {cyc.DEADLINE_MARGIN:.0%} margin; "
-                  f"{clock:g} MHz meets every {period * 1e3:g} ms deadline with a margin of "
-                  f"{1 - peak / (clock * 1e6 * period):.1%} (costliest sample {peak} cycles)")
-            clock_used = clock
-    else:
+    if clock is not None:
         peak = peak0 if cyc.wait_states(clock) == 0 else peak1
         print(f"deadline: lowest EFM32ZG HFRCO band meeting every sample's {period * 1e3:g} ms "
               f"with a {cyc.DEADLINE_MARGIN:.0%} margin: {clock:g} MHz "
               f"({cyc.wait_states(clock)} wait states; costliest sample {peak} cycles = "
-              f"{peak / clock:.0f} us, margin {1 - peak / (clock * 1e6 * period):.1%})")
-        clock_used = clock
-    power = cyc.active_power_mw(clock_used)
-    busy = results["demo motion"].run.cycles_at(cyc.wait_states(clock_used)).mean() / (
-        clock_used * 1e6 * period)
-    print(f"power: {cyc.SUPPLY_V:g} V x {cyc.ACTIVE_UA_PER_MHZ:g} uA/MHz x {clock_used:.1f} MHz "
-          f"= {power:.2f} mW running continuously (the paper: under 10 mW); busy "
-          f"{busy:.0%} of each period on the demo motion, so with EM1 sleep between samples "
-          f"the average would be lower")
-    print(f"flash {flash} B, RAM {ram} B (stack high-water {fw.emu.stack_used()} B); "
-          f"ARMv6-M: {seen} instructions disassembled, "
-          f"{len(violations)} ARMv7-M-only; {time.perf_counter() - t0:.0f} s")
+              f"{peak / clock:.0f} us, margin {margin(clock):.1%})")
+        return clock, peak
+    clock = max(cyc.HFRCO_BANDS_MHZ, key=margin)
+    if margin(clock) < 0:
+        need = cyc.needed_clock_mhz(peak1, period)
+        print(f"deadline: the costliest sample ({peak1} cycles at 1 WS) needs {need:.1f} MHz "
+              f"with a {cyc.DEADLINE_MARGIN:.0%} margin: above the EFM32ZG's "
+              f"{cyc.MAX_CLOCK_MHZ:g} MHz, and no band meets every deadline")
+        return need, peak1
+    peak = peak0 if cyc.wait_states(clock) == 0 else peak1
+    print(f"deadline: no EFM32ZG band keeps the {cyc.DEADLINE_MARGIN:.0%} margin; {clock:g} MHz "
+          f"meets every {period * 1e3:g} ms deadline with a margin of {margin(clock):.1%} "
+          f"(costliest sample {peak} cycles; {cyc.needed_clock_mhz(peak1, period):.1f} MHz "
+          f"would keep {cyc.DEADLINE_MARGIN:.0%})")
+    return clock, peak
+
+
+def _measure_build(build_dir: Path, defines: tuple[str, ...], inputs):
+    from spindle.native.m0plus import system as sysfw
+    from spindle.native.m0plus.isa import objdump_violations
+
+    elf = sysfw.build_system(build_dir, defines=defines)
+    fw = sysfw.SystemFirmware(elf)
+    results = {name: sysfw.compare(fw, t, c) for name, (t, c) in inputs.items()}
+    seen, bad = objdump_violations(elf)
+    flash, ram = sysfw.firmware_sizes(elf, fw.emu.stack_used(), build_dir, defines=defines)
+    return results, sorted(fw.emu.violations) + bad, seen, flash, ram, fw.emu.stack_used()
+
+
+def run_system(quick: bool, build_dir: Path) -> int:
+    """The whole-system firmware on the demo motion and the faulty trace (and, for the
+    breakdown, the build without the pulse encoder); prints the system's last line."""
+    from spindle.native.m0plus import cycles as cyc
+    from spindle.native.m0plus import system as sysfw
+    from spindle.native.m0plus.system_config import DEVICE_CONFIG, SPINDLE_STEP_S
+
+    t0 = time.perf_counter()
+    demo_s, fault_n = (1.5, 1500) if quick else (DEMO_CYCLES * 2 * 90 / 130, 10000)
+    t_f, c_f, faults = sysfw.fault_samples(fault_n, seed=1)
+    inputs = {"demo motion": sysfw.demo_samples(demo_s), "servo trace, jitter + faults": (t_f, c_f)}
+    period = sysfw.SAMPLE_PERIOD_S
+    print(f"\nwhole system (system.c, chain config max_bridge_s={DEVICE_CONFIG.max_bridge_s:g} s, "
+          f"spindles fixed point on a {SPINDLE_STEP_S * 1e3:g} ms grid) vs the host double "
+          f"chain (CArmChain, trapezoidal {DEVICE_CONFIG.spindle_step_s * 1e3:g} ms) and the "
+          f"host double stimulation encoder (CStimulator, StimConfig()); faults injected: "
+          f"{len(faults)} ({', '.join(sorted(set(faults)))})")
+    chain_only = tuple(d for d in sysfw.DEFINES if d != "FW_STIM")
+    base, *_, base_flash, base_ram, _ = _measure_build(
+        build_dir, chain_only, {"demo motion": inputs["demo motion"]})
+    print(f"without the pulse encoder (demo motion): "
+          f"{base['demo motion'].run.instructions.mean():.0f} instr/sample "
+          f"({base['demo motion'].run.instructions.mean() / period / 1e6:.3f} MIPS), "
+          f"costliest {base['demo motion'].run.cycles_at(1).max()} cycles (1 WS), flash "
+          f"{base_flash} B, RAM {base_ram} B")
+    results, violations, seen, flash, ram, stack = _measure_build(build_dir, sysfw.DEFINES,
+                                                                  inputs)
+    print("with the pulse encoder (FW_STIM):")
+    _input_table(results, period)
+    _stage_table(results)
+    clock, peak = _clock(results, period)
+    mips = results["demo motion"].run.instructions.mean() / period / 1e6
+    rms = max(c.worst_rms_pps for c in results.values())
+    power = cyc.active_power_mw(clock)
+    busy = results["demo motion"].run.cycles_at(cyc.wait_states(clock)).mean() / (
+        clock * 1e6 * period)
+    print(f"power: {cyc.SUPPLY_V:g} V x {cyc.ACTIVE_UA_PER_MHZ:g} uA/MHz x {clock:.1f} MHz "
+          f"= {power:.2f} mW running continuously (the paper: under 10 mW); busy {busy:.0%} of "
+          f"each period on the demo motion (sleeping in between would lower the average)")
+    print(f"flash {flash} B, RAM {ram} B (stack high-water {stack} B); ARMv6-M: {seen} "
+          f"instructions disassembled, {len(violations)} ARMv7-M-only; "
+          f"{time.perf_counter() - t0:.0f} s")
     if violations:
         print("  ARMv7-M-only instructions:", *violations[:10], sep="\n    ")
         return 1
     print(f"system_mips={mips:.4f} system_peak_cycles_per_sample={peak} "
-          f"clock_mhz={clock_used:.1f} power_mw={power:.3f} flash_bytes={flash} "
+          f"clock_mhz={clock:.1f} power_mw={power:.3f} flash_bytes={flash} "
           f"ram_bytes={ram} rms_vs_host_pps={rms:.4f}")
-    return 0 if all(c.counters_equal for c in results.values()) else 1
+    ok = all(c.counters_equal and c.pulse_count_diff <= 1 for c in results.values())
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -44,28 +44,52 @@ STAGES = {"stage_reading": "reading and time rules", "stage_median": "median fil
           "stage_stim": "pulse encoder (FW_STIM)", "stage_output": "commit, output record"}
 """system.c's stage functions and the names the breakdown gives them."""
 SAMPLE_PERIOD_S = 2e-3
-STACK_BYTES = 0x400
+STACK_BYTES = 0x800  # reserved while measuring; re-linked to the high-water mark
 RECORD = struct.Struct("<3i8ii")  # fw_record: t_us, accepted, status, ia, ii, gs, gd, steps
 RING = 8
-DEFINES = ("PS_FX_INLINE_MUL",)
-"""The system build's options: fx_mul inlined into the fixed-point step (same results)."""
+PULSE = struct.Struct("<q5i4x")  # ps_pulse_fx: time_us, channel, amplitude, phases
+PULSE_RING = 16
+DEFINES = ("PS_FX_INLINE_MUL", "FW_STIM")
+"""The system build's options: fx_mul inlined into the fixed-point step (same results), the
+stimulation encoder's stage."""
+
+
+def default_stim():
+    """The stimulator the firmware drives: ``StimConfig()`` (Ia and II of BRA and TRImed,
+    frequency mode, at most 300 pps per channel)."""
+    from spindle.stimulation.config import StimConfig
+
+    return StimConfig()
 
 
 def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
                  spindle_step_s: float = SPINDLE_STEP_S, stack_bytes: int = STACK_BYTES,
                  defines: tuple[str, ...] = DEFINES, opt: str = "-Os") -> Path:
     """The system firmware's ELF for ``config`` at ``spindle_step_s``."""
-    source = system_config_source(config, spindle_step_s=spindle_step_s)
+    stim = default_stim() if "FW_STIM" in defines else None
+    source = system_config_source(config, spindle_step_s=spindle_step_s, stim=stim)
     tag = key(source, stack_bytes, defines, opt, (FW_DIR / "system.c").read_bytes())
     header_dir = build_dir / f"system_{tag}"
     header_dir.mkdir(parents=True, exist_ok=True)
     (header_dir / "fw_system_config.h").write_text(source)
     elf = build_dir / f"system_{tag}.elf"
     if not elf.exists():
-        roots = [f"-Wl,-u,{name}" for name in ("fw_sample", "fw_in", "fw_count", "fw_out",
-                                                "fw_overruns", "fw_out_head")]
+        names = ["fw_sample", "fw_in", "fw_count", "fw_out", "fw_overruns", "fw_out_head"]
+        if stim is not None:
+            names += ["fw_pulses", "fw_pulse_head", "fw_pulse_lost"]
+        roots = [f"-Wl,-u,{name}" for name in names]
+        extra = []
+        if stim is not None:
+            # stimulation.c is not -Wdouble-promotion clean (NAN, a float, meets doubles in
+            # two conditionals: harmless, the double path is not on the device's path), so
+            # it is compiled on its own without that one warning
+            obj = header_dir / "stimulation.o"
+            flags = [f for f in ARM_FLAGS if f != "-Wdouble-promotion"]
+            subprocess.run([tool("gcc"), *flags, opt, "-I", str(C_DIR), "-c",
+                            str(C_DIR / "stimulation.c"), "-o", str(obj)], check=True)
+            extra = [str(obj)]
         cmd = [tool("gcc"), *ARM_FLAGS, opt, *(f"-D{d}" for d in defines), "-I", str(C_DIR),
-               "-I", str(header_dir), str(C_DIR / "spindle.c"), str(FW_DIR / "system.c"),
+               "-I", str(header_dir), str(C_DIR / "spindle.c"), *extra, str(FW_DIR / "system.c"),
                "-T", str(FW_DIR / "m0plus.ld"), f"-Wl,--defsym=FW_STACK_SIZE={stack_bytes}",
                *roots, *LINK_FLAGS, "-o", str(elf)]
         subprocess.run(cmd, check=True)
@@ -91,6 +115,8 @@ class Run:
     by_stage: dict[str, list[int]]  # stage -> [instructions, cycles, fetches, flash reads]
     peak_by_stage: dict[str, list[int]]  # the same in the costliest sample (cycles at 1 WS)
     overruns: int  # samples whose queue of spindle grid points was full (fw_overruns)
+    pulses: np.ndarray  # (time_us, channel) of every pulse event, in order (FW_STIM)
+    pulses_lost: int    # samples whose pulses did not fit the stage's buffer
 
     def cycles_at(self, wait_states: int) -> np.ndarray:
         return self.cycles + wait_states * (self.fetches + self.flash_reads)
@@ -115,6 +141,8 @@ class SystemFirmware:
         rates = np.zeros((4, n, 2))
         head_addr, ring_addr, in_addr = sym["fw_out_head"][0], sym["fw_out"][0], sym["fw_in"][0]
         last, peak, peak_stages = None, -1, {}
+        stim = "fw_pulse_head" in sym
+        pulses, seen = [], 0
         for j in range(n):
             stages_before = {k: list(v) for k, v in emu.by_stage.items()}
             uc.mem_write(in_addr, struct.pack("<dfff", float(t_s[j]), float(counts[j]), 0, 0))
@@ -138,6 +166,15 @@ class SystemFirmware:
                 last = (head, RECORD.unpack(raw))
                 out["accepted"][j] = last[1][1]
                 out["steps"][j] = last[1][11]
+            if stim:
+                head, = struct.unpack("<I", bytes(uc.mem_read(sym["fw_pulse_head"][0], 4)))
+                if head - seen > PULSE_RING:
+                    raise RuntimeError(f"sample {j}: {head - seen} pulses overran the ring")
+                for k in range(seen, head):
+                    raw = bytes(uc.mem_read(sym["fw_pulses"][0] + PULSE.size * (k % PULSE_RING),
+                                            PULSE.size))
+                    pulses.append(PULSE.unpack(raw)[:2])
+                seen = head
             if last is not None:
                 fields = last[1]
                 rates[:, j] = np.array(fields[3:11]).reshape(4, 2) / (
@@ -145,7 +182,10 @@ class SystemFirmware:
         raw = bytes(uc.mem_read(sym["fw_count"][0], 4 * len(COUNTERS)))
         counters = dict(zip(COUNTERS, struct.unpack(f"<{len(COUNTERS)}I", raw), strict=True))
         overruns, = struct.unpack("<I", bytes(uc.mem_read(sym["fw_overruns"][0], 4)))
+        lost = struct.unpack("<I", bytes(uc.mem_read(sym["fw_pulse_lost"][0], 4)))[0] if stim \
+            else 0
         return Run(rates[0], rates[1], rates[2], rates[3], counters=counters, overruns=overruns,
+                   pulses=np.array(pulses, dtype=np.int64).reshape(-1, 2), pulses_lost=lost,
                    by_stage={k: list(v) for k, v in emu.by_stage.items()},
                    peak_by_stage=peak_stages, **out)
 
@@ -159,9 +199,50 @@ def host_chain(t_s: np.ndarray, counts: np.ndarray,
     out = chain.run_trace("push_counts", np.asarray(t_s[1:], dtype=float),
                           np.asarray(counts[1:], dtype=float))
     stacked = {}
-    for name in ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps"):
+    for name in ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps", "accepted"):
         stacked[name] = np.concatenate((np.asarray(getattr(rest, name))[None], out[name]))
     return stacked, dict(chain.counters)
+
+
+def host_pulses(t_s: np.ndarray, host: dict[str, np.ndarray], stim,
+                config: ChainConfig = DEVICE_CONFIG) -> np.ndarray:
+    """The host's double stimulation encoder (CStimulator) on the host chain's rates, as the
+    firmware's stage runs it: each accepted sample's interval since the last accepted one,
+    unless the chain restarted there (an interval beyond max_bridge_s, or an earlier time),
+    encoded with the rates output at the start of the interval; intervals below 0.5 us (a
+    whole-us clock sees none) are skipped. Returns (time_us, channel) of every pulse."""
+    from spindle.native.stimulation import CStimulator
+    from spindle.stimulation.channels import afferent_rates
+
+    rates = stim.channels.gather(afferent_rates(MUSCLES, ia=host["ia_pps"],
+                                                ii=host["ii_pps"]))
+    rows, dts, prev = [], [], 0
+    for j in np.flatnonzero(host["accepted"])[1:]:
+        dt = float(t_s[j]) - float(t_s[prev])
+        if 0.5e-6 <= dt <= config.max_bridge_s:
+            rows.append(rates[prev])
+            dts.append(dt)
+        prev = j
+    if not rows:
+        return np.zeros((0, 2), dtype=np.int64)
+    events = CStimulator(stim).run(np.array(rows), np.array(dts))
+    return np.stack((np.round(events["time_s"] * 1e6).astype(np.int64),
+                     events["channel"].astype(np.int64)), axis=1)
+
+
+def pulse_count_difference(fw: np.ndarray, host: np.ndarray, n_channels: int,
+                           window_s: float = 1.0) -> int:
+    """The largest |firmware - host| pulse count of one channel in one window (1 s)."""
+    if len(fw) + len(host) == 0:
+        return 0
+    end = int(max(fw[:, 0].max(initial=0), host[:, 0].max(initial=0)) // (window_s * 1e6)) + 1
+
+    def counts(events: np.ndarray) -> np.ndarray:
+        out = np.zeros((n_channels, end), dtype=np.int64)
+        np.add.at(out, (events[:, 1], (events[:, 0] // (window_s * 1e6)).astype(int)), 1)
+        return out
+
+    return int(np.max(np.abs(counts(fw) - counts(host))))
 
 
 def demo_samples(duration_s: float, low_deg: float = 20.0, high_deg: float = 110.0,
@@ -218,6 +299,8 @@ class Compared:
     host_counters: dict[str, int]
     rms_pps: dict[str, float]  # "BRA Ia" ...: firmware vs host double chain
     max_abs_pps: float
+    host_pulses: np.ndarray      # (time_us, channel): the host's double encoder
+    pulse_count_diff: int        # largest |fw - host| count per channel per second
 
     @property
     def counters_equal(self) -> bool:
@@ -240,12 +323,19 @@ def compare(fw: SystemFirmware, t_s: np.ndarray, counts: np.ndarray,
             d = got[:, k] - ref[:, k]
             rms[f"{muscle} {name}"] = float(np.sqrt(np.mean(d**2)))
             worst = max(worst, float(np.max(np.abs(d))))
-    return Compared(run, host_counters, rms, worst)
+    host_events = np.zeros((0, 2), dtype=np.int64)
+    diff = 0
+    if "fw_pulse_head" in fw.emu.sym:
+        stim = default_stim()
+        host_events = host_pulses(t_s, host, stim, config)
+        diff = pulse_count_difference(run.pulses, host_events, stim.n_channels)
+    return Compared(run, host_counters, rms, worst, host_events, diff)
 
 
 def firmware_sizes(elf: Path, stack_used: int, build_dir: Path,
-                   config: ChainConfig = DEVICE_CONFIG,
-                   spindle_step_s: float = SPINDLE_STEP_S) -> tuple[int, int]:
+                   config: ChainConfig = DEVICE_CONFIG, spindle_step_s: float = SPINDLE_STEP_S,
+                   defines: tuple[str, ...] = DEFINES) -> tuple[int, int]:
     """(flash, RAM) bytes, the stack re-linked to the high-water mark + 64 B (64 B units)."""
     stack = (stack_used + 64 + 63) // 64 * 64
-    return sizes(build_system(build_dir, config, spindle_step_s, stack_bytes=stack))
+    return sizes(build_system(build_dir, config, spindle_step_s, stack_bytes=stack,
+                              defines=defines))

@@ -8,8 +8,14 @@ made on the host by ``ps_plan_fx_init``). Every number comes from the same resol
 from the ranges ``ps_chain_init`` derives (fitted angle range, each muscle's length range), so
 the firmware and the host chain it is compared with share one configuration.
 
+With a stimulator configuration it also holds ``const ps_stim_fx_config fw_stim`` (made by
+``ps_stim_fx_config_init`` from a ``spindle.stimulation.StimConfig``) and the channel map
+``fw_stim_source[channel] = {muscle index, 0 for Ia / 1 for II}`` (the firmware's
+``FW_STIM`` stage).
+
 ``python -m spindle.native.m0plus.system_config > fw_system_config.h`` writes it for the
-default device configuration (:data:`DEVICE_CONFIG`, :data:`SPINDLE_STEP_S`).
+default device configuration (:data:`DEVICE_CONFIG`, :data:`SPINDLE_STEP_S`, the default
+``StimConfig``: Ia and II of both muscles, frequency mode).
 """
 
 from __future__ import annotations
@@ -93,9 +99,40 @@ def _literal(value) -> str:
     return f"{value}L" if abs(value) > 32767 else str(value)
 
 
+def stim_config_source(stim) -> str:
+    """``fw_stim`` and ``fw_stim_source`` for a ``StimConfig`` (its channels' afferents must
+    be Ia or II: the firmware has no tendon organs yet)."""
+    import ctypes
+
+    from spindle.chain.config import MUSCLES
+    from spindle.native.stimulation import PsStimFxConfig, config_struct, fixed_library
+
+    sources = []
+    for ch in stim.channels.channels:
+        if ch.muscle not in MUSCLES or ch.afferent not in ("ia", "ii"):
+            raise ValueError(f"channel {ch.label}: the firmware drives Ia and II of "
+                             f"{MUSCLES} only")
+        sources.append([MUSCLES.index(ch.muscle), ("ia", "ii").index(ch.afferent)])
+    q = PsStimFxConfig()
+    code = fixed_library().ps_stim_fx_config_init(ctypes.byref(q),
+                                                  ctypes.byref(config_struct(stim)))
+    if code != 0:
+        raise ValueError(f"ps_stim_fx_config_init refused the stimulator configuration ({code})")
+    fields = []
+    for name, _ctype in type(q)._fields_:
+        value = getattr(q, name)
+        value = list(value) if hasattr(value, "__len__") else int(value)
+        text = _literal(value) if name != "seed" else f"{value}ULL"
+        fields.append(f".{name} = {text}")
+    rows = ", ".join("{" + f"{m}, {a}" + "}" for m, a in sources)
+    return ("const ps_stim_fx_config fw_stim = {\n    " + ",\n    ".join(fields) + "\n};\n\n"
+            f"const int32_t fw_stim_source[PS_STIM_MAX_CHANNELS][2] = {{{rows}}};\n")
+
+
 def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits | None = None,
-                         spindle_step_s: float = SPINDLE_STEP_S) -> str:
-    """fw_system_config.h for ``config``, ``fits`` and the spindle step."""
+                         spindle_step_s: float = SPINDLE_STEP_S, stim=None) -> str:
+    """fw_system_config.h for ``config``, ``fits``, the spindle step and (if not None) the
+    stimulator's ``StimConfig``."""
     from spindle.native import fixed
     from spindle.native.spindle import library
 
@@ -115,7 +152,8 @@ def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits |
             f"{fits.model_sha256[:12]}),\n * spindle plan at {spindle_step_s * 1e3:g} ms "
             "(ps_plan_fx_init). */\n"
             f"const fw_config fw_cfg = {{\n    {body}\n}};\n\n"
-            f"const ps_plan_fx fw_plan = {{\n    " + ",\n    ".join(plan_fields) + "\n};\n")
+            f"const ps_plan_fx fw_plan = {{\n    " + ",\n    ".join(plan_fields) + "\n};\n"
+            + ("" if stim is None else "\n" + stim_config_source(stim)))
 
 
 def device_config(**changes) -> ChainConfig:
@@ -124,4 +162,6 @@ def device_config(**changes) -> ChainConfig:
 
 
 if __name__ == "__main__":
-    print(system_config_source(), end="")
+    from spindle.stimulation.config import StimConfig
+
+    print(system_config_source(stim=StimConfig()), end="")

@@ -60,7 +60,9 @@ typedef struct fw_config {
     int32_t spindle_step_us;                    /* the plan's h */
 } fw_config;
 
-#include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; */
+#include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; and
+                                * const ps_stim_fx_config fw_stim with its channel map
+                                * fw_stim_source[channel] = {muscle, 0: Ia / 1: II} */
 
 /* ---- state ----------------------------------------------------------------------------- */
 
@@ -96,6 +98,9 @@ typedef struct fw_state {
     uint32_t pending_t_us[PS_MUSCLES][FW_PENDING];
     int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
     int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
+#ifdef FW_STIM
+    int32_t held_Q16[PS_STIM_MAX_CHANNELS]; /* each channel's rate since the last sample */
+#endif
     int32_t started;
 } fw_state;
 
@@ -144,7 +149,7 @@ enum { FW_NEXT = 0, FW_DONE = 1 }; /* a stage's return: go on, or the sample is 
  * and a call per product), floored after adding 2^(shift-1), exactly as (a b + 2^(shift-1))
  * >> shift in int64. a = ah 2^16 + al (al unsigned), likewise b, so every partial product
  * fits in 32 bits. */
-static int32_t mul_q(int32_t a, int32_t b, int shift)
+__attribute__((always_inline)) static inline int32_t mul_q(int32_t a, int32_t b, int shift)
 {
     int32_t ah = a >> 16, bh = b >> 16;
     uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
@@ -551,9 +556,40 @@ static int rest_spindles(fw_ctx *c)
 #endif
 
 #ifdef FW_STIM
-/* The stimulation encoder: branch stim's fixed-point encoder (ps_stim_fx_* of stimulation.c)
- * turns the rates into pulse events appended to the output record here. */
-#error "FW_STIM: the pulse-encoder stage needs stimulation.c (branch stim)"
+/* The stimulation encoder (stimulation.c's fixed-point form, ps_stim_fx_step): the interval
+ * that just ended, [previous sample, this sample), carried the rates the previous sample
+ * output (held until this one), so it is encoded with those; its pulse events go to the ring
+ * fw_pulses. Nothing is delivered across a restart (the interval is not bridged). */
+#define FW_PULSE_RING 16 /* read out (by the stimulator's driver) after every sample */
+#define FW_MAX_PULSES 8  /* per sample: 4 channels at <= 300 pps over <= 6 ms need <= 8 */
+ps_pulse_fx fw_pulses[FW_PULSE_RING];
+uint32_t fw_pulse_head; /* events written so far */
+uint32_t fw_pulse_lost; /* samples whose pulses did not fit FW_MAX_PULSES (not delivered) */
+static ps_stim_fx_state stim;
+static ps_pulse_fx events[FW_MAX_PULSES]; /* one sample's pulses (static: not on the stack) */
+
+static int stage_stim(fw_ctx *c)
+{
+    long n = 0, k;
+    int status;
+    if (c->restart || c->dt_us <= 0) {
+        return FW_NEXT;
+    }
+    status = ps_stim_fx_step(&stim, &fw_stim, st.held_Q16, c->dt_us, events, FW_MAX_PULSES, &n);
+    if (status == PS_ERR_BUFFER_FULL) {
+        fw_pulse_lost += 1;
+        return FW_NEXT;
+    }
+    if (status != PS_OK) {
+        c->status = status;
+        return FW_NEXT;
+    }
+    for (k = 0; k < n; ++k) {
+        fw_pulses[fw_pulse_head % FW_PULSE_RING] = events[k];
+        fw_pulse_head += 1;
+    }
+    return FW_NEXT;
+}
 #endif
 
 /* Commit the sample and write its record. */
@@ -570,6 +606,12 @@ static int stage_output(fw_ctx *c)
         r->gs_Q8[m] = st.gs_Q8[m];
         r->gd_Q8[m] = st.gd_Q8[m];
     }
+#ifdef FW_STIM
+    for (m = 0; m < fw_stim.n_channels; ++m) { /* the channels' rates until the next sample */
+        int32_t muscle = fw_stim_source[m][0];
+        st.held_Q16[m] = fw_stim_source[m][1] == 0 ? st.ia_Q16[muscle] : st.ii_Q16[muscle];
+    }
+#endif
     if (st.started) {
         fw_count.accepted += 1;
         if (c->restart) {
@@ -634,7 +676,13 @@ int fw_init(void)
     st.behind = 0;
     fw_out_head = 0;
     fw_overruns = 0;
+#ifdef FW_STIM
+    fw_pulse_head = 0;
+    fw_pulse_lost = 0;
+    return ps_stim_fx_init(&stim, &fw_stim, 0);
+#else
     return PS_OK;
+#endif
 }
 
 /* The emulator returns here (a breakpoint target); on hardware it is never reached. */
