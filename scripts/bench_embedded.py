@@ -252,30 +252,29 @@ def _clock(results, period: float) -> tuple[float, int]:
     peak0 = max(int(c.run.cycles.max()) for c in results.values())
     peak1 = max(int(c.run.cycles_at(1).max()) for c in results.values())
 
-    def margin(f: float) -> float:
-        return 1 - (peak0 if cyc.wait_states(f) == 0 else peak1) / (f * 1e6 * period)
+    def peak(f: float) -> int:
+        return peak0 if cyc.wait_states(f) == 0 else peak1
 
+    def margin(f: float) -> float:
+        return 1 - peak(f) / (f * 1e6 * period)
+
+    keep = f"{cyc.DEADLINE_MARGIN:.0%} margin"
     clock = cyc.lowest_clock_mhz(peak0, peak1, period)
     if clock is not None:
-        peak = peak0 if cyc.wait_states(clock) == 0 else peak1
-        print(f"deadline: lowest EFM32ZG HFRCO band meeting every sample's {period * 1e3:g} ms "
-              f"with a {cyc.DEADLINE_MARGIN:.0%} margin: {clock:g} MHz "
-              f"({cyc.wait_states(clock)} wait states; costliest sample {peak} cycles = "
-              f"{peak / clock:.0f} us, margin {margin(clock):.1%})")
-        return clock, peak
-    clock = max(cyc.HFRCO_BANDS_MHZ, key=margin)
+        head = f"lowest EFM32ZG HFRCO band meeting every sample's deadline with a {keep}"
+    else:
+        clock = max(cyc.HFRCO_BANDS_MHZ, key=margin)
+        head = (f"no EFM32ZG band keeps the {keep} "
+                f"({cyc.needed_clock_mhz(peak1, period):.1f} MHz would); the best band")
     if margin(clock) < 0:
         need = cyc.needed_clock_mhz(peak1, period)
         print(f"deadline: the costliest sample ({peak1} cycles at 1 WS) needs {need:.1f} MHz "
-              f"with a {cyc.DEADLINE_MARGIN:.0%} margin: above the EFM32ZG's "
-              f"{cyc.MAX_CLOCK_MHZ:g} MHz, and no band meets every deadline")
+              f"with a {keep}, above the EFM32ZG's {cyc.MAX_CLOCK_MHZ:g} MHz")
         return need, peak1
-    peak = peak0 if cyc.wait_states(clock) == 0 else peak1
-    print(f"deadline: no EFM32ZG band keeps the {cyc.DEADLINE_MARGIN:.0%} margin; {clock:g} MHz "
-          f"meets every {period * 1e3:g} ms deadline with a margin of {margin(clock):.1%} "
-          f"(costliest sample {peak} cycles; {cyc.needed_clock_mhz(peak1, period):.1f} MHz "
-          f"would keep {cyc.DEADLINE_MARGIN:.0%})")
-    return clock, peak
+    print(f"deadline ({period * 1e3:g} ms): {head}: {clock:g} MHz ({cyc.wait_states(clock)} "
+          f"wait states; costliest sample {peak(clock)} cycles = {peak(clock) / clock:.0f} us, "
+          f"margin {margin(clock):.1%})")
+    return clock, peak(clock)
 
 
 def _measure_build(build_dir: Path, defines: tuple[str, ...], inputs):

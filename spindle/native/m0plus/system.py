@@ -68,7 +68,8 @@ def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
     """The system firmware's ELF for ``config`` at ``spindle_step_s``."""
     stim = default_stim() if "FW_STIM" in defines else None
     source = system_config_source(config, spindle_step_s=spindle_step_s, stim=stim)
-    tag = key(source, stack_bytes, defines, opt, (FW_DIR / "system.c").read_bytes())
+    tag = key(source, stack_bytes, defines, opt, (FW_DIR / "system.c").read_bytes(),
+              (FW_DIR / "startup.c").read_bytes(), (C_DIR / "stimulation.c").read_bytes())
     header_dir = build_dir / f"system_{tag}"
     header_dir.mkdir(parents=True, exist_ok=True)
     (header_dir / "fw_system_config.h").write_text(source)
@@ -90,6 +91,7 @@ def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
             extra = [str(obj)]
         cmd = [tool("gcc"), *ARM_FLAGS, opt, *(f"-D{d}" for d in defines), "-I", str(C_DIR),
                "-I", str(header_dir), str(C_DIR / "spindle.c"), *extra, str(FW_DIR / "system.c"),
+               str(FW_DIR / "startup.c"),
                "-T", str(FW_DIR / "m0plus.ld"), f"-Wl,--defsym=FW_STACK_SIZE={stack_bytes}",
                *roots, *LINK_FLAGS, "-o", str(elf)]
         subprocess.run(cmd, check=True)
