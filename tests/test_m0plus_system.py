@@ -60,3 +60,16 @@ def test_faulty_trace_counts_every_bad_sample_as_the_host(firmware):
     assert c.run.steps.max() <= 1
     # measured: 31 pulses from each, the counts per channel-second equal
     assert c.pulse_count_diff <= PULSE_COUNT_LIMIT and c.run.pulses_lost == 0
+
+
+def test_epoch_rebase_changes_nothing(tmp_path, firmware):
+    # the firmware's clock is uint32 us since an epoch that moves on every FW_EPOCH_S
+    # (1000 s); built with 1 s, a 1.1 s run crosses one move and must give the same numbers
+    t, counts = sysfw.demo_samples(1.1)
+    rebased = sysfw.SystemFirmware(sysfw.build_system(
+        tmp_path, defines=(*sysfw.DEFINES, "FW_EPOCH_S=1"))).run(t, counts)
+    plain = firmware.run(t, counts)
+    np.testing.assert_array_equal(rebased.ia_pps, plain.ia_pps)
+    np.testing.assert_array_equal(rebased.ii_pps, plain.ii_pps)
+    np.testing.assert_array_equal(rebased.pulses, plain.pulses)
+    assert rebased.counters == plain.counters

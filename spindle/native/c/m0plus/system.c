@@ -228,6 +228,28 @@ static int32_t valid_reading(float x, int32_t max_count)
     return (int32_t)(mantissa >> (23 - e)) <= max_count ? (int32_t)(mantissa >> (23 - e)) : -1;
 }
 
+/* Move the epoch FW_EPOCH_S on and every time kept since it back by as much (the times are
+ * uint32 us since the epoch: kept below 2^31, every use a difference of nearby times). */
+#ifndef FW_EPOCH_S
+#define FW_EPOCH_S 1000 /* whole seconds, <= 1000 */
+#endif
+static void rebase_epoch(void)
+{
+    const uint32_t shift = (uint32_t)FW_EPOCH_S * 1000000u;
+    int m, k;
+    st.epoch_s += (double)FW_EPOCH_S;
+    st.t_us -= shift;
+    for (k = 0; k < FW_SEGMENTS; ++k) {
+        st.seg_t_us[k] -= shift;
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        st.next_step_us[m] -= shift;
+        for (k = 0; k < FW_PENDING; ++k) {
+            st.pending_t_us[m][k] -= shift;
+        }
+    }
+}
+
 /* ArmChain._time and the reading check: the bad-sample rules that reject a sample. */
 static int stage_reading(fw_ctx *c)
 {
@@ -272,7 +294,12 @@ static int stage_reading(fw_ctx *c)
         c->t_us = 0;
         c->dt_us = 0;
     } else {
-        c->t_us = ((uint32_t)((t - st.epoch_s) * 2e6) + 1u) >> 1; /* rounded to the us */
+        double half_us = (t - st.epoch_s) * 2e6;
+        if (order_key(half_us) >= order_key(2e6 * FW_EPOCH_S)) { /* the epoch moves on */
+            rebase_epoch();
+            half_us = (t - st.epoch_s) * 2e6;
+        }
+        c->t_us = ((uint32_t)half_us + 1u) >> 1; /* rounded to the us, below 2^31 */
         c->dt_us = (int32_t)(c->t_us - st.t_us);
     }
     c->dt_Q30 = us_to_Q30(c->dt_us);
