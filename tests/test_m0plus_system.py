@@ -63,8 +63,9 @@ def test_faulty_trace_counts_every_bad_sample_as_the_host(firmware):
 
 
 def test_epoch_rebase_changes_nothing(tmp_path, firmware):
-    # the firmware's clock is uint32 us since an epoch that moves on every FW_EPOCH_S
-    # (1000 s); built with 1 s, a 1.1 s run crosses one move and must give the same numbers
+    # the firmware's clock is uint32 us since an epoch that moves to the last sample once it
+    # is FW_EPOCH_S (1000 s) old; built with 1 s, a 1.1 s run crosses one move and must give
+    # the same numbers
     t, counts = sysfw.demo_samples(1.1)
     rebased = sysfw.SystemFirmware(sysfw.build_system(
         tmp_path, defines=(*sysfw.DEFINES, "FW_EPOCH_S=1"))).run(t, counts)

@@ -228,17 +228,19 @@ static int32_t valid_reading(float x, int32_t max_count)
     return (int32_t)(mantissa >> (23 - e)) <= max_count ? (int32_t)(mantissa >> (23 - e)) : -1;
 }
 
-/* Move the epoch FW_EPOCH_S on and every time kept since it back by as much (the times are
- * uint32 us since the epoch: kept below 2^31, every use a difference of nearby times). */
+/* Move the epoch to the last accepted sample's time and every time kept since the old one
+ * back by as much (times are uint32 us since the epoch, kept below 2^31: every use is a
+ * difference of nearby times). Called once the epoch is FW_EPOCH_S old; no double addition
+ * (it would link libgcc's __aeabi_dadd, 1.7 KB). */
 #ifndef FW_EPOCH_S
-#define FW_EPOCH_S 1000 /* whole seconds, <= 1000 */
+#define FW_EPOCH_S 1000 /* s */
 #endif
 static void rebase_epoch(void)
 {
-    const uint32_t shift = (uint32_t)FW_EPOCH_S * 1000000u;
+    const uint32_t shift = st.t_us;
     int m, k;
-    st.epoch_s += (double)FW_EPOCH_S;
-    st.t_us -= shift;
+    st.epoch_s = st.t_s;
+    st.t_us = 0;
     for (k = 0; k < FW_SEGMENTS; ++k) {
         st.seg_t_us[k] -= shift;
     }
