@@ -69,8 +69,7 @@ def tool(name: str) -> str:
 def key(*parts: object) -> str:
     """A file-name key of the parts and of the C sources (a rebuild after any edit)."""
     digest = hashlib.sha256(repr(parts).encode())
-    for path in (*sorted(C_DIR.glob("*.h")), C_DIR / "spindle.c", FW_DIR / "firmware.c",
-                 FW_DIR / "startup.c"):
+    for path in (*sorted(C_DIR.glob("*.h")), C_DIR / "spindle.c", FW_DIR / "firmware.c"):
         digest.update(path.read_bytes())
     return digest.hexdigest()[:16]
 
@@ -161,8 +160,7 @@ def build_firmware(cfg: Config, build_dir: Path,
     if cfg.fixed:
         extra = ["-I", str(plan_fx_header(cfg, build_dir).parent)]
     cmd = [tool("gcc"), *ARM_FLAGS, *cfg.c_defines(), "-I", str(C_DIR), *extra,
-           str(C_DIR / "spindle.c"), str(FW_DIR / "firmware.c"), str(FW_DIR / "startup.c"),
-           "-T", str(FW_DIR / "m0plus.ld"),
+           str(C_DIR / "spindle.c"), str(FW_DIR / "firmware.c"), "-T", str(FW_DIR / "m0plus.ld"),
            f"-Wl,--defsym=FW_STACK_SIZE={stack_bytes}", *LINK_FLAGS, "-o", str(elf)]
     subprocess.run(cmd, check=True)
     return elf
