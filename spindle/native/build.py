@@ -69,7 +69,7 @@ SANITIZE_FLAGS = ("-O1", "-g", "-fsanitize=address,undefined", "-fno-omit-frame-
                   "-fno-sanitize-recover=all")
 CACHE_FORMAT = 2
 """Part of the cache key: bump when the cache's layout or the manifest's meaning changes."""
-REQUIRED_SYMBOLS = ("ps_spindle_step", "ps_chain_init")
+REQUIRED_SYMBOLS = ("ps_spindle_step", "ps_chain_init", "ps_stim_step")
 """A freshly built library must export these (one per source file) to be cached."""
 STALE_TMP_AGE_S = 3600.0
 """A temporary file older than this is a leftover whatever its name says (a build takes s)."""

@@ -16,7 +16,7 @@ import numpy as np
 
 from spindle.native import abi, build
 from spindle.stimulation.config import MAX_CHANNELS, StimConfig
-from spindle.stimulation.encoder import COUNTERS
+from spindle.stimulation.encoder import COUNTERS, checked_step_input
 from spindle.stimulation.events import empty_events
 from spindle.stimulation.trace import checked_trace
 
@@ -172,12 +172,9 @@ class CStimulator:
         self.state = state
 
     def step(self, rates_pps: object, dt_s: float) -> np.ndarray:
-        rates, dt = checked_trace(self.config, np.asarray(rates_pps, dtype=float)[None, :]
-                                  if np.ndim(rates_pps) == 1 else rates_pps, dt_s)
-        if rates.shape[0] != 1:
-            raise ValueError(f"rates_pps has shape {np.shape(rates_pps)}, expected "
-                             f"({self.config.n_channels},) (one rate per channel)")
-        return self.run(rates, dt)
+        """The pulses of one interval (the numpy step's checks and errors)."""
+        rates = checked_step_input(self.config, rates_pps, dt_s)
+        return self.run(rates[None, :], float(dt_s))
 
     def run(self, rates_pps: object, dt_s: object) -> np.ndarray:
         rates, dt = checked_trace(self.config, rates_pps, dt_s)

@@ -621,7 +621,8 @@ int ps_stim_init(ps_stim_state *s, const ps_stim_config *c, ps_time t0_s);
 long ps_stim_max_events(const ps_stim_config *c, ps_time dt_s);
 
 /* One interval [t, t + dt_s) with rates_pps[n_channels] held over it (encoder.step): the
- * delivered pulses in time order into events[0 .. *n_events - 1]. Errors (nothing changed,
+ * delivered pulses in time order into events[0 .. *n_events - 1]. `c` must be the config
+ * `s` was initialised with (checked there, not at every step). Errors (nothing changed,
  * *n_events = 0): PS_ERR_NULL, PS_ERR_NOT_RESET, PS_ERR_STEP (dt_s not finite or outside
  * (0, PS_STIM_MAX_DT_S]), PS_ERR_BUFFER_FULL (more pulses than capacity). Bad rates are
  * handled by the counted rules, never an error. */
@@ -676,7 +677,10 @@ typedef struct ps_pulse_fx {
 
 /* The fixed-point config of a checked double config (host or start-up): rates rounded to
  * Q16, dead time and the total-rate spacing to whole µs (rounded up). The status of
- * ps_stim_config_check; q is untouched on failure. */
+ * ps_stim_config_check, or PS_ERR_CONFIG for what the integers cannot hold (full_scale_pps
+ * above 32767, full_scale_change_pps_s outside 1..2e9, a weight above 3e4, a total rate below
+ * 1e-3 pps, a dead time below 1 µs, stochastic max_rate_pps * dead_time_s above 0.99); q is
+ * untouched on failure. */
 int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c);
 /* -log(u) in Q30 of the double form's uniform u = (2 (bits >> 12) + 1) / 2^53. */
 int64_t ps_stim_fx_neg_log(uint64_t bits);

@@ -11,6 +11,7 @@
 #define LN2 0.6931471805599453
 #define SQRT_HALF 0.7071067811865476
 #define ATANH_TERMS 12
+#define NO_RATE ((double)NAN) /* no previous rate (NAN is a float constant) */
 
 /* ---- the counter-based generator (generator.py) ---- */
 
@@ -133,7 +134,7 @@ int ps_stim_init(ps_stim_state *s, const ps_stim_config *c, ps_time t0_s)
     if (!isfinite(t0_s))
         return PS_ERR_NONFINITE;
     s->t_s = t0_s;
-    s->last_any_s = -INFINITY;
+    s->last_any_s = -(double)INFINITY;
     for (k = 0; k < PS_STIM_MAX_CHANNELS; ++k) {
         int stochastic = c->mode == PS_STIM_MODE_STOCHASTIC && k < c->n_channels;
         s->phase[k] = 0.0;
@@ -141,8 +142,8 @@ int ps_stim_init(ps_stim_state *s, const ps_stim_config *c, ps_time t0_s)
             ? ps_stim_gamma_threshold(c->seed, (uint64_t)k, 0, c->gamma_shape) : 1.0;
         s->draws[k] = stochastic ? 1u : 0u;
         s->resume_s[k] = t0_s;
-        s->last_pulse_s[k] = -INFINITY;
-        s->previous_pps[k] = NAN;
+        s->last_pulse_s[k] = -(double)INFINITY;
+        s->previous_pps[k] = NO_RATE;
         for (j = 0; j < PS_STIM_COUNTERS; ++j)
             s->counts[k][j] = 0;
     }
@@ -174,7 +175,7 @@ static drive channel_drive(const ps_stim_config *c, int k, double previous, doub
         d.rule = PS_STIM_COUNT_RATE_NONFINITE;
         r = 0.0;
         stopped = 1;
-        previous = NAN;
+        previous = NO_RATE;
     } else if (r < 0.0) {
         d.rule = PS_STIM_COUNT_RATE_NEGATIVE;
         r = 0.0;
@@ -183,7 +184,7 @@ static drive channel_drive(const ps_stim_config *c, int k, double previous, doub
         r = c->max_rate_pps;
     }
     if (c->mode == PS_STIM_MODE_FREQUENCY || c->mode == PS_STIM_MODE_STOCHASTIC) {
-        d.previous_pps = stopped ? NAN : d.previous_pps;
+        d.previous_pps = stopped ? NO_RATE : d.previous_pps;
         d.pulse_pps = r;
         d.amplitude_uA = ch->max_uA;
         return d;
@@ -201,7 +202,7 @@ static drive channel_drive(const ps_stim_config *c, int k, double previous, doub
         d.pulse_pps = c->max_rate_pps * (d.pulse_pps < 1.0 ? d.pulse_pps : 1.0);
         amp_drive = c->amp_level * level + c->amp_change * change;
     }
-    d.previous_pps = stopped ? NAN : r;
+    d.previous_pps = stopped ? NO_RATE : r;
     if (stopped)
         d.pulse_pps = 0.0;
     d.amp_clipped = amp_drive > 1.0 && d.pulse_pps > 0.0;
@@ -251,13 +252,18 @@ static long channel_crossings(const ps_stim_config *c, int k, channel_clock *cl,
     return n;
 }
 
+/* Crossings are at least 1/max_rate (deterministic) or the dead time (stochastic) apart. */
+static long max_events(const ps_stim_config *c, ps_time dt_s)
+{
+    double per = c->mode == PS_STIM_MODE_STOCHASTIC ? 1.0 / c->dead_time_s : c->max_rate_pps;
+    return (long)c->n_channels * ((long)(dt_s * per) + 2);
+}
+
 long ps_stim_max_events(const ps_stim_config *c, ps_time dt_s)
 {
-    double per;
     if (ps_stim_config_check(c) != PS_OK || !finite_in(dt_s, 1e-300, PS_STIM_MAX_DT_S))
         return -1;
-    per = c->mode == PS_STIM_MODE_STOCHASTIC ? 1.0 / c->dead_time_s : c->max_rate_pps;
-    return (long)c->n_channels * ((long)(dt_s * per) + 2);
+    return max_events(c, dt_s);
 }
 
 static int before(const ps_pulse *a, const ps_pulse *b)
@@ -324,7 +330,7 @@ int ps_stim_step(ps_stim_state *s, const ps_stim_config *c, const double *rates_
         return PS_ERR_NOT_RESET;
     if (!finite_in(dt_s, 1e-300, PS_STIM_MAX_DT_S))
         return PS_ERR_STEP;
-    if (capacity < ps_stim_max_events(c, dt_s) && count_candidates(s, c, rates_pps, dt_s) > capacity)
+    if (capacity < max_events(c, dt_s) && count_candidates(s, c, rates_pps, dt_s) > capacity)
         return PS_ERR_BUFFER_FULL;
     t0 = s->t_s;
     t1 = t0 + dt_s;
@@ -411,7 +417,8 @@ int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c)
     if (c->full_scale_pps > 32767.0 || c->full_scale_pps < 1.0 / 65536.0
         || c->full_scale_change_pps_s < 1.0 || c->full_scale_change_pps_s > 2e9
         || c->dead_time_s < 1e-6 || c->rate_level > 3e4 || c->rate_change > 3e4
-        || c->amp_level > 3e4 || c->amp_change > 3e4)
+        || c->amp_level > 3e4 || c->amp_change > 3e4
+        || (c->max_total_rate_pps > 0.0 && c->max_total_rate_pps < 1e-3))
         return PS_ERR_CONFIG;
     out.n_channels = c->n_channels;
     out.mode = c->mode;
@@ -437,8 +444,9 @@ int ps_stim_fx_config_init(ps_stim_fx_config *q, const ps_stim_config *c)
     out.min_total_us = c->max_total_rate_pps > 0.0
         ? (int32_t)ceil(1e6 / c->max_total_rate_pps) : 0;
     out.seed = c->seed;
+    /* r / (1 - r dead) at most 100 r: the phase's int64 arithmetic keeps its bounds */
     if (c->mode == PS_STIM_MODE_STOCHASTIC
-        && (int64_t)out.max_rate_q16 * out.dead_us >= FX_ONE)
+        && 100 * (int64_t)out.max_rate_q16 * out.dead_us > 99 * FX_ONE)
         return PS_ERR_CONFIG;
     *q = out;
     return PS_OK;
@@ -635,6 +643,16 @@ static clock_fx clock_of(const ps_stim_fx_state *s, int k)
     return cl;
 }
 
+/* A bound of one step's pulses (ps_stim_max_events in integers): crossings are at least
+ * 1/max_rate apart (deterministic) or the dead time apart (stochastic). */
+static long fx_max_events(const ps_stim_fx_config *q, int32_t dt_us)
+{
+    int64_t per = q->mode == PS_STIM_MODE_STOCHASTIC
+        ? (int64_t)dt_us / (q->dead_us > 0 ? q->dead_us : 1)
+        : ((int64_t)dt_us * q->max_rate_q16) / 65536000000LL;
+    return (long)q->n_channels * (long)(per + 2);
+}
+
 int ps_stim_fx_step(ps_stim_fx_state *s, const ps_stim_fx_config *q, const int32_t *rates_q16,
                     int32_t dt_us, ps_pulse_fx *events, long capacity, long *n_events)
 {
@@ -651,14 +669,16 @@ int ps_stim_fx_step(ps_stim_fx_state *s, const ps_stim_fx_config *q, const int32
         return PS_ERR_STEP;
     t0 = s->t_us;
     t1 = t0 + dt_us;
-    for (k = 0; k < q->n_channels; ++k) {  /* dry run: the pulses must fit */
-        drive_fx d = channel_drive_fx(q, k, s->previous_q16[k], rates_q16[k], dt_us);
-        clock_fx cl = clock_of(s, k);
-        n += channel_crossings_fx(q, k, &cl, d.pulse_q16, t0, t1, NULL, 0);
+    if (capacity < fx_max_events(q, dt_us)) {  /* dry run: the pulses must fit */
+        for (k = 0; k < q->n_channels; ++k) {
+            drive_fx d = channel_drive_fx(q, k, s->previous_q16[k], rates_q16[k], dt_us);
+            clock_fx cl = clock_of(s, k);
+            n += channel_crossings_fx(q, k, &cl, d.pulse_q16, t0, t1, NULL, 0);
+        }
+        if (n > capacity)
+            return PS_ERR_BUFFER_FULL;
+        n = 0;
     }
-    if (n > capacity)
-        return PS_ERR_BUFFER_FULL;
-    n = 0;
     for (k = 0; k < q->n_channels; ++k) {
         drive_fx d = channel_drive_fx(q, k, s->previous_q16[k], rates_q16[k], dt_us);
         clock_fx cl = clock_of(s, k);

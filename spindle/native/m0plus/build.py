@@ -3,6 +3,8 @@
 The firmware is ``spindle.c`` with ``c/m0plus/firmware.c`` (two muscles, HUMAN constants in
 flash) for ``-mcpu=cortex-m0plus -mthumb``, soft float, newlib-nano; the host twin is the same
 ``spindle.c`` and options, float32, as a shared library, so the two compute the same numbers.
+With ``Config.stim_dir`` the firmware also holds the fixed-point stimulator (``stimulation.c``,
+:mod:`spindle.native.m0plus.stim`).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ class Config:
     plan_in_flash: bool = False
     defines: tuple[str, ...] = ()
     fixed: bool = False  # ps_spindle_step_fx, its plan const in flash
+    stim_dir: str = ""  # FW_STIM: the stimulator too, fw_stim_config.h from this folder
 
     def c_defines(self) -> list[str]:
         out = [f"-DFW_STEP_S={self.step_s!r}", f"-DFW_THETA={self.theta!r}",
@@ -54,6 +57,8 @@ class Config:
             out.append("-DFW_PLAN_IN_FLASH")
         if self.fixed:
             out.append("-DFW_FIXED")
+        if self.stim_dir:
+            out.append("-DFW_STIM")
         return out
 
 
@@ -69,7 +74,8 @@ def tool(name: str) -> str:
 def key(*parts: object) -> str:
     """A file-name key of the parts and of the C sources (a rebuild after any edit)."""
     digest = hashlib.sha256(repr(parts).encode())
-    for path in (*sorted(C_DIR.glob("*.h")), C_DIR / "spindle.c", FW_DIR / "firmware.c"):
+    for path in (*sorted(C_DIR.glob("*.h")), C_DIR / "spindle.c", C_DIR / "stimulation.c",
+                 FW_DIR / "firmware.c"):
         digest.update(path.read_bytes())
     return digest.hexdigest()[:16]
 
@@ -159,6 +165,9 @@ def build_firmware(cfg: Config, build_dir: Path,
         extra = ["-I", str(plan_header(cfg, build_dir).parent)]
     if cfg.fixed:
         extra = ["-I", str(plan_fx_header(cfg, build_dir).parent)]
+    if cfg.stim_dir:  # the stimulator's entry points are roots for --gc-sections too
+        extra += ["-I", cfg.stim_dir, str(C_DIR / "stimulation.c"),
+                  "-Wl,--undefined=fw_stim_init", "-Wl,--undefined=fw_stim_step"]
     cmd = [tool("gcc"), *ARM_FLAGS, *cfg.c_defines(), "-I", str(C_DIR), *extra,
            str(C_DIR / "spindle.c"), str(FW_DIR / "firmware.c"), "-T", str(FW_DIR / "m0plus.ld"),
            f"-Wl,--defsym=FW_STACK_SIZE={stack_bytes}", *LINK_FLAGS, "-o", str(elf)]
