@@ -81,14 +81,9 @@ def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
         roots = [f"-Wl,-u,{name}" for name in names]
         extra = []
         if stim is not None:
-            # stimulation.c is not -Wdouble-promotion clean (NAN, a float, meets doubles in
-            # two conditionals: harmless, the double path is not on the device's path), so
-            # it is compiled on its own without that one warning
-            obj = header_dir / "stimulation.o"
-            flags = [f for f in ARM_FLAGS if f != "-Wdouble-promotion"]
-            subprocess.run([tool("gcc"), *flags, opt, "-I", str(C_DIR), "-c",
-                            str(C_DIR / "stimulation.c"), "-o", str(obj)], check=True)
-            extra = [str(obj)]
+            from spindle.native.m0plus.stim import stim_config_header
+
+            extra = ["-I", str(stim_config_header(stim, build_dir)), str(C_DIR / "stimulation.c")]
         cmd = [tool("gcc"), *ARM_FLAGS, opt, *(f"-D{d}" for d in defines), "-I", str(C_DIR),
                "-I", str(header_dir), str(C_DIR / "spindle.c"), *extra, str(FW_DIR / "system.c"),
                str(FW_DIR / "startup.c"),

@@ -60,9 +60,13 @@ typedef struct fw_config {
     int32_t spindle_step_us;                    /* the plan's h */
 } fw_config;
 
-#include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; and
-                                * const ps_stim_fx_config fw_stim with its channel map
-                                * fw_stim_source[channel] = {muscle, 0: Ia / 1: II} */
+#include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; with
+                                * FW_STIM the channel map fw_stim_source[channel] =
+                                * {muscle, 0: Ia / 1: II} */
+#ifdef FW_STIM
+/* const ps_stim_fx_config fw_stim_config (spindle.native.m0plus.stim) */
+#include "fw_stim_config.h"
+#endif
 
 /* ---- state ----------------------------------------------------------------------------- */
 
@@ -163,7 +167,10 @@ __attribute__((always_inline)) static inline int32_t mul_q(int32_t a, int32_t b,
     return (int32_t)(((uint32_t)hi << (32 - shift)) | (rounded >> shift));
 }
 
-static int32_t clamp_i32(int32_t x, int32_t lo, int32_t hi) { return x < lo ? lo : x > hi ? hi : x; }
+static int32_t clamp_i32(int32_t x, int32_t lo, int32_t hi)
+{
+    return x < lo ? lo : x > hi ? hi : x;
+}
 
 /* An interval in us (<= 2^21) as seconds in Q30. */
 static int32_t us_to_Q30(int32_t us) { return mul_q(us, 1099512, 10); /* 2^40 / 1e6 */ }
@@ -604,7 +611,8 @@ static int stage_stim(fw_ctx *c)
     if (c->restart || c->dt_us <= 0) {
         return FW_NEXT;
     }
-    status = ps_stim_fx_step(&stim, &fw_stim, st.held_Q16, c->dt_us, events, FW_MAX_PULSES, &n);
+    status = ps_stim_fx_step(&stim, &fw_stim_config, st.held_Q16, c->dt_us, events,
+                             FW_MAX_PULSES, &n);
     if (status == PS_ERR_BUFFER_FULL) {
         fw_pulse_lost += 1;
         return FW_NEXT;
@@ -636,7 +644,8 @@ static int stage_output(fw_ctx *c)
         r->gd_Q8[m] = st.gd_Q8[m];
     }
 #ifdef FW_STIM
-    for (m = 0; m < fw_stim.n_channels; ++m) { /* the channels' rates until the next sample */
+    /* the channels' rates until the next sample */
+    for (m = 0; m < fw_stim_config.n_channels; ++m) {
         int32_t muscle = fw_stim_source[m][0];
         st.held_Q16[m] = fw_stim_source[m][1] == 0 ? st.ia_Q16[muscle] : st.ii_Q16[muscle];
     }
@@ -708,7 +717,7 @@ int fw_init(void)
 #ifdef FW_STIM
     fw_pulse_head = 0;
     fw_pulse_lost = 0;
-    return ps_stim_fx_init(&stim, &fw_stim, 0);
+    return ps_stim_fx_init(&stim, &fw_stim_config, 0);
 #else
     return PS_OK;
 #endif
