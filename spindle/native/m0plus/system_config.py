@@ -40,6 +40,10 @@ DEVICE_CONFIG = ChainConfig(params=HUMAN, max_bridge_s=6e-3)
 three spindle steps (the deadline; the host default bridges 50 ms, 25 sub-steps)."""
 
 
+DECAY_COARSE = 128
+"""``FW_DECAY_COARSE`` of system.c: the tracking filter's decay tables cover 128 x 64 us."""
+
+
 def _q(value: float, bits: int) -> int:
     out = round(value * 2.0**bits)
     if not -2**31 <= out < 2**31:
@@ -89,6 +93,9 @@ def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -
                         for lo, hi in zip(ranges.length_min_L0, ranges.length_max_L0,
                                           strict=True)],
         "spindle_step_us": step_us,
+        "decay_coarse_Q30": [_q(math.exp(-c.lowpass_rad_s * 64e-6 * i), 30)
+                             for i in range(DECAY_COARSE)],
+        "decay_fine_Q30": [_q(math.exp(-c.lowpass_rad_s * 1e-6 * j), 30) for j in range(64)],
     }
 
 

@@ -35,6 +35,8 @@
 
 /* ---- configuration (generated) -------------------------------------------------------- */
 
+#define FW_DECAY_COARSE 128 /* the decay tables cover intervals below 128 * 64 us = 8.2 ms */
+
 typedef struct fw_config {
     double gap_s, max_bridge_s;  /* the chain's interval rules (s) */
     int32_t resync_after_samples;
@@ -58,6 +60,8 @@ typedef struct fw_config {
     int32_t length_max_Q24[PS_MUSCLES];         /* h(x): gs = min + gain (Lmax - template) */
     int32_t gs_gain_Q8[PS_MUSCLES];             /* span / (Lmax - Lmin) (pps/L0) */
     int32_t spindle_step_us;                    /* the plan's h */
+    /* e^(-omega dt) of the tracking filter for dt = 64 i + j us (Q30): coarse i, fine j */
+    int32_t decay_coarse_Q30[FW_DECAY_COARSE], decay_fine_Q30[64];
 } fw_config;
 
 #include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; with
@@ -400,7 +404,13 @@ static int stage_tracking(fw_ctx *c)
             c->L_Q24[m] = st.u_Q24[m] + clamp_i32(c->L_Q24[m] - st.u_Q24[m], -limit, limit);
         }
     }
-    decay = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, c->dt_Q30, 18));
+    /* from the tables (one product) within them, else the series (a longer max_bridge_s) */
+    if (c->dt_us < 64 * FW_DECAY_COARSE) {
+        decay = mul_q(fw_cfg.decay_coarse_Q30[c->dt_us >> 6],
+                      fw_cfg.decay_fine_Q30[c->dt_us & 63], 30);
+    } else {
+        decay = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, c->dt_Q30, 18));
+    }
     for (m = 0; m < PS_MUSCLES; ++m) {
         int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m];
         int32_t slope = mul_q(u1 - u0, c->inv_dt_Q12, 16);                 /* Q20 */
