@@ -60,6 +60,7 @@ bad-sample counters of both. Its line is the last:
 Usage:
     PYTHONPATH=. python scripts/bench_embedded.py            # all levers, all 9 runs (~10 min)
     PYTHONPATH=. python scripts/bench_embedded.py --quick    # final configuration, 2 runs
+    PYTHONPATH=. python scripts/bench_embedded.py --system-only --figure docs/img/m0plus_system.png
 Needs: gcc-arm-none-eabi, libnewlib-arm-none-eabi, a host C compiler, unicorn, scipy.
 The last line reads
     m0plus_mips_per_muscle=<float> rms_pps=<float> flash_bytes=<int> ram_bytes=<int>
@@ -148,6 +149,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="skip the demo motion (the fixed-point step with moving drives)")
     ap.add_argument("--system-only", action="store_true",
                     help="only the whole-system firmware")
+    ap.add_argument("--figure", type=Path, default=None,
+                    help="save the whole system's per-stage cycles as a PNG here")
     args = ap.parse_args(argv)
     try:
         import unicorn
@@ -161,7 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for what, outcome in isa_probe().items():
         print(f"  {what}: {outcome}")
     if args.system_only:
-        return run_system(args.quick, build_dir)
+        return run_system(args.quick, build_dir, args.figure)
     refs = references(all_runs)
     print(f"reference (scipy Radau, HUMAN, 9 runs): {time.perf_counter() - t0:.0f} s")
     configs = [FINAL] if args.quick else LEVERS
@@ -204,7 +207,48 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"no ARMv7-M-only instruction; total {time.perf_counter() - t0:.0f} s")
     print(f"m0plus_mips_per_muscle={final.mips:.4f} rms_pps={final.rms_pps:.4f} "
           f"flash_bytes={final.flash} ram_bytes={final.ram}")
-    return run_system(args.quick, build_dir)
+    return run_system(args.quick, build_dir, args.figure)
+
+
+def _stage_figure(results, path: Path, clock_mhz: float, period: float) -> None:
+    """Per stage: mean cycles per sample (0 WS) on each input, and the costliest sample's
+    cycles (1 WS) stacked by stage beside the 2 ms budget at the clock."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    stages = list(dict.fromkeys(k for c in results.values() for k in c.run.by_stage
+                                if k != "entry"))
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4.2), width_ratios=(2.2, 1))
+    y = np.arange(len(stages))
+    for k, (name, c) in enumerate(results.items()):
+        n = len(c.run.instructions)
+        ax0.barh(y + 0.38 * k, [c.run.by_stage.get(s, [0, 0])[1] / n for s in stages], 0.38,
+                 label=name)
+    ax0.set_yticks(y + 0.19, stages)
+    ax0.invert_yaxis()
+    ax0.set_xlabel("cycles per sample, mean (0 wait states)")
+    ax0.legend(loc="lower right", fontsize=8)
+    ax0.set_title("Cortex-M0+ whole system: cost per stage")
+    worst = max(results.values(), key=lambda c: c.run.cycles_at(1).max())
+    bottom = 0
+    for s in stages:
+        v = sum(worst.run.peak_by_stage.get(s, [0, 0, 0, 0])[1:])
+        ax1.bar(0, v, bottom=bottom, label=s)
+        bottom += v
+    ax1.axhline(clock_mhz * 1e6 * period, color="k", ls="--", lw=1)
+    ax1.text(0.45, clock_mhz * 1e6 * period, f" {period * 1e3:g} ms at {clock_mhz:g} MHz",
+             va="bottom", ha="right", fontsize=8)
+    ax1.set_xticks([])
+    ax1.set_ylabel("cycles (1 wait state)")
+    ax1.set_title("costliest sample", fontsize=10)
+    handles, labels = ax1.get_legend_handles_labels()
+    ax1.legend(handles[::-1], labels[::-1], fontsize=7, loc="center left",
+               bbox_to_anchor=(1.02, 0.5))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def _stage_table(results) -> None:
@@ -289,7 +333,7 @@ def _measure_build(build_dir: Path, defines: tuple[str, ...], inputs):
     return results, sorted(fw.emu.violations) + bad, seen, flash, ram, fw.emu.stack_used()
 
 
-def run_system(quick: bool, build_dir: Path) -> int:
+def run_system(quick: bool, build_dir: Path, figure: Path | None = None) -> int:
     """The whole-system firmware on the demo motion and the faulty trace (and, for the
     breakdown, the build without the pulse encoder); prints the system's last line."""
     from spindle.native.m0plus import cycles as cyc
@@ -320,6 +364,9 @@ def run_system(quick: bool, build_dir: Path) -> int:
     _input_table(results, period)
     _stage_table(results)
     clock, peak = _clock(results, period)
+    if figure is not None:
+        _stage_figure(results, figure, clock, period)
+        print(f"figure: {figure}")
     mips = results["demo motion"].run.instructions.mean() / period / 1e6
     rms = max(c.worst_rms_pps for c in results.values())
     power = cyc.active_power_mw(clock)
