@@ -41,9 +41,26 @@ step and inputs, and against the chain's own rates (numpy, trapezoidal 1 ms). It
 line `demo_mips_per_muscle=... demo_peak_mips=... demo_rms_vs_double_pps=...` precedes the
 last line, which stays the Fig. 3 figure.
 
+The whole system (spindle/native/c/m0plus/system.c, spindle.native.m0plus.system): one
+fw_sample call per encoder sample, as the 500 Hz timer interrupt would make it, running the
+whole chain (time and reading rules, median, f(x), fitted lengths, tracking low-pass,
+predictor and fusimotor drive, the fixed-point BRA and TRImed spindles on a 5 ms grid) in
+integer arithmetic, the configuration generated on the host (system_config). Measured on the
+demo motion (the triangle above, read by an ideal encoder at 500 Hz) and on a recorded servo
+trace with the encoder's jitter, noise and invalid readings and injected faults
+(proprio_env.fault_injection, counts entries): instructions and Cortex-M0+ cycles per sample
+(spindle.native.m0plus.cycles: ARM DDI 0484C instruction timings, flash wait states of the
+EFM32ZG), mean and worst, per stage; flash, RAM, stack; the lowest EFM32ZG clock meeting every
+sample's 2 ms deadline with a 25 % margin and its power (EFM32ZG datasheet, 114 uA/MHz at
+3 V); Ia and II against the host double chain (CArmChain) on the same samples, RMS, and the
+bad-sample counters of both. Its line is the last:
+    system_mips=... system_peak_cycles_per_sample=... clock_mhz=... power_mw=...
+    flash_bytes=... ram_bytes=... rms_vs_host_pps=...
+
 Usage:
     PYTHONPATH=. python scripts/bench_embedded.py            # all levers, 9 runs (10-16 min)
     PYTHONPATH=. python scripts/bench_embedded.py --quick    # final configuration, 2 runs
+    PYTHONPATH=. python scripts/bench_embedded.py --system-only --figure docs/img/m0plus_system.png
 Needs: gcc-arm-none-eabi, libnewlib-arm-none-eabi, a host C compiler, unicorn, scipy.
 The last line reads
     m0plus_mips_per_muscle=<float> rms_pps=<float> flash_bytes=<int> ram_bytes=<int>
@@ -130,6 +147,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="indices of the lever rows to measure")
     ap.add_argument("--no-demo", action="store_true",
                     help="skip the demo motion (the fixed-point step with moving drives)")
+    ap.add_argument("--system-only", action="store_true",
+                    help="only the whole-system firmware")
+    ap.add_argument("--figure", type=Path, default=None,
+                    help="save the whole system's per-stage cycles as a PNG here")
     args = ap.parse_args(argv)
     try:
         import unicorn
@@ -142,6 +163,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"unicorn {unicorn.__version__}; instruction-set probe:")
     for what, outcome in isa_probe().items():
         print(f"  {what}: {outcome}")
+    if args.system_only:
+        return run_system(args.quick, build_dir, args.figure)
     refs = references(all_runs)
     print(f"reference (scipy Radau, HUMAN, 9 runs): {time.perf_counter() - t0:.0f} s")
     configs = [FINAL] if args.quick else LEVERS
@@ -184,7 +207,185 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"no ARMv7-M-only instruction; total {time.perf_counter() - t0:.0f} s")
     print(f"m0plus_mips_per_muscle={final.mips:.4f} rms_pps={final.rms_pps:.4f} "
           f"flash_bytes={final.flash} ram_bytes={final.ram}")
-    return 0
+    return run_system(args.quick, build_dir, args.figure)
+
+
+def _stage_figure(results, path: Path, clock_mhz: float, period: float) -> None:
+    """Per stage: mean cycles per sample (0 WS) on each input, and the costliest sample's
+    cycles (1 WS) stacked by stage beside the 2 ms budget at the clock."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    stages = list(dict.fromkeys(k for c in results.values() for k in c.run.by_stage
+                                if k != "entry"))
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4.2), width_ratios=(2.2, 1))
+    y = np.arange(len(stages))
+    for k, (name, c) in enumerate(results.items()):
+        n = len(c.run.instructions)
+        ax0.barh(y + 0.38 * k, [c.run.by_stage.get(s, [0, 0])[1] / n for s in stages], 0.38,
+                 label=name)
+    ax0.set_yticks(y + 0.19, stages)
+    ax0.invert_yaxis()
+    ax0.set_xlabel("cycles per sample, mean (0 wait states)")
+    ax0.legend(loc="lower right", fontsize=8)
+    ax0.set_title("Cortex-M0+ whole system: cost per stage")
+    worst = max(results.values(), key=lambda c: c.run.cycles_at(1).max())
+    bottom = 0
+    for s in stages:
+        v = sum(worst.run.peak_by_stage.get(s, [0, 0, 0, 0])[1:])
+        ax1.bar(0, v, bottom=bottom, label=s)
+        bottom += v
+    ax1.axhline(clock_mhz * 1e6 * period, color="k", ls="--", lw=1)
+    ax1.text(0.45, clock_mhz * 1e6 * period, f" {period * 1e3:g} ms at {clock_mhz:g} MHz",
+             va="bottom", ha="right", fontsize=8)
+    ax1.set_xticks([])
+    ax1.set_ylabel("cycles (1 wait state)")
+    ax1.set_title("costliest sample", fontsize=10)
+    handles, labels = ax1.get_legend_handles_labels()
+    ax1.legend(handles[::-1], labels[::-1], fontsize=7, loc="center left",
+               bbox_to_anchor=(1.02, 0.5))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _stage_table(results) -> None:
+    stages = list(dict.fromkeys(k for c in results.values() for k in c.run.by_stage))
+    print("\n| stage | " + " | ".join(f"{name}: instr/sample | cycles/sample (0 WS) | "
+                                     "in its costliest sample: cycles (1 WS)"
+                                     for name in results) + " |")
+    print("|---|" + "---:|---:|---:|" * len(results))
+    for stage in stages:
+        cells = []
+        for c in results.values():
+            n = len(c.run.instructions)
+            row = c.run.by_stage.get(stage, [0, 0, 0, 0])
+            peak = c.run.peak_by_stage.get(stage, [0, 0, 0, 0])
+            cells += [f"{row[0] / n:.0f}", f"{row[1] / n:.0f}", f"{peak[1] + peak[2] + peak[3]}"]
+        print(f"| {stage} | " + " | ".join(cells) + " |")
+
+
+def _input_table(results, period: float) -> None:
+    print("| input | samples | instr/sample mean | max | MIPS | cycles/sample mean (0 WS) | "
+          "max (0 WS) | max (1 WS) | RMS vs host (pps) | max abs (pps) | counters equal | "
+          "pulses fw / host | max count diff per channel-second |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|")
+    for name, c in results.items():
+        r = c.run
+        print(f"| {name} | {len(r.instructions)} | {r.instructions.mean():.0f} | "
+              f"{r.instructions.max()} | {r.instructions.mean() / period / 1e6:.3f} | "
+              f"{r.cycles.mean():.0f} | {r.cycles.max()} | {r.cycles_at(1).max()} | "
+              f"{c.worst_rms_pps:.3f} | {c.max_abs_pps:.3f} | {c.counters_equal} | "
+              f"{len(r.pulses)} / {len(c.host_pulses)} | {c.pulse_count_diff} |")
+        print("  RMS per afferent: " + ", ".join(f"{k} {v:.3f}" for k, v in c.rms_pps.items()))
+        print(f"  counters firmware: {r.counters}")
+        if not c.counters_equal:
+            print(f"  counters host:     {c.host_counters}")
+        print(f"  spindle steps per sample: {np.bincount(r.steps).tolist()}; statuses "
+              f"{sorted(set(r.status.tolist()))}; queue overruns {r.overruns}; pulse samples "
+              f"lost {r.pulses_lost}")
+
+
+def _clock(results, period: float) -> tuple[float, int]:
+    """The clock the costliest sample allows (printed with its margin) and that sample's
+    cycles at the clock's wait states."""
+    from spindle.native.m0plus import cycles as cyc
+
+    peak0 = max(int(c.run.cycles.max()) for c in results.values())
+    peak1 = max(int(c.run.cycles_at(1).max()) for c in results.values())
+
+    def peak(f: float) -> int:
+        return peak0 if cyc.wait_states(f) == 0 else peak1
+
+    def margin(f: float) -> float:
+        return 1 - peak(f) / (f * 1e6 * period)
+
+    keep = f"{cyc.DEADLINE_MARGIN:.0%} margin"
+    clock = cyc.lowest_clock_mhz(peak0, peak1, period)
+    if clock is not None:
+        head = f"lowest EFM32ZG HFRCO band meeting every sample's deadline with a {keep}"
+    else:
+        clock = max(cyc.HFRCO_BANDS_MHZ, key=margin)
+        head = (f"no EFM32ZG band keeps the {keep} "
+                f"({cyc.needed_clock_mhz(peak1, period):.1f} MHz would); the best band")
+    if margin(clock) < 0:
+        need = cyc.needed_clock_mhz(peak1, period)
+        print(f"deadline: the costliest sample ({peak1} cycles at 1 WS) needs {need:.1f} MHz "
+              f"with a {keep}, above the EFM32ZG's {cyc.MAX_CLOCK_MHZ:g} MHz")
+        return need, peak1
+    print(f"deadline ({period * 1e3:g} ms): {head}: {clock:g} MHz ({cyc.wait_states(clock)} "
+          f"wait states; costliest sample {peak(clock)} cycles = {peak(clock) / clock:.0f} us, "
+          f"margin {margin(clock):.1%})")
+    return clock, peak(clock)
+
+
+def _measure_build(build_dir: Path, defines: tuple[str, ...], inputs):
+    from spindle.native.m0plus import system as sysfw
+    from spindle.native.m0plus.isa import objdump_violations
+
+    elf = sysfw.build_system(build_dir, defines=defines)
+    fw = sysfw.SystemFirmware(elf)
+    results = {name: sysfw.compare(fw, t, c) for name, (t, c) in inputs.items()}
+    seen, bad = objdump_violations(elf)
+    flash, ram = sysfw.firmware_sizes(elf, fw.emu.stack_used(), build_dir, defines=defines)
+    return results, sorted(fw.emu.violations) + bad, seen, flash, ram, fw.emu.stack_used()
+
+
+def run_system(quick: bool, build_dir: Path, figure: Path | None = None) -> int:
+    """The whole-system firmware on the demo motion and the faulty trace (and, for the
+    breakdown, the build without the pulse encoder); prints the system's last line."""
+    from spindle.native.m0plus import cycles as cyc
+    from spindle.native.m0plus import system as sysfw
+    from spindle.native.m0plus.system_config import DEVICE_CONFIG, SPINDLE_STEP_S
+
+    t0 = time.perf_counter()
+    demo_s, fault_n = (1.5, 1500) if quick else (DEMO_CYCLES * 2 * 90 / 130, 10000)
+    t_f, c_f, faults = sysfw.fault_samples(fault_n, seed=1)
+    inputs = {"demo motion": sysfw.demo_samples(demo_s), "servo trace, jitter + faults": (t_f, c_f)}
+    period = sysfw.SAMPLE_PERIOD_S
+    print(f"\nwhole system (system.c, chain config max_bridge_s={DEVICE_CONFIG.max_bridge_s:g} s, "
+          f"spindles fixed point on a {SPINDLE_STEP_S * 1e3:g} ms grid) vs the host double "
+          f"chain (CArmChain, trapezoidal {DEVICE_CONFIG.spindle_step_s * 1e3:g} ms) and the "
+          f"host double stimulation encoder (CStimulator, StimConfig()); faults injected: "
+          f"{len(faults)} ({', '.join(sorted(set(faults)))})")
+    chain_only = tuple(d for d in sysfw.DEFINES if d != "FW_STIM")
+    base, *_, base_flash, base_ram, _ = _measure_build(
+        build_dir, chain_only, {"demo motion": inputs["demo motion"]})
+    print(f"without the pulse encoder (demo motion): "
+          f"{base['demo motion'].run.instructions.mean():.0f} instr/sample "
+          f"({base['demo motion'].run.instructions.mean() / period / 1e6:.3f} MIPS), "
+          f"costliest {base['demo motion'].run.cycles_at(1).max()} cycles (1 WS), flash "
+          f"{base_flash} B, RAM {base_ram} B")
+    results, violations, seen, flash, ram, stack = _measure_build(build_dir, sysfw.DEFINES,
+                                                                  inputs)
+    print("with the pulse encoder (FW_STIM):")
+    _input_table(results, period)
+    _stage_table(results)
+    clock, peak = _clock(results, period)
+    if figure is not None:
+        _stage_figure(results, figure, clock, period)
+        print(f"figure: {figure}")
+    mips = results["demo motion"].run.instructions.mean() / period / 1e6
+    rms = max(c.worst_rms_pps for c in results.values())
+    power = cyc.active_power_mw(clock)
+    busy = results["demo motion"].run.cycles_at(cyc.wait_states(clock)).mean() / (
+        clock * 1e6 * period)
+    print(f"power: {cyc.SUPPLY_V:g} V x {cyc.ACTIVE_UA_PER_MHZ:g} uA/MHz x {clock:.1f} MHz "
+          f"= {power:.2f} mW running continuously (the paper: under 10 mW); busy {busy:.0%} of "
+          f"each period on the demo motion (sleeping in between would lower the average)")
+    print(f"flash {flash} B, RAM {ram} B (stack high-water {stack} B); ARMv6-M: {seen} "
+          f"instructions disassembled, {len(violations)} ARMv7-M-only; "
+          f"{time.perf_counter() - t0:.0f} s")
+    if violations:
+        print("  ARMv7-M-only instructions:", *violations[:10], sep="\n    ")
+        return 1
+    print(f"system_mips={mips:.4f} system_peak_cycles_per_sample={peak} "
+          f"clock_mhz={clock:.1f} power_mw={power:.3f} flash_bytes={flash} "
+          f"ram_bytes={ram} rms_vs_host_pps={rms:.4f}")
+    ok = all(c.counters_equal and c.pulse_count_diff <= 1 for c in results.values())
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -75,7 +75,7 @@ def key(*parts: object) -> str:
     """A file-name key of the parts and of the C sources (a rebuild after any edit)."""
     digest = hashlib.sha256(repr(parts).encode())
     for path in (*sorted(C_DIR.glob("*.h")), C_DIR / "spindle.c", C_DIR / "stimulation.c",
-                 FW_DIR / "firmware.c"):
+                 FW_DIR / "firmware.c", FW_DIR / "startup.c"):
         digest.update(path.read_bytes())
     return digest.hexdigest()[:16]
 
@@ -169,7 +169,8 @@ def build_firmware(cfg: Config, build_dir: Path,
         extra += ["-I", cfg.stim_dir, str(C_DIR / "stimulation.c"),
                   "-Wl,--undefined=fw_stim_init", "-Wl,--undefined=fw_stim_step"]
     cmd = [tool("gcc"), *ARM_FLAGS, *cfg.c_defines(), "-I", str(C_DIR), *extra,
-           str(C_DIR / "spindle.c"), str(FW_DIR / "firmware.c"), "-T", str(FW_DIR / "m0plus.ld"),
+           str(C_DIR / "spindle.c"), str(FW_DIR / "firmware.c"), str(FW_DIR / "startup.c"),
+           "-T", str(FW_DIR / "m0plus.ld"),
            f"-Wl,--defsym=FW_STACK_SIZE={stack_bytes}", *LINK_FLAGS, "-o", str(elf)]
     subprocess.run(cmd, check=True)
     return elf

@@ -1,7 +1,12 @@
 """The firmware in unicorn's ARMv6-M (Cortex-M0) model, counting executed instructions.
 
 Every executed block is decoded once with the ARMv6-M rules (:mod:`.isa`) and counted each
-time it runs; the count is also attributed to the function it lies in (``profile``).
+time it runs; the count is also attributed to the function it lies in (``profile``). With
+``cycles=True`` it also counts Cortex-M0+ cycles (:mod:`.cycles`: the block's instruction
+timings, one more for a taken conditional branch, seen as a next block that does not follow
+on), the 32-bit words fetched from flash and the data reads from flash (for the wait-state
+model), and attributes all of them to the stage being run: ``stages`` maps function names to
+stage names, and a stage runs from the entry of its function to the entry of the next one.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import numpy as np
 
 from spindle.native.fixed import FX_DRIVE, FX_Q24, FX_RATE
 from spindle.native.m0plus.build import symbols
+from spindle.native.m0plus.cycles import block_cycles
 from spindle.native.m0plus.isa import decode_block
 
 STACK_PATTERN = 0xA5
@@ -40,8 +46,8 @@ def elf_load_segments(elf: Path) -> list[tuple[int, bytes]]:
 class M0Plus:
     """The firmware in unicorn's ARMv6-M (Cortex-M0) model, counting executed instructions."""
 
-    def __init__(self, elf: Path):
-        from unicorn import UC_ARCH_ARM, UC_HOOK_BLOCK, UC_MODE_THUMB, Uc
+    def __init__(self, elf: Path, cycles: bool = False, stages: dict[str, str] | None = None):
+        from unicorn import UC_ARCH_ARM, UC_HOOK_BLOCK, UC_HOOK_MEM_READ, UC_MODE_THUMB, Uc
         from unicorn.arm_const import UC_CPU_ARM_CORTEX_M0
 
         self.uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB)
@@ -63,6 +69,18 @@ class M0Plus:
         self._fn_addr = [a for a, _ in functions]
         self._fn_name = [n for _, n in functions]
         self.profile: collections.Counter = collections.Counter()
+        # cycle model: totals, and per stage [instructions, cycles, fetch words, flash reads]
+        self.cycles = self.fetches = self.flash_reads = 0
+        self.stage = "entry"
+        self.by_stage: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0, 0, 0])
+        self._stage_at = {self.sym[f][0] & ~1: name for f, name in (stages or {}).items()
+                          if f in self.sym}
+        self._timing: dict[tuple[int, int], tuple[int, bool, int]] = {}
+        self._pending_cond_end = -1
+        if cycles:
+            self.uc.hook_add(UC_HOOK_BLOCK, self._on_block_cycles)
+            self.uc.hook_add(UC_HOOK_MEM_READ, self._on_flash_read, begin=self.flash[0],
+                             end=self.flash[0] + self.flash[1] - 1)
         self.uc.hook_add(UC_HOOK_BLOCK, self._on_block)
 
     def _on_block(self, uc, address, size, _user):
@@ -75,6 +93,29 @@ class M0Plus:
         self.count += n
         self.profile[self._fn_name[bisect.bisect_right(self._fn_addr, address) - 1]] += n
 
+    def _on_block_cycles(self, uc, address, size, _user):
+        timing = self._timing.get((address, size))
+        if timing is None:
+            cycles, cond = block_cycles(bytes(uc.mem_read(address, size)))
+            words = (address + size - 1) // 4 - address // 4 + 1
+            timing = self._timing[(address, size)] = (cycles, cond, words)
+        cycles, cond, words = timing
+        if self._pending_cond_end >= 0 and address != self._pending_cond_end:
+            cycles += 1  # the previous block's conditional branch was taken
+        self._pending_cond_end = address + size if cond else -1
+        self.stage = self._stage_at.get(address, self.stage)
+        self.cycles += cycles
+        self.fetches += words
+        row = self.by_stage[self.stage]
+        row[1] += cycles
+        row[2] += words
+        row[0] += self.blocks.get((address, size)) or decode_block(
+            bytes(uc.mem_read(address, size)))[0]
+
+    def _on_flash_read(self, _uc, _access, _address, _size, _value, _user):
+        self.flash_reads += 1
+        self.by_stage[self.stage][3] += 1
+
     def call(self, name: str, *args: int) -> tuple[int, int]:
         """Run a firmware function to its return; (return value, instructions executed)."""
         from unicorn.arm_const import UC_ARM_REG_LR, UC_ARM_REG_R0, UC_ARM_REG_SP
@@ -85,6 +126,8 @@ class M0Plus:
         self.uc.reg_write(UC_ARM_REG_SP, self.stack[1])
         self.uc.reg_write(UC_ARM_REG_LR, halt | 1)
         before = self.count
+        self.stage = "entry"
+        self._pending_cond_end = -1
         self.uc.emu_start(self.sym[name][0] | 1, halt)
         return self.uc.reg_read(UC_ARM_REG_R0), self.count - before
 

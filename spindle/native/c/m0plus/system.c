@@ -1,0 +1,738 @@
+/*
+ * system.c -- the whole prosthesis on a Cortex-M0+: one call per encoder sample.
+ *
+ *   reading -> median -> f(x) -> fitted lengths -> tracking low-pass -> predictor and
+ *   fusimotor drive -> BRA/TRImed spindles (fixed point) [-> tendon organs] [-> pulses]
+ *   -> output record
+ *
+ * fw_sample() is what a 500 Hz timer interrupt would run: it reads the sample in fw_in (time,
+ * counts and, for the tendon organs, the load) and runs the stages of fw_stages[] in order,
+ * each a function of the sample context (the table is what the bench's per-stage breakdown
+ * follows: a stage is everything from its entry to the next stage's). The tendon organs and
+ * the stimulation encoder slot in as two more rows (FW_GTO, FW_STIM sections below).
+ *
+ * Everything after the time rules is integer arithmetic (no FPU on the part; soft float costs
+ * 30-100 instructions per operation): angles Q16 deg, lengths Q24 L0, velocities Q20 L0/s,
+ * drives Q8 pps, rates Q16 pps, intervals in whole microseconds. Only the time rules compare
+ * the sample's time as a double, as the host chain does (ps_time), so the bad-sample rules and
+ * counters are those of spindle/chain/arm.py and chain.c (see fw_counters).
+ *
+ * The spindles run on a fixed grid of FW_SPINDLE_STEP_US (the plan's h, generated on the host
+ * by ps_plan_fx_init), the two muscles' grids offset by half a step so that a sample at the
+ * nominal rate steps one spindle; at each grid point in the sample's interval the length
+ * follows the cubic Hermite curve through the interval's ends (as chain.c's sub-steps), and a
+ * muscle's output holds its last step's rates. A sample runs at most FW_MAX_STEPS (1) spindle
+ * steps, the oldest queued grid point first: one step is the worst case of a sample (with the
+ * grids offset, a sample at the nominal rate has one grid point; jitter and bridged intervals
+ * queue the others for the next samples).
+ *
+ * The configuration (fw_system_config.h: const fw_config fw_cfg, const ps_plan_fx fw_plan) is
+ * generated on the host by spindle.native.m0plus.system_config from a ChainConfig.
+ */
+#include "proprio.h"
+
+#include <stdint.h>
+
+/* ---- configuration (generated) -------------------------------------------------------- */
+
+#define FW_DECAY_COARSE 128 /* the decay tables cover intervals below 128 * 64 us = 8.2 ms */
+
+typedef struct fw_config {
+    double gap_s, max_bridge_s;  /* the chain's interval rules (s) */
+    int32_t resync_after_samples;
+    int32_t max_count;           /* valid readings: integers 0..max_count */
+    int32_t median_window;
+    int32_t zero_Q16;            /* zero_count (counts, Q16) */
+    int32_t deg_per_count_Q30;   /* count_sign * deg_per_count (deg, Q30) */
+    int32_t angle_min_Q16, angle_max_Q16;       /* the fitted range (deg, Q16) */
+    int32_t fit_mid_Q16, fit_scale_Q30;         /* x = (angle - mid) * scale, scale in 1/deg */
+    int32_t n_coefficients[PS_MUSCLES];
+    int32_t coefficients_Q28[PS_MUSCLES][PS_FIT_MAX_COEFFS];
+    int32_t max_speed_deg_Q32_us;               /* max_speed_deg_s: deg per us, Q32 */
+    int32_t max_speed_L0_Q40_us;                /* max_speed_L0_s: L0 per us, Q40 */
+    int32_t omega_Q16;                          /* tracking low-pass (rad/s) */
+    int32_t two_over_omega_Q32;                 /* 2 / omega (s) */
+    int32_t predictor_period_us, predictor_keep;
+    int32_t predictor_period_Q30;               /* 1 / predictor_rate_hz (s) */
+    int32_t kp_Q16, ki_dt_Q16;                  /* 1/s; ki * period (1/s) */
+    int32_t delay_us, threshold_Q24;
+    int32_t gs_min_Q8, gs_max_Q8, gd_Q8;
+    int32_t length_max_Q24[PS_MUSCLES];         /* h(x): gs = min + gain (Lmax - template) */
+    int32_t gs_gain_Q8[PS_MUSCLES];             /* span / (Lmax - Lmin) (pps/L0) */
+    int32_t spindle_step_us;                    /* the plan's h */
+    /* e^(-omega dt) of the tracking filter for dt = 64 i + j us (Q30): coarse i, fine j */
+    int32_t decay_coarse_Q30[FW_DECAY_COARSE], decay_fine_Q30[64];
+} fw_config;
+
+#include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; with
+                                * FW_STIM the channel map fw_stim_source[channel] =
+                                * {muscle, 0: Ia / 1: II} */
+#ifdef FW_STIM
+/* const ps_stim_fx_config fw_stim_config (spindle.native.m0plus.stim) */
+#include "fw_stim_config.h"
+#endif
+
+/* ---- state ----------------------------------------------------------------------------- */
+
+/* chain.COUNTERS, in that order (only the rules a counts-only entry can reach increment
+ * invalid_angle and invalid_length: never). */
+typedef struct fw_counters {
+    uint32_t accepted, invalid_reading, invalid_angle, invalid_length, repeated_time,
+        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs;
+} fw_counters;
+
+#define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz) */
+#define FW_PENDING 8  /* queued spindle grid points per muscle */
+
+typedef struct fw_state {
+    int32_t median[PS_MEDIAN_MAX_WINDOW];
+    int32_t median_next;
+    double t_s, epoch_s;          /* last accepted time; times below count from the epoch */
+    int64_t t_key;                /* order_key(t_s) */
+    uint32_t t_us;                /* last accepted time since the epoch */
+    int32_t behind;
+    int32_t angle_Q16;
+    int32_t u_Q24[PS_MUSCLES], x_Q24[PS_MUSCLES], v_Q20[PS_MUSCLES];
+    /* predictor: the last segments (t, p, u), oldest first from seg_first */
+    uint32_t seg_t_us[FW_SEGMENTS];
+    int32_t seg_p_Q24[FW_SEGMENTS][PS_MUSCLES], seg_u_Q20[FW_SEGMENTS][PS_MUSCLES];
+    int32_t integral_Q20[PS_MUSCLES];
+    int32_t seg_first, seg_count;
+    /* spindles */
+    ps_spindle_fx spindle[PS_MUSCLES];
+    uint32_t next_step_us[PS_MUSCLES];
+    int32_t last_L_Q24[PS_MUSCLES]; /* the last grid point's length */
+    int32_t pending_L_Q24[PS_MUSCLES][FW_PENDING], pending_n[PS_MUSCLES]; /* queued grid points */
+    uint32_t pending_t_us[PS_MUSCLES][FW_PENDING];
+    int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
+    int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
+#ifdef FW_STIM
+    int32_t held_Q16[PS_STIM_MAX_CHANNELS]; /* each channel's rate since the last sample */
+#endif
+    int32_t started;
+} fw_state;
+
+/* One sample as the interrupt gets it. */
+typedef struct fw_input {
+    double t_s;
+    float counts;
+    float load[PS_MUSCLES]; /* the load reading, for the tendon organs (FW_GTO) */
+} fw_input;
+
+/* What a sample leaves in the output ring. */
+typedef struct fw_record {
+    uint32_t t_us;
+    int32_t accepted; /* 0: rejected (counted), 1: accepted, 2: restarted at rest */
+    int32_t status;   /* PS_OK or a spindle step's failure */
+    int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
+    int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
+    int32_t steps;    /* spindle steps taken in this sample */
+} fw_record;
+
+#define FW_RING 8
+
+fw_input fw_in;
+fw_counters fw_count;
+fw_record fw_out[FW_RING];
+uint32_t fw_out_head; /* records written so far; the newest is fw_out[(head - 1) % FW_RING] */
+uint32_t fw_overruns;  /* samples that ran more than FW_MAX_STEPS spindle steps */
+static fw_state st;
+
+/* The working values of one sample, passed from stage to stage. */
+typedef struct fw_ctx {
+    int64_t t_key;
+    int32_t counts, filtered, angle_Q16, restart;
+    uint32_t t_us;
+    int32_t dt_us, dt_Q30, inv_dt_Q12;
+    int32_t L_Q24[PS_MUSCLES], x1_Q24[PS_MUSCLES], v1_Q20[PS_MUSCLES], tmpl_Q24[PS_MUSCLES];
+    int32_t status, steps;
+} fw_ctx;
+
+enum { FW_NEXT = 0, FW_DONE = 1 }; /* a stage's return: go on, or the sample is finished */
+
+/* ---- arithmetic ------------------------------------------------------------------------ */
+
+/* round(a b / 2^shift) for 0 < shift < 32 and a result within int32: the 64-bit product
+ * from 16-bit halves (the M0+ multiplies 32x32->32; libgcc's __muldi3 took ~40 instructions
+ * and a call per product), floored after adding 2^(shift-1), exactly as (a b + 2^(shift-1))
+ * >> shift in int64. a = ah 2^16 + al (al unsigned), likewise b, so every partial product
+ * fits in 32 bits. */
+__attribute__((always_inline)) static inline int32_t mul_q(int32_t a, int32_t b, int shift)
+{
+    int32_t ah = a >> 16, bh = b >> 16;
+    uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
+    int32_t hl = ah * (int32_t)bl, lh = (int32_t)al * bh;
+    uint32_t ll = al * bl;
+    uint32_t mid = ((uint32_t)hl & 0xFFFFu) + ((uint32_t)lh & 0xFFFFu) + (ll >> 16);
+    int32_t hi = ah * bh + (hl >> 16) + (lh >> 16) + (int32_t)(mid >> 16);
+    uint32_t lo = (mid << 16) | (ll & 0xFFFFu);
+    uint32_t rounded = lo + (1u << (shift - 1));
+    hi += rounded < lo; /* the carry */
+    return (int32_t)(((uint32_t)hi << (32 - shift)) | (rounded >> shift));
+}
+
+static int32_t clamp_i32(int32_t x, int32_t lo, int32_t hi)
+{
+    return x < lo ? lo : x > hi ? hi : x;
+}
+
+/* An interval in us (<= 2^21) as seconds in Q30. */
+static int32_t us_to_Q30(int32_t us) { return mul_q(us, 1099512, 10); /* 2^40 / 1e6 */ }
+
+/* exp(-y) in Q30 for 0 <= y (Q28) < 8: Taylor series of exp(-y/8) to z^8 (the first term
+ * left out is below 2^-31 for z < 1), then three squarings. */
+static int32_t exp_neg_Q30(int32_t y_Q28)
+{
+    static const int32_t inv_k_Q30[9] = {0, 1073741824, 536870912, 357913941, 268435456,
+                                         214748365, 178956971, 153391689, 134217728};
+    int32_t z = y_Q28 >> 1; /* y / 8 in Q30 */
+    int32_t term = 1 << 30, sum = 1 << 30;
+    int k;
+    for (k = 1; k <= 8 && term != 0; ++k) { /* a term that rounds to 0 ends the series */
+        term = -mul_q(mul_q(term, z, 30), inv_k_Q30[k], 30);
+        sum += term;
+    }
+    for (k = 0; k < 3; ++k) {
+        sum = mul_q(sum, sum, 30);
+    }
+    return sum;
+}
+
+/* ---- stages ---------------------------------------------------------------------------- */
+
+static int rest_spindles(fw_ctx *c);
+
+/* A double's order as an int64 (IEEE sign-magnitude to two's complement; -0 and +0 alike):
+ * the time rules compare times exactly as doubles without a soft-float call. NaN excluded. */
+static int64_t order_key(double x)
+{
+    union { double d; uint64_t u; } v;
+    v.d = x;
+    return (v.u >> 63) ? -(int64_t)(v.u & 0x7FFFFFFFFFFFFFFFull) : (int64_t)v.u;
+}
+
+static int is_finite_time(double x)
+{
+    union { double d; uint64_t u; } v;
+    v.d = x;
+    return ((uint32_t)(v.u >> 52) & 0x7FFu) != 0x7FFu;
+}
+
+/* is_valid_reading on the float's bits: an integer in 0..max_count (-0 reads 0), else -1. */
+static int32_t valid_reading(float x, int32_t max_count)
+{
+    union { float f; uint32_t u; } v;
+    uint32_t mantissa;
+    int32_t e;
+    v.f = x;
+    if ((v.u & 0x7FFFFFFFu) == 0) {
+        return 0;
+    }
+    e = (int32_t)((v.u >> 23) & 0xFFu) - 127;
+    if ((v.u >> 31) || e < 0 || e > 23) { /* negative, NaN, inf, below 1 or above 2^24 */
+        return -1;
+    }
+    mantissa = (v.u & 0x7FFFFFu) | 0x800000u;
+    if (mantissa & ((1u << (23 - e)) - 1u)) {
+        return -1; /* a fraction */
+    }
+    return (int32_t)(mantissa >> (23 - e)) <= max_count ? (int32_t)(mantissa >> (23 - e)) : -1;
+}
+
+/* Move the epoch to the last accepted sample's time and every time kept since the old one
+ * back by as much (times are uint32 us since the epoch, kept below 2^31: every use is a
+ * difference of nearby times). Called once the epoch is FW_EPOCH_S old; no double addition
+ * (it would link libgcc's __aeabi_dadd, 1.7 KB). */
+#ifndef FW_EPOCH_S
+#define FW_EPOCH_S 1000 /* s */
+#endif
+static void rebase_epoch(void)
+{
+    const uint32_t shift = st.t_us;
+    int m, k;
+    st.epoch_s = st.t_s;
+    st.t_us = 0;
+    for (k = 0; k < FW_SEGMENTS; ++k) {
+        st.seg_t_us[k] -= shift;
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        st.next_step_us[m] -= shift;
+        for (k = 0; k < FW_PENDING; ++k) {
+            st.pending_t_us[m][k] -= shift;
+        }
+    }
+}
+
+/* ArmChain._time and the reading check: the bad-sample rules that reject a sample. */
+static int stage_reading(fw_ctx *c)
+{
+    const double t = fw_in.t_s;
+    int64_t t_key, dt_key = 0;
+    if (!is_finite_time(t)) {
+        fw_count.bad_time += 1;
+        return FW_DONE;
+    }
+    t_key = order_key(t);
+    if (st.started && t_key == st.t_key) {
+        fw_count.repeated_time += 1;
+        return FW_DONE;
+    }
+    if (st.started && t_key < st.t_key) {
+        st.behind += 1;
+        if (st.behind < fw_cfg.resync_after_samples) {
+            fw_count.time_backwards += 1;
+            return FW_DONE;
+        }
+    }
+    c->counts = valid_reading(fw_in.counts, fw_cfg.max_count);
+    if (c->counts < 0) {
+        fw_count.invalid_reading += 1;
+        return FW_DONE;
+    }
+    if (!st.started) { /* the host's reset: counters from zero */
+        fw_counters zero = {0};
+        fw_count = zero;
+    }
+    if (st.started && t_key > st.t_key) {
+        dt_key = order_key(t - st.t_s); /* the host's interval, to the bit */
+    }
+    /* before the first valid sample there is no interval: it starts the arm at rest, as the
+     * host's reset does (no gap, restart or accepted sample counted) */
+    c->restart = !st.started || t_key < st.t_key || dt_key > order_key(fw_cfg.max_bridge_s);
+    if (st.started && dt_key > order_key(fw_cfg.gap_s)) {
+        fw_count.gaps += 1;
+    }
+    c->t_key = t_key;
+    if (c->restart) {
+        c->t_us = 0;
+        c->dt_us = 0;
+    } else {
+        double half_us = (t - st.epoch_s) * 2e6;
+        if (order_key(half_us) >= order_key(2e6 * FW_EPOCH_S)) { /* the epoch moves on */
+            rebase_epoch();
+            half_us = (t - st.epoch_s) * 2e6;
+        }
+        c->t_us = ((uint32_t)half_us + 1u) >> 1; /* rounded to the us, below 2^31 */
+        c->dt_us = (int32_t)(c->t_us - st.t_us);
+    }
+    c->dt_Q30 = us_to_Q30(c->dt_us);
+    c->inv_dt_Q12 = c->dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)c->dt_us) : 0;
+    return FW_NEXT;
+}
+
+/* MedianFilter: the window's middle value (a restart refills the window instead). */
+static int stage_median(fw_ctx *c)
+{
+    int32_t sorted[PS_MEDIAN_MAX_WINDOW];
+    int i, j, n = fw_cfg.median_window;
+    if (c->restart) {
+        for (i = 0; i < n; ++i) {
+            st.median[i] = c->counts;
+        }
+        st.median_next = 0;
+        c->filtered = c->counts;
+        return FW_NEXT;
+    }
+    st.median[st.median_next] = c->counts;
+    st.median_next = st.median_next + 1 == n ? 0 : st.median_next + 1;
+    for (i = 0; i < n; ++i) {
+        int32_t v = st.median[i];
+        for (j = i; j > 0 && sorted[j - 1] > v; --j) {
+            sorted[j] = sorted[j - 1];
+        }
+        sorted[j] = v;
+    }
+    c->filtered = sorted[n / 2];
+    return FW_NEXT;
+}
+
+/* f(x), the angle's slew limit and the clamp to the fitted range. */
+static int stage_angle(fw_ctx *c)
+{
+    int32_t angle = mul_q(c->filtered * 65536 - fw_cfg.zero_Q16, fw_cfg.deg_per_count_Q30, 30);
+    if (!c->restart) {
+        int32_t limit = mul_q(fw_cfg.max_speed_deg_Q32_us, c->dt_us, 16);
+        int32_t change = angle - st.angle_Q16;
+        if (change > limit || change < -limit) {
+            fw_count.slew_limited += 1;
+            angle = st.angle_Q16 + (change < 0 ? -limit : limit);
+        }
+    }
+    if (angle < fw_cfg.angle_min_Q16 || angle > fw_cfg.angle_max_Q16) {
+        fw_count.angle_clamped += 1;
+        angle = clamp_i32(angle, fw_cfg.angle_min_Q16, fw_cfg.angle_max_Q16);
+    }
+    c->angle_Q16 = angle;
+    return FW_NEXT;
+}
+
+/* The length fits: Chebyshev series in the scaled angle (Clenshaw), Q28. */
+static int stage_lengths(fw_ctx *c)
+{
+    int32_t x = mul_q(c->angle_Q16 - fw_cfg.fit_mid_Q16, fw_cfg.fit_scale_Q30, 18); /* Q28 */
+    int m, k;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        const int32_t *a = fw_cfg.coefficients_Q28[m];
+        int n = fw_cfg.n_coefficients[m];
+        int32_t b1 = 0, b2 = 0, x2 = 2 * x;
+        for (k = n - 1; k >= 1; --k) {
+            int32_t b0 = a[k] + mul_q(x2, b1, 28) - b2;
+            b2 = b1;
+            b1 = b0;
+        }
+        c->L_Q24[m] = (a[0] + mul_q(x, b1, 28) - b2 + 8) >> 4;
+    }
+    return FW_NEXT;
+}
+
+/* The lengths' slew limit and the tracking low-pass (conditioning.tracking_step's closed
+ * form: the input linear over the interval). */
+static int stage_tracking(fw_ctx *c)
+{
+    int32_t limit, decay, m, limited = 0;
+    if (c->restart) {
+        return FW_NEXT;
+    }
+    limit = mul_q(fw_cfg.max_speed_L0_Q40_us, c->dt_us, 16);
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        int32_t change = c->L_Q24[m] - st.u_Q24[m];
+        limited |= change > limit || change < -limit;
+    }
+    if (limited) {
+        fw_count.slew_limited += 1;
+        for (m = 0; m < PS_MUSCLES; ++m) {
+            c->L_Q24[m] = st.u_Q24[m] + clamp_i32(c->L_Q24[m] - st.u_Q24[m], -limit, limit);
+        }
+    }
+    /* from the tables (one product) within them, else the series (a longer max_bridge_s) */
+    if (c->dt_us < 64 * FW_DECAY_COARSE) {
+        decay = mul_q(fw_cfg.decay_coarse_Q30[c->dt_us >> 6],
+                      fw_cfg.decay_fine_Q30[c->dt_us & 63], 30);
+    } else {
+        decay = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, c->dt_Q30, 18));
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m];
+        int32_t slope = mul_q(u1 - u0, c->inv_dt_Q12, 16);                 /* Q20 */
+        int32_t offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);      /* Q24 */
+        int32_t A = st.x_Q24[m] - u0 + offset;                             /* Q24 */
+        int32_t B = st.v_Q20[m] - slope + mul_q(fw_cfg.omega_Q16, A, 20);  /* Q20 */
+        int32_t AB = A + mul_q(B, c->dt_Q30, 26);                          /* Q24 */
+        if (c->dt_us == 0) { /* an interval below 1 us: nothing moves */
+            c->x1_Q24[m] = st.x_Q24[m];
+            c->v1_Q20[m] = st.v_Q20[m];
+            continue;
+        }
+        c->x1_Q24[m] = u1 - offset + mul_q(AB, decay, 30);
+        c->v1_Q20[m] = slope + mul_q(B - mul_q(fw_cfg.omega_Q16, AB, 20), decay, 30);
+    }
+    return FW_NEXT;
+}
+
+static int seg_index(int i) { return (st.seg_first + i) % FW_SEGMENTS; }
+
+/* The template of segment s at time t (us). */
+static int32_t seg_template(int s, int m, uint32_t t_us)
+{
+    int32_t elapsed = (int32_t)(t_us - st.seg_t_us[s]);
+    return st.seg_p_Q24[s][m] + mul_q(st.seg_u_Q20[s][m], us_to_Q30(elapsed), 26);
+}
+
+/* MotionPredictor (the down-sampled PI template) and Fusimotor: gamma_s = h(x), gamma_d =
+ * g(x) from the template now and delay_s ago. */
+static int stage_fusimotor(fw_ctx *c)
+{
+    const int32_t *in = c->restart ? c->L_Q24 : c->x1_Q24;
+    int32_t delayed[PS_MUSCLES];
+    uint32_t t_d = c->t_us - (uint32_t)fw_cfg.delay_us;
+    int m, i;
+    if (c->restart) {
+        st.seg_first = 0;
+        st.seg_count = 1;
+        st.seg_t_us[0] = c->t_us;
+        for (m = 0; m < PS_MUSCLES; ++m) {
+            st.seg_p_Q24[0][m] = in[m];
+            st.seg_u_Q20[0][m] = 0;
+            st.integral_Q20[m] = 0;
+        }
+    }
+    for (;;) {
+        int newest = seg_index(st.seg_count - 1), slot;
+        if ((int32_t)(c->t_us - st.seg_t_us[newest]) < fw_cfg.predictor_period_us) {
+            break;
+        }
+        if (st.seg_count == fw_cfg.predictor_keep) {
+            st.seg_first = (st.seg_first + 1) % FW_SEGMENTS;
+            st.seg_count -= 1;
+            newest = seg_index(st.seg_count - 1);
+        }
+        slot = seg_index(st.seg_count);
+        st.seg_t_us[slot] = st.seg_t_us[newest] + (uint32_t)fw_cfg.predictor_period_us;
+        for (m = 0; m < PS_MUSCLES; ++m) {
+            int32_t p = st.seg_p_Q24[newest][m]
+                        + mul_q(st.seg_u_Q20[newest][m], fw_cfg.predictor_period_Q30, 26);
+            int32_t error = in[m] - p;
+            st.integral_Q20[m] += mul_q(fw_cfg.ki_dt_Q16, error, 20);
+            st.seg_p_Q24[slot][m] = p;
+            st.seg_u_Q20[slot][m] = mul_q(fw_cfg.kp_Q16, error, 20) + st.integral_Q20[m];
+        }
+        st.seg_count += 1;
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        c->tmpl_Q24[m] = seg_template(seg_index(st.seg_count - 1), m, c->t_us);
+        delayed[m] = st.seg_p_Q24[st.seg_first][m];
+    }
+    for (i = st.seg_count - 1; i >= 0; --i) {
+        int s = seg_index(i);
+        if ((int32_t)(st.seg_t_us[s] - t_d) <= 0) {
+            for (m = 0; m < PS_MUSCLES; ++m) {
+                delayed[m] = seg_template(s, m, t_d);
+            }
+            break;
+        }
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        int32_t gs = fw_cfg.gs_min_Q8 + mul_q(fw_cfg.length_max_Q24[m] - c->tmpl_Q24[m],
+                                              fw_cfg.gs_gain_Q8[m], 24);
+        st.gs_Q8[m] = clamp_i32(gs, fw_cfg.gs_min_Q8, fw_cfg.gs_max_Q8);
+        st.gd_Q8[m] = delayed[m] - c->tmpl_Q24[m] > fw_cfg.threshold_Q24 ? 0 : fw_cfg.gd_Q8;
+    }
+    return FW_NEXT;
+}
+
+/* The length at grid time tau of the Hermite curve through the interval's ends. */
+static int32_t hermite_Q24(const fw_ctx *c, int m, uint32_t tau_us)
+{
+    int32_t s = (int32_t)((((uint32_t)(tau_us - st.t_us)) << 15) / (uint32_t)c->dt_us) << 9;
+    int32_t s2 = mul_q(s, s, 24), s3 = mul_q(s2, s, 24);
+    int32_t w1 = 3 * s2 - 2 * s3, w2 = s3 - 2 * s2 + s, w3 = s3 - s2;
+    int32_t x0 = st.x_Q24[m], x1 = c->x1_Q24[m];
+    int32_t slopes = mul_q(w2, st.v_Q20[m], 24) + mul_q(w3, c->v1_Q20[m], 24); /* Q20 */
+    return x0 + mul_q(w1, x1 - x0, 24) + mul_q(slopes, c->dt_Q30, 26);
+}
+
+#ifndef FW_MAX_STEPS
+#define FW_MAX_STEPS 1 /* spindle steps per sample: what bounds a sample's worst case */
+#endif
+/* Step the muscle whose oldest queued grid point is the earliest. */
+static int step_oldest(fw_ctx *c)
+{
+    int m = 0, k, status;
+    int32_t L;
+    if (st.pending_n[1] > 0 && (st.pending_n[0] == 0 || (int32_t)(st.pending_t_us[1][0]
+                                                        - st.pending_t_us[0][0]) < 0)) {
+        m = 1;
+    }
+    L = st.pending_L_Q24[m][0];
+    status = ps_spindle_step_fx(&st.spindle[m], &fw_plan, L, st.gd_Q8[m], st.gs_Q8[m],
+                                &st.ia_Q16[m], &st.ii_Q16[m]);
+    if (status != PS_OK) {
+        c->status = status;
+    }
+    st.pending_n[m] -= 1;
+    for (k = 0; k < st.pending_n[m]; ++k) {
+        st.pending_L_Q24[m][k] = st.pending_L_Q24[m][k + 1];
+        st.pending_t_us[m][k] = st.pending_t_us[m][k + 1];
+    }
+    c->steps += 1;
+    return status;
+}
+
+/* The spindles: every grid point of the interval queues its length (the Hermite curve, within
+ * the slew limit of the previous grid point and the spindle's range); at most FW_MAX_STEPS of
+ * the queued steps run in this sample, oldest first (a queue that fills runs its oldest at
+ * once, counted in fw_overruns). */
+static int stage_spindles(fw_ctx *c)
+{
+    const int32_t reach = mul_q(fw_cfg.max_speed_L0_Q40_us, fw_cfg.spindle_step_us, 16);
+    int m, k;
+    if (c->restart) {
+        return rest_spindles(c);
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        while ((int32_t)(c->t_us - st.next_step_us[m]) >= 0) {
+            int32_t L = (st.next_step_us[m] == c->t_us) ? c->x1_Q24[m]
+                                                         : hermite_Q24(c, m, st.next_step_us[m]);
+            L = clamp_i32(L, st.last_L_Q24[m] - reach, st.last_L_Q24[m] + reach);
+            L = clamp_i32(L, PS_FX_ONE / 2, PS_FX_ONE + PS_FX_ONE / 2);
+            if (st.pending_n[m] == FW_PENDING) {
+                fw_overruns += 1;
+                (void)step_oldest(c);
+            }
+            st.pending_L_Q24[m][st.pending_n[m]] = L;
+            st.pending_t_us[m][st.pending_n[m]] = st.next_step_us[m];
+            st.pending_n[m] += 1;
+            st.last_L_Q24[m] = L;
+            st.next_step_us[m] += (uint32_t)fw_cfg.spindle_step_us;
+        }
+    }
+    for (k = 0; k < FW_MAX_STEPS && st.pending_n[0] + st.pending_n[1] > 0; ++k) {
+        if (step_oldest(c) != PS_OK) {
+            break;
+        }
+    }
+    return FW_NEXT;
+}
+
+/* At rest at the sample: the spindles' equilibrium, their grids restarting from now. */
+static int rest_spindles(fw_ctx *c)
+{
+    int m;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        int status = ps_spindle_fx_init(&st.spindle[m], &fw_plan, c->L_Q24[m], st.gd_Q8[m],
+                                        st.gs_Q8[m]);
+        if (status != PS_OK) {
+            c->status = status;
+            return FW_NEXT;
+        }
+        ps_spindle_fx_afferents(&st.spindle[m], &fw_plan, &st.ia_Q16[m], &st.ii_Q16[m]);
+        st.last_L_Q24[m] = c->L_Q24[m];
+        st.pending_n[m] = 0;
+        st.next_step_us[m] = c->t_us + (uint32_t)(fw_cfg.spindle_step_us * (m + 1) / 2);
+        c->x1_Q24[m] = c->L_Q24[m];
+        c->v1_Q20[m] = 0;
+    }
+    return FW_NEXT;
+}
+
+#ifdef FW_GTO
+/* The tendon organs (Ib) from the load reading fw_in.load: branch gto's fixed-point step
+ * (ps_gto_step_fx of tendon_organ.c) slots in here. */
+#error "FW_GTO: the tendon-organ stage needs tendon_organ.c (branch gto)"
+#endif
+
+#ifdef FW_STIM
+/* The stimulation encoder (stimulation.c's fixed-point form, ps_stim_fx_step): the interval
+ * that just ended, [previous sample, this sample), carried the rates the previous sample
+ * output (held until this one), so it is encoded with those; its pulse events go to the ring
+ * fw_pulses. Nothing is delivered across a restart (the interval is not bridged). */
+#define FW_PULSE_RING 16 /* read out (by the stimulator's driver) after every sample */
+#define FW_MAX_PULSES 8  /* per sample: 4 channels at <= 300 pps over <= 6 ms need <= 8 */
+ps_pulse_fx fw_pulses[FW_PULSE_RING];
+uint32_t fw_pulse_head; /* events written so far */
+uint32_t fw_pulse_lost; /* samples whose pulses did not fit FW_MAX_PULSES (not delivered) */
+static ps_stim_fx_state stim;
+static ps_pulse_fx events[FW_MAX_PULSES]; /* one sample's pulses (static: not on the stack) */
+
+static int stage_stim(fw_ctx *c)
+{
+    long n = 0, k;
+    int status;
+    if (c->restart || c->dt_us <= 0) {
+        return FW_NEXT;
+    }
+    status = ps_stim_fx_step(&stim, &fw_stim_config, st.held_Q16, c->dt_us, events,
+                             FW_MAX_PULSES, &n);
+    if (status == PS_ERR_BUFFER_FULL) {
+        fw_pulse_lost += 1;
+        return FW_NEXT;
+    }
+    if (status != PS_OK) {
+        c->status = status;
+        return FW_NEXT;
+    }
+    for (k = 0; k < n; ++k) {
+        fw_pulses[fw_pulse_head % FW_PULSE_RING] = events[k];
+        fw_pulse_head += 1;
+    }
+    return FW_NEXT;
+}
+#endif
+
+/* Commit the sample and write its record. */
+static int stage_output(fw_ctx *c)
+{
+    fw_record *r = &fw_out[fw_out_head % FW_RING];
+    int m;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        st.u_Q24[m] = c->L_Q24[m];
+        st.x_Q24[m] = c->x1_Q24[m];
+        st.v_Q20[m] = c->v1_Q20[m];
+        r->ia_Q16[m] = st.ia_Q16[m];
+        r->ii_Q16[m] = st.ii_Q16[m];
+        r->gs_Q8[m] = st.gs_Q8[m];
+        r->gd_Q8[m] = st.gd_Q8[m];
+    }
+#ifdef FW_STIM
+    /* the channels' rates until the next sample */
+    for (m = 0; m < fw_stim_config.n_channels; ++m) {
+        int32_t muscle = fw_stim_source[m][0];
+        st.held_Q16[m] = fw_stim_source[m][1] == 0 ? st.ia_Q16[muscle] : st.ii_Q16[muscle];
+    }
+#endif
+    if (st.started) {
+        fw_count.accepted += 1;
+        if (c->restart) {
+            fw_count.restarts += 1;
+            fw_count.clock_resyncs += c->t_key < st.t_key ? 1u : 0u;
+        }
+    }
+    st.started = 1;
+    st.angle_Q16 = c->angle_Q16;
+    if (c->restart) {
+        st.epoch_s = fw_in.t_s;
+    }
+    st.t_s = fw_in.t_s;
+    st.t_key = c->t_key;
+    st.t_us = c->t_us;
+    st.behind = 0;
+    r->t_us = c->t_us;
+    r->accepted = c->restart ? 2 : 1;
+    r->status = c->status;
+    r->steps = c->steps;
+    fw_out_head += 1;
+    return FW_DONE;
+}
+
+typedef int (*fw_stage_fn)(fw_ctx *c);
+
+/* The per-sample pipeline, in order (the bench attributes instructions to these). */
+static const fw_stage_fn fw_stages[] = {
+    stage_reading, stage_median, stage_angle, stage_lengths, stage_tracking, stage_fusimotor,
+    stage_spindles,
+#ifdef FW_GTO
+    stage_tendon,
+#endif
+#ifdef FW_STIM
+    stage_stim,
+#endif
+    stage_output,
+};
+
+/* One encoder sample (fw_in): the timer interrupt's work. Returns PS_OK, or the status of a
+ * failed spindle step (the sample is then still committed, its record says so). */
+int fw_sample(void)
+{
+    fw_ctx c;
+    unsigned k;
+    c.status = PS_OK;
+    c.steps = 0;
+    for (k = 0; k < sizeof fw_stages / sizeof fw_stages[0]; ++k) {
+        if (fw_stages[k](&c) == FW_DONE) {
+            break;
+        }
+    }
+    return c.status;
+}
+
+/* Before the first sample: the first sample restarts the chain at rest (the host's
+ * run_chain resets at the first valid sample: the same outputs and counters). */
+int fw_init(void)
+{
+    st.started = 0;
+    st.t_s = 0.0;
+    st.behind = 0;
+    fw_out_head = 0;
+    fw_overruns = 0;
+#ifdef FW_STIM
+    fw_pulse_head = 0;
+    fw_pulse_lost = 0;
+    return ps_stim_fx_init(&stim, &fw_stim_config, 0);
+#else
+    return PS_OK;
+#endif
+}
+
+/* Start-up (vectors, Reset_Handler, fw_halt): startup.c. */
+
+int main(void) { return fw_init(); }

@@ -1,0 +1,164 @@
+"""The whole-system firmware's configuration as C source: a ChainConfig in fixed point.
+
+``system.c`` (``spindle/native/c/m0plus/``) compiles ``fw_system_config.h``: ``const
+fw_config fw_cfg`` (the chain's settings, fits and fusimotor constants in the Q formats of
+system.c) and ``const ps_plan_fx fw_plan`` (the spindle plan at the firmware's spindle step,
+made on the host by ``ps_plan_fx_init``). Every number comes from the same resolved
+``ps_chain_config`` the host C chain runs (``spindle.native.chain.chain_config_struct``) and
+from the ranges ``ps_chain_init`` derives (fitted angle range, each muscle's length range), so
+the firmware and the host chain it is compared with share one configuration.
+
+With a stimulator configuration (a ``spindle.stimulation.StimConfig``) it also holds the
+channel map ``fw_stim_source[channel] = {muscle index, 0 for Ia / 1 for II}`` of the
+firmware's ``FW_STIM`` stage; the encoder's constants are ``fw_stim_config.h``
+(``spindle.native.m0plus.stim.stim_config_header``, from ``ps_stim_fx_config_init``).
+
+``python -m spindle.native.m0plus.system_config > fw_system_config.h`` writes it for the
+default device configuration (:data:`DEVICE_CONFIG`, :data:`SPINDLE_STEP_S`, the default
+``StimConfig``: Ia and II of both muscles, frequency mode).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+from spindle.chain.config import ChainConfig
+from spindle.chain.length_model import LengthFits, load_length_fits
+from spindle.native.chain import CArmChain, chain_config_struct
+from spindle.native.m0plus.build import _initializer
+from spindle.params import HUMAN
+
+SPINDLE_STEP_S = 5e-3
+"""The firmware's spindle step: 0.8 steps per sample at 500 Hz for the two muscles (grids
+offset by half a step), so the one-step-per-sample budget has room to catch up after jitter
+or a bridged interval (at 4 ms, exactly one step per nominal sample, a backlog never drains
+and the worst RMS against the host grew from 0.40 to 0.48 pps on the faulty trace)."""
+DEVICE_CONFIG = ChainConfig(params=HUMAN, max_bridge_s=6e-3)
+"""The chain on the device: the seed paper's chain with one change, intervals above 6 ms
+(two lost samples) restart at rest instead of being bridged, which bounds a sample's work to
+three spindle steps (the deadline; the host default bridges 50 ms, 25 sub-steps)."""
+
+
+DECAY_COARSE = 128
+"""``FW_DECAY_COARSE`` of system.c: the tracking filter's decay tables cover 128 x 64 us."""
+
+
+def _q(value: float, bits: int) -> int:
+    out = round(value * 2.0**bits)
+    if not -2**31 <= out < 2**31:
+        raise ValueError(f"{value!r} does not fit Q{bits} in int32")
+    return out
+
+
+def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -> dict:
+    """The fields of ``fw_config`` (system.c), in order, as integers (and the two times)."""
+    c = chain_config_struct(config, fits, "double")
+    ranges = CArmChain(config, fits)
+    if c.lowpass_rad_s <= 0:
+        raise ValueError("the firmware needs the tracking low-pass (lowpass_hz not None)")
+    if c.theta != 0.5:
+        raise ValueError("the firmware's fixed-point spindles are trapezoidal")
+    lo_deg, hi_deg = ranges.angle_range_deg
+    step_us = round(spindle_step_s * 1e6)
+    period_s = 1.0 / c.predictor_rate_hz
+    span = c.gamma_static_max_pps - c.gamma_static_min_pps
+    coeffs = [[_q(c.coefficients[m][k], 28) for k in range(16)] for m in range(2)]
+    return {
+        "gap_s": float(c.gap_s), "max_bridge_s": float(c.max_bridge_s),
+        "resync_after_samples": int(c.resync_after_samples),
+        "max_count": int(c.max_count), "median_window": int(c.median_window),
+        "zero_Q16": _q(c.zero_count, 16),
+        "deg_per_count_Q30": _q(c.count_sign * c.deg_per_count, 30),
+        "angle_min_Q16": _q(lo_deg, 16), "angle_max_Q16": _q(hi_deg, 16),
+        "fit_mid_Q16": _q((lo_deg + hi_deg) / 2, 16),
+        "fit_scale_Q30": _q(2.0 / (hi_deg - lo_deg), 30),
+        "n_coefficients": [int(n) for n in c.n_coefficients],
+        "coefficients_Q28": coeffs,
+        "max_speed_deg_Q32_us": _q(c.max_speed_deg_s * 1e-6, 32),
+        "max_speed_L0_Q40_us": _q(c.max_speed_L0_s * 1e-6, 40),
+        "omega_Q16": _q(c.lowpass_rad_s, 16),
+        "two_over_omega_Q32": _q(2.0 / c.lowpass_rad_s, 32),
+        "predictor_period_us": round(period_s * 1e6),
+        "predictor_keep": math.ceil(c.delay_s * c.predictor_rate_hz) + 2,
+        "predictor_period_Q30": _q(period_s, 30),
+        "kp_Q16": _q(c.predictor_kp_1_s, 16),
+        "ki_dt_Q16": _q(c.predictor_ki_1_s2 * period_s, 16),
+        "delay_us": round(c.delay_s * 1e6),
+        "threshold_Q24": _q(c.shortening_threshold_L0, 24),
+        "gs_min_Q8": _q(c.gamma_static_min_pps, 8), "gs_max_Q8": _q(c.gamma_static_max_pps, 8),
+        "gd_Q8": _q(c.gamma_dynamic_pps, 8),
+        "length_max_Q24": [_q(x, 24) for x in ranges.length_max_L0],
+        "gs_gain_Q8": [_q(span / (hi - lo), 8)
+                        for lo, hi in zip(ranges.length_min_L0, ranges.length_max_L0,
+                                          strict=True)],
+        "spindle_step_us": step_us,
+        "decay_coarse_Q30": [_q(math.exp(-c.lowpass_rad_s * 64e-6 * i), 30)
+                             for i in range(DECAY_COARSE)],
+        "decay_fine_Q30": [_q(math.exp(-c.lowpass_rad_s * 1e-6 * j), 30) for j in range(64)],
+    }
+
+
+def _literal(value) -> str:
+    if isinstance(value, float):
+        return value.hex()
+    if isinstance(value, list):
+        return "{" + ", ".join(_literal(v) for v in value) + "}"
+    return f"{value}L" if abs(value) > 32767 else str(value)
+
+
+def stim_channel_source(stim) -> str:
+    """``fw_stim_source``, the channel map of a ``StimConfig`` for the FW_STIM stage: per
+    channel {muscle index, 0 for Ia / 1 for II} (the firmware has no tendon organs yet). The
+    encoder's own constants are ``fw_stim_config.h`` (``spindle.native.m0plus.stim``)."""
+    from spindle.chain.config import MUSCLES
+
+    sources = []
+    for ch in stim.channels.channels:
+        if ch.muscle not in MUSCLES or ch.afferent not in ("ia", "ii"):
+            raise ValueError(f"channel {ch.label}: the firmware drives Ia and II of "
+                             f"{MUSCLES} only")
+        sources.append((MUSCLES.index(ch.muscle), ("ia", "ii").index(ch.afferent)))
+    rows = ", ".join(f"{{{m}, {a}}}" for m, a in sources)
+    return f"const int32_t fw_stim_source[PS_STIM_MAX_CHANNELS][2] = {{{rows}}};\n"
+
+
+def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits | None = None,
+                         spindle_step_s: float = SPINDLE_STEP_S, stim=None) -> str:
+    """fw_system_config.h for ``config``, ``fits``, the spindle step and (if not None) the
+    stimulator's ``StimConfig``."""
+    from spindle.native import fixed
+    from spindle.native.spindle import library
+
+    fits = fits if fits is not None else load_length_fits(config.fits_path)
+    fields = fixed_config(config, fits, spindle_step_s)
+    lib = library("double")
+    fixed.declare_fixed(lib, "double")
+    plan = fixed.make_plan(lib, config.params, round(spindle_step_s * 1e6) * 1e-6, 0.5, "double")
+    plan_body = _initializer(plan, lambda _ctype, value: _literal(int(value)))
+    body = ",\n    ".join(f".{k} = {_literal(v)}" for k, v in fields.items())
+    return ("/* Generated by spindle.native.m0plus.system_config: the chain's configuration in\n"
+            f" * the firmware's fixed point, fits of {', '.join(fits.muscles)} (elbow.xml sha256 "
+            f"{fits.model_sha256[:12]}),\n * spindle plan at {spindle_step_s * 1e3:g} ms "
+            "(ps_plan_fx_init). */\n"
+            f"const fw_config fw_cfg = {{\n    {body}\n}};\n\n"
+            f"const ps_plan_fx fw_plan = {{\n    {plan_body}\n}};\n"
+            + ("" if stim is None else "\n" + stim_channel_source(stim)))
+
+
+def device_config(**changes) -> ChainConfig:
+    """DEVICE_CONFIG with ``changes`` (e.g. another ``max_bridge_s``)."""
+    return replace(DEVICE_CONFIG, **changes)
+
+
+if __name__ == "__main__":
+    import tempfile
+    from pathlib import Path
+
+    from spindle.native.m0plus.stim import stim_config_header
+    from spindle.stimulation.config import StimConfig
+
+    print(system_config_source(stim=StimConfig()), end="")
+    with tempfile.TemporaryDirectory() as tmp:  # and the encoder's fw_stim_config.h
+        print("\n" + (stim_config_header(StimConfig(), Path(tmp)) / "fw_stim_config.h")
+              .read_text(), end="")
