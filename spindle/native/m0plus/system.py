@@ -36,6 +36,11 @@ from spindle.native.m0plus.system_config import (
     system_config_source,
 )
 
+FIRMWARE_COUNTERS = tuple(name for name in COUNTERS if name not in ("invalid_load",
+                                                                    "missing_load"))
+"""The firmware's counters (``fw_counters`` in ``system.c``): the chain's, but for the load
+reading's, which waits for the tendon-organ stage (``FW_GTO``)."""
+
 STAGES = {"stage_reading": "reading and time rules", "stage_median": "median filter",
           "stage_angle": "f(x), angle slew and clamp", "stage_lengths": "fitted lengths",
           "stage_tracking": "length slew, tracking low-pass",
@@ -176,8 +181,9 @@ class SystemFirmware:
                 fields = last[1]
                 rates[:, j] = np.array(fields[3:11]).reshape(4, 2) / (
                     np.array([FX_RATE, FX_RATE, FX_DRIVE, FX_DRIVE])[:, None])
-        raw = bytes(uc.mem_read(sym["fw_count"][0], 4 * len(COUNTERS)))
-        counters = dict(zip(COUNTERS, struct.unpack(f"<{len(COUNTERS)}I", raw), strict=True))
+        raw = bytes(uc.mem_read(sym["fw_count"][0], 4 * len(FIRMWARE_COUNTERS)))
+        counters = dict(zip(FIRMWARE_COUNTERS, struct.unpack(f"<{len(FIRMWARE_COUNTERS)}I", raw),
+                            strict=True))
         overruns, = struct.unpack("<I", bytes(uc.mem_read(sym["fw_overruns"][0], 4)))
         lost = struct.unpack("<I", bytes(uc.mem_read(sym["fw_pulse_lost"][0], 4)))[0] if stim \
             else 0
@@ -198,7 +204,7 @@ def host_chain(t_s: np.ndarray, counts: np.ndarray,
     stacked = {}
     for name in ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps", "accepted"):
         stacked[name] = np.concatenate((np.asarray(getattr(rest, name))[None], out[name]))
-    return stacked, dict(chain.counters)
+    return stacked, {name: chain.counters[name] for name in FIRMWARE_COUNTERS}
 
 
 def host_pulses(t_s: np.ndarray, host: dict[str, np.ndarray], stim,
