@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from proprio_env.encoder import Encoder
+from proprio_env.body.encoder import Encoder
 from spindle.chain import ChainConfig, make_chain
 
 

@@ -31,7 +31,7 @@ back in Q16 (the host build gets the same rounded inputs, and the two agree to t
 A second input, the demo motion, measures the fixed-point step as the prosthesis runs it:
 the Fig. 3 protocol holds the fusimotor drive constant within a run, so the step reuses its
 activation targets there. The demo motion is the seed paper's repeated rapid elbow
-flexion-extension (triangle 20-110 deg at 130 deg/s, proprio_env.servo_motion.triangle_deg)
+flexion-extension (triangle 20-110 deg at 130 deg/s, proprio_env.body.servo_motion.triangle_deg)
 through the numpy chain (spindle.chain.run_chain, ChainConfig()) sampled once per spindle step
 (5 ms); the BRA and TRImed lengths and the chain's own gamma_s, gamma_d of every step are fed
 to the two-muscle firmware. It prints the instructions per step per muscle, MIPS per muscle,
@@ -48,7 +48,8 @@ predictor and fusimotor drive, the fixed-point BRA and TRImed spindles on a 5 ms
 integer arithmetic, the configuration generated on the host (system_config). Measured on the
 demo motion (the triangle above, read by an ideal encoder at 500 Hz) and on a recorded servo
 trace with the encoder's jitter, noise and invalid readings and injected faults
-(proprio_env.fault_injection, counts entries): instructions and Cortex-M0+ cycles per sample
+(proprio_env.experiments.fault_injection, counts entries): instructions and Cortex-M0+ cycles
+per sample
 (spindle.native.m0plus.cycles: ARM DDI 0484C instruction timings, flash wait states of the
 EFM32ZG), mean and worst, per stage; flash, RAM, stack; the lowest EFM32ZG clock meeting every
 sample's 2 ms deadline with a 25 % margin and its power (EFM32ZG datasheet, 114 uA/MHz at
@@ -79,7 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
-from proprio_env.servo_motion import triangle_deg
+from proprio_env.body.servo_motion import triangle_deg
 from spindle.native.m0plus.build import Config
 from spindle.native.m0plus.isa import isa_probe
 from spindle.native.m0plus.measure import (

@@ -18,13 +18,13 @@ import argparse
 import statistics
 import time
 
-from proprio_env.experiments.training import TrainConfig
-from proprio_env.experiments.training_rllib import (
+from proprio_env.training.rllib import (
     RLlibOptions,
     build_algorithm,
     env_steps,
     start_ray,
 )
+from proprio_env.training.sb3 import TrainConfig
 from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 
 

@@ -17,7 +17,7 @@ import argparse
 import statistics
 import time
 
-from proprio_env.experiments.training import (
+from proprio_env.training.sb3 import (
     ROLLOUT_STEPS,
     make_env,
     make_vector_env,
@@ -33,7 +33,7 @@ def train_steps_per_s(num_envs: int | None, timesteps: int, backend: str) -> flo
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import VecMonitor
 
-    from proprio_env.sb3_vec import SB3VectorEnv
+    from proprio_env.training.sb3_vec import SB3VectorEnv
 
     kwargs = {"backend": backend}
     if num_envs is None:

@@ -35,7 +35,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from proprio_env.model import MUSCLES, model_path
+from proprio_env.body.model import MUSCLES, model_path
 from proprio_env.wrappers import SpindleAfferents, SpindleAfferentsVector
 from proprio_env.wrappers.capture import hermite_knots
 from proprio_env.wrappers.mjcf_env import MuscleModelEnv, myo_sim_model_path

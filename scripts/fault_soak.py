@@ -5,16 +5,18 @@
     python scripts/fault_soak.py --samples 200000 --seed 3 --no-progress
     python scripts/fault_soak.py --samples 0 --wrapper-steps 5000   # the wrappers only
 
-The stream, the faults and the checks are those of :mod:`proprio_env.fault_injection` (servo
-moves read by a noisy AX-12 encoder, with the servo's load word beside each reading;
-dropouts from one sample to minutes, clock jumps, corrupted times, readings and load words,
-readings without load). Prints a summary table, then a last line
+The stream, the faults and the checks are those of
+:mod:`proprio_env.experiments.fault_injection` (servo moves read by a noisy AX-12 encoder,
+with the servo's load word beside each reading; dropouts from one sample to minutes, clock
+jumps, corrupted times, readings and load words, readings without load). Prints a summary
+table, then a last line
 ``fault_soak samples=<n> counters_equal=<bool> max_rate_diff_pps=<f> max_ib_diff_pps=<f>
 rss_growth_MB=<f> nonfinite=<n> ...``; exits 1 if any check fails.
 
-Then the wrapper section (:mod:`proprio_env.wrapper_fault_injection`): ``--wrapper-steps``
-wrapped steps per target (single, single lagged, vector with SAME_STEP autoreset) and backend,
-with clock jumps, copies and refused actions between steps; its table and a line
+Then the wrapper section (:mod:`proprio_env.experiments.wrapper_fault_injection`):
+``--wrapper-steps`` wrapped steps per target (single, single lagged, vector with SAME_STEP
+autoreset) and backend, with clock jumps, copies and refused actions between steps; its table
+and a line
 ``wrapper_soak steps=<n> ... ok=<bool>`` come before the chain's last line.
 """
 
@@ -23,8 +25,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from proprio_env.fault_injection import run_soak
-from proprio_env.wrapper_fault_injection import run_wrapper_soak
+from proprio_env.experiments.fault_injection import run_soak
+from proprio_env.experiments.wrapper_fault_injection import run_wrapper_soak
 
 
 def main(argv: list[str] | None = None) -> int:

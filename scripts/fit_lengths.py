@@ -13,13 +13,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from proprio_env.experiments.length_fits import DEFAULT_ORACLE, fit_and_draw
-from proprio_env.length_fitting import (
+from proprio_env.body.length_fitting import (
     DEFAULT_MAX_DEGREE,
     DEFAULT_STEP_DEG,
     DEFAULT_TOLERANCE_L0,
     TARGET_L0,
 )
+from proprio_env.experiments.length_fits import DEFAULT_ORACLE, fit_and_draw
 
 DEFAULT_FIGURE = Path(__file__).resolve().parents[1] / "out" / "length_fits.png"
 

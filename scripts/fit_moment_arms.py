@@ -9,7 +9,7 @@ import argparse
 import json
 from pathlib import Path
 
-from proprio_env.moment_arm_fitting import write_moment_arm_fits
+from proprio_env.body.moment_arm_fitting import write_moment_arm_fits
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     except ImportError as exc:
         raise SystemExit(f"needs mujoco-mjx and jax ({exc}); see the docstring") from exc
     jax.config.update("jax_enable_x64", True)
-    from proprio_env.model import model_path
+    from proprio_env.body.model import model_path
 
     supported = []
     for label, disable, ctrl in SETTINGS:

@@ -14,7 +14,7 @@ extra ``distributed``). Prints progress lines (steps, steps/s, ETA, training |er
 the end one line per policy ``<policy> mean_abs_err_deg=<float>``; writes ``eval.json``,
 ``curve.csv`` and the policy (``policy.zip`` for sb3, the RLModule directory ``policy/`` for
 rllib) into ``--out`` and the learning curve PNG to ``--curve``. The protocol (held-out
-target bands, scoring) is :mod:`proprio_env.experiments.training`.
+target bands, scoring) is :mod:`proprio_env.training.sb3`.
 """
 
 from __future__ import annotations
@@ -23,10 +23,10 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from proprio_env.experiments.training import POLICY_NAMES, TrainConfig, sb3_ppo_kwargs
-from proprio_env.experiments.training import run as run_sb3
-from proprio_env.experiments.training_rllib import RLlibOptions, check_resume
-from proprio_env.experiments.training_rllib import run as run_rllib
+from proprio_env.training.rllib import RLlibOptions, check_resume
+from proprio_env.training.rllib import run as run_rllib
+from proprio_env.training.sb3 import POLICY_NAMES, TrainConfig, sb3_ppo_kwargs
+from proprio_env.training.sb3 import run as run_sb3
 from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND
 
 FULL_TIMESTEPS = 250_000

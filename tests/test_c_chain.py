@@ -14,7 +14,7 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 
-from proprio_env.encoder import Encoder
+from proprio_env.body.encoder import Encoder
 from spindle.chain import (
     COUNTERS,
     MUSCLES,

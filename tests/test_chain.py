@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import spindle
-from proprio_env.encoder import Encoder
+from proprio_env.body.encoder import Encoder
 from spindle.chain import COUNTERS, ArmChain, ChainConfig, make_chain, resolve_backend, run_chain
 from spindle.chain.conditioning import difference, track, tracking_step
 from spindle.chain.fusimotor import (

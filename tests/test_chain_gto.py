@@ -12,7 +12,7 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 
-from proprio_env.encoder import Encoder, LoadSensor
+from proprio_env.body.encoder import Encoder, LoadSensor
 from spindle.chain import (
     ArmChain,
     ArmSample,

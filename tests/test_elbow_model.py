@@ -12,8 +12,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from proprio_env.model import JOINT, MUSCLES, SERVO, load_model, model_path
-from proprio_env.muscle_length import (
+from proprio_env.body.model import JOINT, MUSCLES, SERVO, load_model, model_path
+from proprio_env.body.muscle_length import (
     MuscleGeometry,
     fibre_length_L0,
     fibre_state,

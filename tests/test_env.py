@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 import proprio_env
+from proprio_env.body.model import JOINT, MUSCLES, SERVO, load_model
+from proprio_env.body.muscle_length import fibre_state, muscle_geometry
 from proprio_env.envs import RATE_SCALE_PPS, ElbowReachEnv, ProsthesisElbowEnv
-from proprio_env.model import JOINT, MUSCLES, SERVO, load_model
-from proprio_env.muscle_length import fibre_state, muscle_geometry
 from spindle.chain import BACKENDS, make_chain, run_chain
 from spindle.chain.sensor import AX12, Calibration
 

@@ -1,5 +1,6 @@
-"""The fault-injection soak (proprio_env.fault_injection, scripts/fault_soak.py): its stream holds
-the faults it claims, its checks catch a broken backend, and both backends pass it."""
+"""The fault-injection soak (proprio_env.experiments.fault_injection, scripts/fault_soak.py):
+its stream holds the faults it claims, its checks catch a broken backend, and both backends
+pass it."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from work_bounds import count_each_call
 
-from proprio_env import fault_injection as fi
+from proprio_env.experiments import fault_injection as fi
 from spindle.chain import BACKENDS, COUNTERS, ArmChain, ChainConfig, make_chain
 from spindle.chain.config import real_array
 from spindle.chain.length_model import load_length_fits
@@ -147,7 +148,7 @@ def test_wrapper_soak_passes_on_both_backends():
     """Both backends, the three wrapper targets, every wrapper fault: nothing non-finite or
     outside the wrapped space, restarts as the rules say, copies equal, refused steps leave
     no trace."""
-    from proprio_env import wrapper_fault_injection as wfi
+    from proprio_env.experiments import wrapper_fault_injection as wfi
 
     report = wfi.run_wrapper_soak(40, seed=0, fault_probability=0.5)
     assert set(report.faults) == set(wfi.WRAPPER_FAULTS)
@@ -160,7 +161,7 @@ def test_wrapper_soak_passes_on_both_backends():
 def test_wrapper_soak_checks_catch_a_copy_that_drifts(monkeypatch):
     """A wrapper whose copies lose their recorded lengths (the fault of issue 28.3,
     re-created) is caught: the copy differs from its original."""
-    from proprio_env import wrapper_fault_injection as wfi
+    from proprio_env.experiments import wrapper_fault_injection as wfi
     from proprio_env.wrappers import capture
 
     def frozen(self, state):

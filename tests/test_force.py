@@ -1,5 +1,5 @@
 """Joint torque -> tendon forces (spindle.chain.force) against OpenSim's moment arms, and the
-servo's load reading: simulated words (proprio_env.encoder) and their decoding
+servo's load reading: simulated words (proprio_env.body.encoder) and their decoding
 (spindle.chain.sensor)."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from proprio_env.encoder import LoadSensor, load_readings
+from proprio_env.body.encoder import LoadSensor, load_readings
 from spindle.chain.force import load_moment_arm_fits, tendon_forces_N
 from spindle.chain.sensor import (
     AX12_LOAD,
@@ -27,7 +27,7 @@ SHARED_CSV = (Path(__file__).resolve().parents[2] / "shared" / "reference" / "op
 
 @pytest.fixture(scope="module")
 def fits():
-    from proprio_env.model import model_path
+    from proprio_env.body.model import model_path
 
     return load_moment_arm_fits(model=model_path())  # refuses a table of another model
 
@@ -53,7 +53,7 @@ def test_moment_arms_match_opensim(fits, oracle):
 
 
 def test_table_interpolates_mujoco_between_its_angles(fits):
-    from proprio_env.moment_arm_fitting import moment_arms_exact_m
+    from proprio_env.body.moment_arm_fitting import moment_arms_exact_m
 
     angle = np.random.default_rng(3).uniform(*fits.valid_range_rad, 200)
     np.testing.assert_allclose(fits.moment_arms_m(angle), moment_arms_exact_m(angle),

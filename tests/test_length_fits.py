@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from proprio_env.model import model_path
+from proprio_env.body.model import model_path
 from spindle.chain import MUSCLES
 from spindle.chain.length_model import (
     REGENERATE_COMMAND,
@@ -56,8 +56,8 @@ def test_valid_range_covers_0_to_130_deg(fits):
 
 
 def test_fit_within_0_001_L0_of_exact_model(fits):
-    from proprio_env.model import load_model
-    from proprio_env.muscle_length import sweep
+    from proprio_env.body.model import load_model
+    from proprio_env.body.muscle_length import sweep
 
     # 0.0137 deg steps, offset from the 0.05 deg fitting grid.
     lo, hi = fits.valid_range_rad
@@ -324,8 +324,8 @@ def _reset_lengths(env_id: str, angles_deg, **kwargs) -> np.ndarray:
 @pytest.mark.parametrize(("source", "backend"),
                          [("reduced", "numpy"), ("encoder", "numpy"), ("reduced", "c")])
 def test_edited_model_gets_its_own_fits(tmp_path, env_id, source, backend):
-    from proprio_env.model import load_model
-    from proprio_env.muscle_length import sweep
+    from proprio_env.body.model import load_model
+    from proprio_env.body.muscle_length import sweep
 
     xml = _edited_model(tmp_path, 0.025)  # BRA origin 2.5 cm further from the elbow
     angles = np.radians(ANGLES_DEG)
@@ -362,8 +362,8 @@ def test_edited_model_leaving_the_length_range_is_refused(tmp_path):
 
 
 def test_fits_path_is_checked_against_the_env_model(tmp_path):
-    from proprio_env.length_fitting import fit_document, write_fits
-    from proprio_env.model import load_model
+    from proprio_env.body.length_fitting import fit_document, write_fits
+    from proprio_env.body.model import load_model
     from spindle.chain import ChainConfig
 
     xml = _edited_model(tmp_path, 0.025)
@@ -388,7 +388,7 @@ def test_fits_of_an_edited_model_are_made_once_per_process_by_its_sha256(tmp_pat
     import gymnasium as gym
 
     import proprio_env  # noqa: F401
-    from proprio_env import length_fitting
+    from proprio_env.body import length_fitting
 
     monkeypatch.setattr(length_fitting, "_FITTED", {})  # this test's own process cache
     fitted = []

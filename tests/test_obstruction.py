@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from proprio_env.body.model import load_model
+from proprio_env.body.servo_motion import drive_servo
 from proprio_env.experiments.obstruction import ObstructionSetup, run_experiment
-from proprio_env.model import load_model
-from proprio_env.servo_motion import drive_servo
 
 pytest.importorskip("mujoco")
 

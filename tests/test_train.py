@@ -1,4 +1,4 @@
-"""Smoke run of scripts/train.py (:mod:`proprio_env.experiments.training`): PPO trains, the
+"""Smoke run of scripts/train.py (:mod:`proprio_env.training.sb3`): PPO trains, the
 three policies are evaluated on held-out targets, and the learning curve and numbers are
 written."""
 
@@ -21,8 +21,8 @@ pytest.importorskip("matplotlib")
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "train.py"
 
-from proprio_env.experiments import training as train  # noqa: E402
-from proprio_env.experiments import training_rllib as trl  # noqa: E402
+from proprio_env.training import rllib as trl  # noqa: E402
+from proprio_env.training import sb3 as train  # noqa: E402
 
 
 def test_held_out_bands_are_never_trained_on():

@@ -1,4 +1,4 @@
-"""The RLlib engine of scripts/train.py (:mod:`proprio_env.experiments.training_rllib`) on a
+"""The RLlib engine of scripts/train.py (:mod:`proprio_env.training.rllib`) on a
 local Ray instance of 2 CPUs: the smoke run, the env runners' envs and seeds, a runner killed
 mid-training, a run stopped and resumed from its checkpoint.
 
@@ -26,8 +26,8 @@ ray = pytest.importorskip("ray")
 pytest.importorskip("ray.rllib")
 pytest.importorskip("matplotlib")
 
-from proprio_env.experiments import training as train  # noqa: E402
-from proprio_env.experiments import training_rllib as trl  # noqa: E402
+from proprio_env.training import rllib as trl  # noqa: E402
+from proprio_env.training import sb3 as train  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "train.py"

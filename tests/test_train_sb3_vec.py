@@ -1,5 +1,5 @@
-"""SB3VectorEnv (proprio_env/sb3_vec.py): a Gymnasium vector env that autoresets on the next
-step, seen by stable-baselines3 as a VecEnv. Reference: SB3's own DummyVecEnv over single
+"""SB3VectorEnv (proprio_env/training/sb3_vec.py): a Gymnasium vector env that autoresets on
+the next step, seen by stable-baselines3 as a VecEnv. Reference: SB3's own DummyVecEnv over single
 envs, fed the same seeds and actions (it resets an ended env in the same step, the
 convention the adapter converts to)."""
 
@@ -15,7 +15,7 @@ from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import proprio_env
-from proprio_env.sb3_vec import SB3VectorEnv, unbatch_info
+from proprio_env.training.sb3_vec import SB3VectorEnv, unbatch_info
 
 
 def assert_same_steps(adapter, reference, actions, atol=0.0):

@@ -14,7 +14,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 import proprio_env  # noqa: F401  (registers the envs)
 import spindle.chain
-from proprio_env.encoder import CHUNK, Encoder, EncoderBank
+from proprio_env.body.encoder import CHUNK, Encoder, EncoderBank
 from spindle.chain.sensor import AX12
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -248,8 +248,8 @@ def test_batched_chain_does_not_keep_the_callers_block_buffers(backend):
 
 
 def test_fibre_lengths_of_both_muscles_equal_the_one_muscle_function():
-    from proprio_env.model import MUSCLES
-    from proprio_env.muscle_length import FibreLengths, fibre_length_L0, muscle_geometry
+    from proprio_env.body.model import MUSCLES
+    from proprio_env.body.muscle_length import FibreLengths, fibre_length_L0, muscle_geometry
 
     model = gym.make(IDS[0]).unwrapped.model
     geometries = tuple(muscle_geometry(model, m) for m in MUSCLES)

@@ -31,8 +31,8 @@ CHECK = textwrap.dedent(
     import numpy as np
 
     import spindle.chain.length_model as lf
-    from proprio_env.model import load_model, model_path
-    from proprio_env.muscle_length import sweep
+    from proprio_env.body.model import load_model, model_path
+    from proprio_env.body.muscle_length import sweep
 
     prefix = Path(sys.prefix).resolve()
     for path in (Path(lf.__file__), model_path(), lf.default_fits_path()):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import proprio_env  # noqa: F401  (registers the envs)
-from proprio_env.model import JOINT, MUSCLES, load_model, model_path
-from proprio_env.muscle_length import sweep
+from proprio_env.body.model import JOINT, MUSCLES, load_model, model_path
+from proprio_env.body.muscle_length import sweep
 from proprio_env.wrappers import (
     ConstantFusimotor,
     SpindleAfferents,

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from gymnasium.vector import AutoresetMode
 
-from proprio_env.model import MUSCLES, model_path
+from proprio_env.body.model import MUSCLES, model_path
 from proprio_env.wrappers import SpindleAfferents, SpindleAfferentsVector, capture, find_muscles
 from proprio_env.wrappers import trajectory as trajectory_module
 from proprio_env.wrappers.trajectory import MAX_TRAJECTORY_SUBSTEPS, afferents_from_trajectory

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import spindle
-from proprio_env.encoder import Encoder
+from proprio_env.body.encoder import Encoder
 from spindle.chain import ArmChain, ChainConfig, run_chain
 from spindle.chain.fusimotor import SEED_PAPER, Fusimotor
 

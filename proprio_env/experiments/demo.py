@@ -10,7 +10,7 @@ simulated load word of the servo's joint torque, MuJoCo's actuator force) goes i
 chain, which turns it into BRA and TRImed tendon forces and their Golgi tendon organs' Ib.
 The bundled servo holds the Arm26 forearm against gravity with up to ~5 N m, above an
 AX-12's 1.5 N m stall torque, so the demo's load word spans the model servo's force range
-(:func:`proprio_env.servo_motion.servo_load_params`, 20 N m for 1023 counts) instead of
+(:func:`proprio_env.body.servo_motion.servo_load_params`, 20 N m for 1023 counts) instead of
 saturating.
 
 Beside it, at the same sample times, two noise-free chains run on the motion MuJoCo really
@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from proprio_env.encoder import Encoder, LoadSensor
-from proprio_env.model import load_model
-from proprio_env.servo_motion import drive_servo, servo_load_params, triangle_deg
+from proprio_env.body.encoder import Encoder, LoadSensor
+from proprio_env.body.model import load_model
+from proprio_env.body.servo_motion import drive_servo, servo_load_params, triangle_deg
 from spindle.chain import MUSCLES, ChainConfig, ChainTrace, run_chain
 from spindle.chain.sensor import Calibration
 from spindle.stimulation import (

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 import spindle
-from proprio_env.model import models_dir
+from proprio_env.body.model import models_dir
 from spindle.chain.fusimotor import Fusimotor
 
 TABLE_FILENAME = "wrist_ecrb.csv"

@@ -20,7 +20,7 @@ Measures, per muscle and afferent (pps), with r_k(t) the rate under setting k:
 
 Static rates are the spindle's equilibrium (:func:`spindle.core.equilibrium_state`), over the
 elbow's 0-130 deg range in 1 deg steps through the fitted lengths. The motion is the demo's
-(:func:`proprio_env.servo_motion.triangle_deg`: 20-110 deg at 130 deg/s, MuJoCo servo), its
+(:func:`proprio_env.body.servo_motion.triangle_deg`: 20-110 deg at 130 deg/s, MuJoCo servo), its
 angle sampled at 500 Hz through the chain's length model and low-pass.
 
 All afferent rates of the Mileusnic model are positively homogeneous in the gains G (a sum of
@@ -102,8 +102,8 @@ def _measures(rates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def demo_motion(duration_s: float) -> tuple[np.ndarray, np.ndarray]:
     """The demo's servo motion: (t_s, angle_deg) at 500 Hz."""
-    from proprio_env.model import load_model
-    from proprio_env.servo_motion import drive_servo, triangle_deg
+    from proprio_env.body.model import load_model
+    from proprio_env.body.servo_motion import drive_servo, triangle_deg
 
     model = load_model()
     t_phys = np.arange(0.0, duration_s, model.opt.timestep)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from proprio_env.length_fitting import (
+from proprio_env.body.length_fitting import (
     DEFAULT_MAX_DEGREE,
     DEFAULT_STEP_DEG,
     DEFAULT_TOLERANCE_L0,
@@ -25,7 +25,7 @@ from proprio_env.length_fitting import (
     fit_document,
     write_fits,
 )
-from proprio_env.model import load_model, model_path
+from proprio_env.body.model import load_model, model_path
 from spindle.chain.length_model import load_length_fits
 
 REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -6,7 +6,7 @@ The servo-driven MuJoCo elbow flexes from ``start_deg`` towards ``target_deg`` a
 
 - *unobstructed*: the movement as intended;
 - *obstructed*: the same intended movement, stopped part-way by an obstacle at
-  ``obstacle_deg`` (:func:`proprio_env.model.load_model`);
+  ``obstacle_deg`` (:func:`proprio_env.body.model.load_model`);
 - *voluntary stop*: a movement intended to stop where the obstacle stopped the forearm.
 
 The chain (CAT gains, as the paper uses for its cat data) runs on each measured motion with
@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 
 import spindle
-from proprio_env.model import load_model
-from proprio_env.servo_motion import ServoMotion, drive_servo
+from proprio_env.body.model import load_model
+from proprio_env.body.servo_motion import ServoMotion, drive_servo
 from spindle.chain import MUSCLES, ChainConfig, ChainTrace, run_chain
 
 CONTACT_TOLERANCE_DEG = 0.5

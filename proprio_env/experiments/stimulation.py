@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from proprio_env.encoder import Encoder
-from proprio_env.model import load_model
-from proprio_env.servo_motion import drive_servo, triangle_deg
+from proprio_env.body.encoder import Encoder
+from proprio_env.body.model import load_model
+from proprio_env.body.servo_motion import drive_servo, triangle_deg
 from spindle.chain import MUSCLES, run_chain
 from spindle.stimulation import (
     ELBOW_SPINDLES,

@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         stages = [SpindleStage()] + [load_factory(s) for s in args.stage]
         config = None  # a real AX-12: its own load scale (AX12_LOAD)
         if args.source in ("virtual", "simulated"):  # the model servo's torque range
-            from proprio_env.servo_motion import servo_load_params
+            from proprio_env.body.servo_motion import servo_load_params
             from spindle.chain import ChainConfig
 
             config = ChainConfig(load=servo_load_params())

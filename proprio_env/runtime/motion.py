@@ -3,12 +3,12 @@
 A :class:`ServoTrack` is one period of a repeated motion on a fine grid: the elbow angle and
 the joint torque the servo must deliver (MuJoCo inverse dynamics of ``models/elbow.xml`` with
 its muscles off: gravity, inertia, joint damping). The virtual servo and the simulated-elbow
-source read it at any time (the period repeats); :class:`~proprio_env.encoder.Encoder` adds
+source read it at any time (the period repeats); :class:`~proprio_env.body.encoder.Encoder` adds
 the reading model on top.
 
-Two tracks: :func:`scripted_track` (the demo's command, :func:`~proprio_env.servo_motion.
+Two tracks: :func:`scripted_track` (the demo's command, :func:`~proprio_env.body.servo_motion.
 triangle_deg`, taken as the angle) and :func:`elbow_track` (the same command driven through the
-model's position servo, :func:`~proprio_env.servo_motion.drive_servo`: the angle MuJoCo's arm
+model's position servo, :func:`~proprio_env.body.servo_motion.drive_servo`: the angle MuJoCo's arm
 really reaches, lagging and rounding the command).
 """
 
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from proprio_env.model import JOINT, load_model
-from proprio_env.servo_motion import drive_servo, servo_full_scale_Nm, triangle_deg
+from proprio_env.body.model import JOINT, load_model
+from proprio_env.body.servo_motion import drive_servo, servo_full_scale_Nm, triangle_deg
 
 TRACKS = ("scripted", "elbow")
 

@@ -229,7 +229,7 @@ class SimulatedElbowSource:
     the encoder model at the moment of each read (time from :meth:`open`)."""
 
     def __init__(self, track: str = "elbow", seed: int = 0) -> None:
-        from proprio_env.encoder import Encoder
+        from proprio_env.body.encoder import Encoder
         from proprio_env.runtime.motion import make_track
 
         self.track = make_track(track)

@@ -8,7 +8,7 @@ rate the SDK accepts and ignores it). Before answering it waits the return delay
 control table (register 5, 2 us per unit, factory 250 = 0.5 ms).
 
 Its shaft follows a :class:`~proprio_env.runtime.motion.ServoTrack` from the moment it
-starts serving; present position is the :class:`~proprio_env.encoder.Encoder` model's
+starts serving; present position is the :class:`~proprio_env.body.encoder.Encoder` model's
 reading (noise, and its glitches: an invalid reading -1 is sent as 0xFFFF, a corrupted word
 as is), present speed the track's, present load the track's torque.
 
@@ -34,7 +34,7 @@ import tty
 from dataclasses import dataclass
 from pathlib import Path
 
-from proprio_env.encoder import Encoder
+from proprio_env.body.encoder import Encoder
 from proprio_env.runtime import protocol as p
 from proprio_env.runtime.motion import TRACKS, ServoTrack, make_track
 

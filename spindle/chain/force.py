@@ -4,7 +4,7 @@ On the prosthesis the servo's load reading gives one joint torque (N m, flexion 
 the tendon organs need a force per muscle. The moment arms r(theta) = -dl_mtu/dtheta (m,
 flexor positive) are MuJoCo's tendon Jacobian of ``models/elbow.xml`` tabulated every 0.5 deg
 over the elbow range (``python scripts/fit_moment_arms.py``,
-:mod:`proprio_env.moment_arm_fitting`), stored in ``models/moment_arm_fits.json`` beside the
+:mod:`proprio_env.body.moment_arm_fitting`), stored in ``models/moment_arm_fits.json`` beside the
 length fits with the sha256 of the model, and interpolated linearly here (numpy only; a
 table of 262 numbers per muscle, what a microcontroller would hold). Why not a smooth fit:
 the paths wrap over the humerus cylinder and the moment arm has a kink where the wrap

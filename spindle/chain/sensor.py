@@ -9,7 +9,7 @@ This module holds the device-side pieces, each usable alone:
 
 - :class:`EncoderParams` (:data:`AX12`): the device's range and rate (what the chain checks
   readings and gaps against), with the noise figures the simulated encoder
-  (:class:`proprio_env.encoder.Encoder`) draws from;
+  (:class:`proprio_env.body.encoder.Encoder`) draws from;
 - :func:`is_valid_reading`: integers in 0..max_count;
 - :class:`Calibration`: f(x), elbow angle = sign * (counts - zero_count) * deg_per_count;
 - :func:`median_filter` (a whole trace) and :class:`MedianFilter` (streaming, many

@@ -11,7 +11,8 @@ the same configuration on the same samples; :func:`measure_system` compares the 
 Inputs: :func:`demo_samples` (the seed paper's rapid flexion-extension read by an ideal
 encoder at exactly 500 Hz) and :func:`fault_samples` (a recorded servo trace with the
 encoder's jitter, noise and invalid readings and the faults of
-``proprio_env.fault_injection``, its counts entries only: what the encoder port delivers).
+``proprio_env.experiments.fault_injection``, its counts entries only: what the encoder port
+delivers).
 """
 
 from __future__ import annotations
@@ -252,7 +253,7 @@ def demo_samples(duration_s: float, low_deg: float = 20.0, high_deg: float = 110
                  speed_deg_s: float = 130.0) -> tuple[np.ndarray, np.ndarray]:
     """The seed paper's repeated rapid flexion-extension (a triangle at ``speed_deg_s``) read
     by the encoder without noise, jitter or glitches at exactly 500 Hz: (t_s, counts)."""
-    from proprio_env.servo_motion import triangle_deg
+    from proprio_env.body.servo_motion import triangle_deg
     from spindle.chain.sensor import AX12, Calibration
 
     t = np.arange(round(duration_s / SAMPLE_PERIOD_S) + 1) * SAMPLE_PERIOD_S
@@ -275,9 +276,9 @@ def _as_float(x: object) -> float:
 def fault_samples(n_samples: int, seed: int = 0,
                   fault_probability: float = 0.2) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """A recorded servo trace with jitter, noise, invalid readings and injected faults
-    (proprio_env.fault_injection.fault_stream, its counts entries), starting at its first
-    valid sample: (t_s, counts as float32, the faults injected)."""
-    from proprio_env.fault_injection import fault_stream
+    (proprio_env.experiments.fault_injection.fault_stream, its counts entries), starting at
+    its first valid sample: (t_s, counts as float32, the faults injected)."""
+    from proprio_env.experiments.fault_injection import fault_stream
     from spindle.chain.sensor import AX12, is_valid_reading
 
     fits = load_length_fits(None)
