@@ -4,6 +4,7 @@ proprioception through its encoder, as in the seed paper."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -12,6 +13,8 @@ from gymnasium import spaces
 from proprio_env.envs.base import ElbowProprioEnv
 from proprio_env.envs.core import MUSCLE_GROUP_BIT, Drive
 from proprio_env.model import SERVO
+from proprio_env.moment_arm_fitting import fit_moment_arm_document
+from spindle.chain.force import MomentArmFits, load_moment_arm_fits, tendon_forces_N
 
 
 class ServoDrive(Drive):
@@ -45,6 +48,40 @@ class ServoDrive(Drive):
 
     def info(self, ctrl: np.ndarray) -> dict[str, np.ndarray]:
         return {"command_deg": np.degrees(ctrl[:, self._servo_id])}
+
+    def prepare_forces(self, model_file: Path) -> None:
+        """The moment-arm table of the model: the bundled ``models/moment_arm_fits.json``
+        if it was made from ``model_file``, else tabulated from it now (MuJoCo's tendon
+        Jacobian every 0.5 deg, as ``scripts/fit_moment_arms.py`` does)."""
+        try:
+            self._arms = load_moment_arm_fits(model=model_file)
+        except ValueError:
+            doc = fit_moment_arm_document(model_file)
+            names = tuple(doc["muscles"])
+            self._arms = MomentArmFits(
+                muscles=names, table_m=tuple(tuple(doc["fits"][m]["table_m"]) for m in names),
+                valid_range_rad=tuple(doc["valid_range_rad"]),
+                model_sha256=doc["model_sha256"],
+                max_error_m=tuple(doc["fits"][m]["max_error_m"] for m in names))
+        self._gear = float(self.model.actuator_gear[self._servo_id, 0])
+
+    def tendon_forces_N(self, actuator_force: np.ndarray, angle_rad: np.ndarray
+                        ) -> np.ndarray:
+        """The servo's joint torque split into BRA and TRImed tendon forces by the elbow's
+        moment arms (:func:`spindle.chain.force.tendon_forces_N`: flexion torque on BRA,
+        extension torque on TRImed, none on the other): the muscles are disabled and carry
+        no force, the servo carries the load, as the prosthesis chain reads it from the
+        servo's load reading. A non-finite torque or angle gives NaN forces (the force
+        sense's hold rule)."""
+        torque = self._gear * np.asarray(actuator_force)[..., self._servo_id]
+        angle = np.asarray(angle_rad, dtype=np.float64)
+        bad = ~(np.isfinite(torque) & np.isfinite(angle))
+        if bad.any():
+            torque, angle = np.where(bad, 0.0, torque), np.where(bad, 0.0, angle)
+        forces = tendon_forces_N(torque, angle, self._arms, clip=True)
+        if bad.any():
+            forces[bad] = np.nan
+        return forces
 
 
 class ProsthesisElbowEnv(ElbowProprioEnv):

@@ -160,6 +160,26 @@ class ActuatorKinematics:
         mujoco.mj_transmission(m, d)
         return d.actuator_length[self.ids].copy(), self._velocity(qvel)
 
+    def forces(self, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray,
+               mocap_pos: np.ndarray | None = None, mocap_quat: np.ndarray | None = None
+               ) -> np.ndarray:
+        """``actuator_force`` (MuJoCo's sign: a muscle pulling is negative) of every
+        actuator, (nu,), at the state (qpos, qvel, act) under ``ctrl``: the stages of
+        ``mj_forward`` that the force needs (:meth:`compute`, the actuator velocities, then
+        MuJoCo's own ``mj_fwdActuation``), so it equals what ``mj_forward`` gives there."""
+        d = self.scratch
+        self.compute(qpos, qvel, mocap_pos, mocap_quat)
+        d.actuator_velocity[:] = self._moment @ qvel
+        d.act[:] = act
+        d.ctrl[:] = ctrl
+        mujoco.mj_fwdActuation(self.model, d)
+        return d.actuator_force.copy()
+
+    def forces_of_data(self, data: mujoco.MjData) -> np.ndarray:
+        """:meth:`forces` at the state held in ``data`` (which is not modified)."""
+        return self.forces(data.qpos, data.qvel, data.act, data.ctrl, data.mocap_pos,
+                           data.mocap_quat)
+
     def of_data(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`compute` at the state held in ``data`` (which is not modified)."""
         return self.compute(data.qpos, data.qvel, data.mocap_pos, data.mocap_quat)
