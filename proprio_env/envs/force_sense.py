@@ -75,7 +75,8 @@ class TendonForceSense:
         ``envs`` (None: every env)."""
         rows = slice(None) if envs is None else envs
         self.held[rows] += np.count_nonzero(~np.isfinite(force_N), axis=(1, 2))
-        self.clamped[rows] += np.count_nonzero(force_N > MAX_FORCE_N, axis=(1, 2))
+        self.clamped[rows] += np.count_nonzero(np.isfinite(force_N) & (force_N > MAX_FORCE_N),
+                                               axis=(1, 2))
 
     def step(self, force_N: np.ndarray) -> np.ndarray:
         """Advance every organ through the tendon forces ``force_N`` (n, F, 2) after each of
