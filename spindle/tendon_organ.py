@@ -298,6 +298,20 @@ class TendonOrgans:
         self.state.r_pps[rows] = fresh.r_pps
         return self.rate_pps()
 
+    def rows_state(self, rows: np.ndarray) -> TendonOrganState:
+        """A copy of the state of organs ``rows`` (for :meth:`set_rows_state`)."""
+        rows = np.asarray(rows, dtype=np.intp)
+        return TendonOrganState(self.state.z[:, rows].copy(), self.state.force_N[rows].copy(),
+                                self.state.r_pps[rows].copy())
+
+    def set_rows_state(self, rows: np.ndarray, saved: TendonOrganState) -> np.ndarray:
+        """Organs ``rows`` back to ``saved`` (:meth:`rows_state`); returns every rate."""
+        rows = np.asarray(rows, dtype=np.intp)
+        self.state.z[:, rows] = saved.z
+        self.state.force_N[rows] = saved.force_N
+        self.state.r_pps[rows] = saved.r_pps
+        return self.rate_pps()
+
     def run(self, force_N: np.ndarray, dt_s: float | None = None,
             first: bool = False) -> np.ndarray:
         """Steps to each row of ``force_N`` ((steps, n)); Ib after each, (steps, n), with the

@@ -16,7 +16,7 @@ from test_vector_env import compare_with_singles
 
 import proprio_env  # noqa: F401  (registers the envs)
 from proprio_env.envs import RATE_SCALE_PPS, ElbowReachEnv, ProsthesisElbowEnv
-from proprio_env.envs.force_sense import TendonForceSense
+from proprio_env.force_sense import TendonForceSense
 from proprio_env.model import JOINT, MUSCLES, SERVO, load_model
 from proprio_env.moment_arm_fitting import moment_arms_exact_m
 from spindle.tendon_organ import MAX_FORCE_N

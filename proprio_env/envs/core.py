@@ -41,8 +41,8 @@ from proprio_env.envs.arguments import (
     check_str,
     frames_per_step,
 )
-from proprio_env.envs.force_sense import TendonForceSense
 from proprio_env.envs.physics import PhysicsBatch, check_threads, load_sensed_model
+from proprio_env.force_sense import TendonForceSense, max_forces_N
 from proprio_env.length_fitting import fits_for_model
 from proprio_env.model import JOINT, MUSCLES, model_path
 from proprio_env.muscle_length import FibreLengths, muscle_geometry
@@ -319,9 +319,9 @@ class EnvCore:
         self.tendon_organs = None
         if self.include_ib:
             self.drive.prepare_forces(model_file)
-            max_force_N = model.actuator_gainprm[self.drive.muscle_actuators, 2]
-            self.tendon_organs = TendonForceSense(n, float(model.opt.timestep), max_force_N,
-                                                  self.backend)
+            self.tendon_organs = TendonForceSense(
+                n, float(model.opt.timestep), max_forces_N(model, self.drive.muscle_actuators),
+                self.backend)
         self._renderer: mujoco.Renderer | None = None
         self._render_data: mujoco.MjData | None = None
         # the first scratch data is the single env's `data`: it holds the state after a step

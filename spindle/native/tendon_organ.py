@@ -191,6 +191,16 @@ class CTendonOrgans:
         return np.array([lib.ps_gto_rate(ctypes.byref(s), ctypes.byref(self.plan))
                          for s in self._states])
 
+    def rows_state(self, rows: np.ndarray) -> list[bytes]:
+        """The states of organs ``rows`` as bytes (for :meth:`set_rows_state`)."""
+        return [bytes(self._states[i]) for i in np.asarray(rows, dtype=np.intp).tolist()]
+
+    def set_rows_state(self, rows: np.ndarray, saved: list[bytes]) -> np.ndarray:
+        """Organs ``rows`` back to ``saved`` (:meth:`rows_state`); returns every rate."""
+        for i, raw in zip(np.asarray(rows, dtype=np.intp).tolist(), saved, strict=True):
+            self._states[i] = PsGto.from_buffer_copy(raw)
+        return self.rate_pps()
+
     def __getstate__(self) -> dict[str, object]:
         """Copies and pickles: the states travel as their bytes, the plans are made again
         (ctypes arrays of structs do not pickle)."""
