@@ -69,6 +69,7 @@ class TendonForceSense:
         self.ib_pps = self.organs.rate_pps().reshape(n, m)
         self.held = np.zeros(n, dtype=np.int64)
         self.clamped = np.zeros(n, dtype=np.int64)
+        self.last_forces_N = np.zeros((n, 0, m))
 
     @property
     def backend(self) -> str:
@@ -113,6 +114,7 @@ class TendonForceSense:
             rates = self.organs.set_rows_state(self._rows(held), saved)
         self.count(force_N)
         self.force_N[:] = f[:, -1]
+        self.last_forces_N = f  # what the organs took, (n, F, M): for twins and checks
         self.ib_pps = rates.reshape(n, m)
         return self.ib_pps
 
