@@ -70,6 +70,7 @@ class TendonForceSense:
         self.held = np.zeros(n, dtype=np.int64)
         self.clamped = np.zeros(n, dtype=np.int64)
         self.last_forces_N = np.zeros((n, 0, m))
+        self.steps = self.resets = 0  # calls, so that a checker knows what happened
 
     @property
     def backend(self) -> str:
@@ -115,6 +116,7 @@ class TendonForceSense:
         self.count(force_N)
         self.force_N[:] = f[:, -1]
         self.last_forces_N = f  # what the organs took, (n, F, M): for twins and checks
+        self.steps += 1
         self.ib_pps = rates.reshape(n, m)
         return self.ib_pps
 
@@ -125,6 +127,7 @@ class TendonForceSense:
         """The organs of ``envs`` (k,) at rest at their tendon forces ``force_N`` (k, M)."""
         f = self.checked(force_N[:, None, :], np.zeros_like(force_N))[:, 0]
         rates = self.organs.reset(f.ravel(), self._rows(envs))
+        self.resets += 1
         self.count(force_N[:, None, :], envs)
         self.force_N[envs] = f
         self.ib_pps = rates.reshape(self.n, self.m)
