@@ -123,31 +123,11 @@ def afferents_from_trajectory(
     q, t, qv = _checked_trajectory(model, qpos_t, t_s, qvel_t)
     dt = np.diff(t)
     muscle_set = find_muscles(model, muscles)
-    forces = None
-    if force_N_t is not None:
-        forces = np.array(force_N_t, dtype=float)
-        if forces.shape != (t.size, muscle_set.n):
-            raise ValueError(f"force_N_t has shape {forces.shape}; expected "
-                             f"({t.size}, {muscle_set.n}) (samples, muscles)")
-        if not np.all(np.isfinite(forces)) or np.any(forces > MAX_FORCE_N):
-            raise ValueError(f"force_N_t must be finite and at most MAX_FORCE_N = "
-                             f"{MAX_FORCE_N} N (max {np.nanmax(forces)!r})")
-        check_step(float(dt.mean()))
-        scales = force_scales_N(ib_params, max_forces_N(model, muscle_set.ids))
+    forces, scales = _checked_forces(model, force_N_t, dt, muscle_set, ib_params)
     bank = SpindleBank(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
                        fusimotor, method, step_s, max_speed_L0_s, backend)
     per_interval = _check_work(dt, bank.step_s, max_substeps)
-    kinematics = ActuatorKinematics(model, muscle_set.ids)
-    zero = np.zeros(model.nv)
-    length_m = np.empty((t.size, muscle_set.n))
-    velocity_m_s = np.empty_like(length_m)
-    for i in range(t.size):
-        length_m[i], velocity_m_s[i] = kinematics.compute(
-            q[i], zero if qv is None else qv[i])
-    if qvel_t is None:
-        velocity_m_s = np.gradient(length_m, t, axis=0)
-    L = muscle_set.length_L0(length_m)
-    V = muscle_set.velocity_L0_s(velocity_m_s)
+    L, V = _normalised_lengths(model, muscle_set, q, t, qv)
 
     bank.reset(None, t[:1], L[:1], V[:1])
     out = {key: np.empty_like(L) for key in ("ia_pps", "ii_pps", "length_L0", "velocity_L0_s",
@@ -168,6 +148,39 @@ def afferents_from_trajectory(
     return TrajectoryAfferents(t_s=t.copy(), muscle_names=muscle_set.names,
                                measured_length_L0=L, counters=counters, force_N=forces,
                                ib_pps=ib, **out)
+
+
+def _normalised_lengths(model: mujoco.MjModel, muscle_set, q: np.ndarray, t: np.ndarray,
+                        qv: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(lengths L0, velocities L0/s), (T, M), of the samples: the velocities through the
+    moment arms from ``qv``, or the lengths' time derivative (second order) without it."""
+    kinematics = ActuatorKinematics(model, muscle_set.ids)
+    zero = np.zeros(model.nv)
+    length_m = np.empty((t.size, muscle_set.n))
+    velocity_m_s = np.empty_like(length_m)
+    for i in range(t.size):
+        length_m[i], velocity_m_s[i] = kinematics.compute(
+            q[i], zero if qv is None else qv[i])
+    if qv is None:
+        velocity_m_s = np.gradient(length_m, t, axis=0)
+    return muscle_set.length_L0(length_m), muscle_set.velocity_L0_s(velocity_m_s)
+
+
+def _checked_forces(model: mujoco.MjModel, force_N_t, dt_s: np.ndarray, muscle_set,
+                    params: TendonOrganParams) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(forces (T, M) N, force scales (M,) N), or (None, None) without ``force_N_t``; shape,
+    finiteness, the force limit and the sample interval (the organs' step) checked."""
+    if force_N_t is None:
+        return None, None
+    forces = np.array(force_N_t, dtype=float)
+    if forces.shape != (dt_s.size + 1, muscle_set.n):
+        raise ValueError(f"force_N_t has shape {forces.shape}; expected "
+                         f"({dt_s.size + 1}, {muscle_set.n}) (samples, muscles)")
+    if not np.all(np.isfinite(forces)) or np.any(forces > MAX_FORCE_N):
+        raise ValueError(f"force_N_t must be finite and at most MAX_FORCE_N = "
+                         f"{MAX_FORCE_N} N (max {np.nanmax(forces)!r})")
+    check_step(float(dt_s.mean()))
+    return forces, force_scales_N(params, max_forces_N(model, muscle_set.ids))
 
 
 def _checked_trajectory(model: mujoco.MjModel, qpos_t, t_s, qvel_t
