@@ -12,6 +12,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
+from test_env import rollout
 from test_vector_env import compare_with_singles
 
 import proprio_env  # noqa: F401  (registers the envs)
@@ -31,16 +32,6 @@ def actions_for(env, steps, seed=3):
     rng = np.random.default_rng(seed)
     space = env.action_space
     return rng.uniform(space.low, space.high, (steps, *space.shape)).astype(np.float32)
-
-
-def rollout(env, actions, seed):
-    obs, info = env.reset(seed=seed)
-    out, infos = [obs], [info]
-    for a in actions:
-        obs, _, _, _, info = env.step(a)
-        out.append(obs)
-        infos.append(info)
-    return np.array(out), infos
 
 
 def replay_forces(env, actions, angle0_deg):

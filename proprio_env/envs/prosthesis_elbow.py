@@ -113,16 +113,13 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
     (``include_ib=True``; 11 with the fusimotor drive); rates are divided by 100 pps. The
     joint angle and the encoder readings are *not* observed.
 
-    | Num (v0) | Num (v1) | Observation                          | Min | Max   | Muscle | Type (Unit)           |
-    |----------|----------|--------------------------------------|-----|-------|--------|-----------------------|
-    | 0        | 0        | Ia (primary afferent) rate / 100     | 0   | Inf   | BRA    | firing rate (100 pps) |
-    | 1        | 1        | Ia rate / 100                        | 0   | Inf   | TRImed | firing rate (100 pps) |
-    | 2        | 2        | II (secondary afferent) rate / 100   | 0   | Inf   | BRA    | firing rate (100 pps) |
-    | 3        | 3        | II rate / 100                        | 0   | Inf   | TRImed | firing rate (100 pps) |
-    | 4        | 4        | target elbow flexion                 | 0   | 2.269 | -      | angle (rad)           |
-    | -        | 5        | Ib (tendon organ afferent) rate / 100 | 0  | Inf   | BRA    | firing rate (100 pps) |
-    | -        | 6        | Ib rate / 100                        | 0   | Inf   | TRImed | firing rate (100 pps) |
-    | 5-8      | 7-10     | gamma static (BRA, TRImed), gamma dynamic (BRA, TRImed) / 100 (optional) | 0 | Inf | - | firing rate (100 pps) |
+    | Num (v0) | Num (v1) | Observation (BRA, then TRImed)                   | Min | Max   | Type (Unit)           |
+    |----------|----------|--------------------------------------------------|-----|-------|-----------------------|
+    | 0-1      | 0-1      | Ia (primary spindle afferent) rates / 100        | 0   | Inf   | firing rate (100 pps) |
+    | 2-3      | 2-3      | II (secondary spindle afferent) rates / 100      | 0   | Inf   | firing rate (100 pps) |
+    | 4        | 4        | target elbow flexion                             | 0   | 2.269 | angle (rad)           |
+    | -        | 5-6      | Ib (tendon organ afferent) rates / 100           | 0   | Inf   | firing rate (100 pps) |
+    | 5-8      | 7-10     | gamma static, gamma dynamic / 100 (optional)     | 0   | Inf   | firing rate (100 pps) |
 
     Ib (v1): the muscles are disabled and carry no force, so the tendon forces are the load
     the servo carries, as the prosthesis chain gets it from the servo's load reading: the
