@@ -171,3 +171,12 @@ def test_non_finite_and_huge_forces_follow_the_counted_rule():
     other = TendonForceSense(2, 2e-3, np.array([987.26, 624.3]), "numpy")
     other.reset(np.arange(2), np.array([[10.0, 0.0], [20.0, 5.0]]))
     np.testing.assert_array_equal(other.step(g), ib)
+
+
+@pytest.mark.parametrize("env_id", V1)
+def test_v1_passes_gymnasiums_env_checker_and_refuses_a_bad_flag(env_id):
+    from gymnasium.utils.env_checker import check_env
+
+    check_env(gym.make(env_id).unwrapped, skip_render_check=True)
+    with pytest.raises(ValueError, match="include_ib"):
+        gym.make(env_id, include_ib="no")
