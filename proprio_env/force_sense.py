@@ -98,6 +98,15 @@ class TendonForceSense:
         self.clamped[rows] += np.count_nonzero(np.isfinite(force_N) & (force_N > MAX_FORCE_N),
                                                axis=(1, 2))
 
+    def _ruled(self, force_N: np.ndarray, previous_N: np.ndarray,
+               envs: np.ndarray | None = None) -> np.ndarray:
+        """``force_N`` under the handling rule, its cases counted (one reduction when every
+        force is finite and in range, the common case: NaN and inf fail the comparison)."""
+        if float(np.max(force_N, initial=0.0)) <= MAX_FORCE_N:
+            return np.asarray(force_N, dtype=np.float64)
+        self.count(force_N, envs)
+        return self.checked(force_N, previous_N)
+
     def step(self, force_N: np.ndarray, hold: np.ndarray | None = None) -> np.ndarray:
         """Advance every organ through the tendon forces ``force_N`` (n, F, M) after each of
         the env step's F physics steps; returns Ib (n, M) at the step's end. The envs with
@@ -108,12 +117,11 @@ class TendonForceSense:
             force_N = np.array(force_N, dtype=np.float64)
             force_N[held] = self.force_N[held, None, :]
             saved = self.organs.rows_state(self._rows(held))
-        f = self.checked(force_N, self.force_N)
+        f = self._ruled(force_N, self.force_N)
         frames = f.shape[1]
         rates = self.organs.run(f.transpose(1, 0, 2).reshape(frames, m * n))[-1]
         if held is not None:
             rates = self.organs.set_rows_state(self._rows(held), saved)
-        self.count(force_N)
         self.force_N[:] = f[:, -1]
         self.last_forces_N = f  # what the organs took, (n, F, M): for twins and checks
         self.steps += 1
@@ -125,9 +133,8 @@ class TendonForceSense:
 
     def reset(self, envs: np.ndarray, force_N: np.ndarray) -> None:
         """The organs of ``envs`` (k,) at rest at their tendon forces ``force_N`` (k, M)."""
-        f = self.checked(force_N[:, None, :], np.zeros_like(force_N))[:, 0]
+        f = self._ruled(force_N[:, None, :], np.zeros_like(force_N), envs)[:, 0]
         rates = self.organs.reset(f.ravel(), self._rows(envs))
         self.resets += 1
-        self.count(force_N[:, None, :], envs)
         self.force_N[envs] = f
         self.ib_pps = rates.reshape(self.n, self.m)
