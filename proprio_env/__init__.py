@@ -7,21 +7,37 @@ only when ``gymnasium.make`` builds one):
 
 - ``proprio_env/ElbowReach-v0``: muscle-driven elbow, spindle afferents as observation;
 - ``proprio_env/ProsthesisElbow-v0``: servo-driven prosthetic elbow, afferents through the
-  encoder chain.
+  encoder chain;
+- ``-v1`` of both: the same with Ib (Golgi tendon organs) of both muscles observed too.
 """
 
-from proprio_env.model import JOINT, MUSCLES, model_path
+from proprio_env.body.model import JOINT, MUSCLES, model_path
 
-__all__ = ["ENV_IDS", "JOINT", "MUSCLES", "VECTOR_ENTRY_POINTS", "model_path", "register_envs"]
+RATE_SCALE_PPS = 100.0
+"""Afferent and fusimotor rates enter every observation (the envs', the wrappers' default)
+divided by this (pps)."""
+
+__all__ = ["ENV_IDS", "ID_KWARGS", "JOINT", "MUSCLES", "RATE_SCALE_PPS", "VECTOR_ENTRY_POINTS",
+           "model_path", "register_envs"]
 
 ENV_IDS = {
     "proprio_env/ElbowReach-v0": "proprio_env.envs.elbow_reach:ElbowReachEnv",
     "proprio_env/ProsthesisElbow-v0": "proprio_env.envs.prosthesis_elbow:ProsthesisElbowEnv",
+    "proprio_env/ElbowReach-v1": "proprio_env.envs.elbow_reach:ElbowReachEnv",
+    "proprio_env/ProsthesisElbow-v1": "proprio_env.envs.prosthesis_elbow:ProsthesisElbowEnv",
 }
 VECTOR_ENTRY_POINTS = {
     "proprio_env/ElbowReach-v0": "proprio_env.envs.vector:ElbowReachVectorEnv",
     "proprio_env/ProsthesisElbow-v0": "proprio_env.envs.vector:ProsthesisElbowVectorEnv",
+    "proprio_env/ElbowReach-v1": "proprio_env.envs.vector:ElbowReachVectorEnv",
+    "proprio_env/ProsthesisElbow-v1": "proprio_env.envs.vector:ProsthesisElbowVectorEnv",
 }
+ID_KWARGS = {
+    "proprio_env/ElbowReach-v1": {"include_ib": True},
+    "proprio_env/ProsthesisElbow-v1": {"include_ib": True},
+}
+"""What a version changes: v1 observes Ib (tendon organs) of both muscles (``include_ib``
+defaults to True there, False in v0, whose observation is unchanged)."""
 """What ``gymnasium.make_vec(id, num_envs=n)`` builds: native vector envs (one physics call and
 one batched chain call per step for all n envs)."""
 MAX_EPISODE_STEPS = 200
@@ -38,7 +54,8 @@ def register_envs() -> None:
         if env_id not in gymnasium.registry:
             gymnasium.register(id=env_id, entry_point=entry_point,
                                vector_entry_point=VECTOR_ENTRY_POINTS[env_id],
-                               max_episode_steps=MAX_EPISODE_STEPS)
+                               max_episode_steps=MAX_EPISODE_STEPS,
+                               kwargs=dict(ID_KWARGS.get(env_id, {})))
 
 
 register_envs()

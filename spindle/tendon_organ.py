@@ -320,10 +320,48 @@ class TendonOrgans:
     def n(self) -> int:
         return self.state.n
 
-    def reset(self, force_N: object = 0.0) -> np.ndarray:
-        """At rest at ``force_N``; returns the rates there."""
-        self.state = equilibrium_state(force_N, self.force_scale_N, self.params, self.n)
+    def reset(self, force_N: object = 0.0, rows: np.ndarray | None = None) -> np.ndarray:
+        """At rest at ``force_N``; returns the rates there. With ``rows`` (organ indices),
+        only those organs, ``force_N`` then a scalar or one per row."""
+        if rows is None:
+            self.state = equilibrium_state(force_N, self.force_scale_N, self.params, self.n)
+            return self.rate_pps()
+        rows = np.asarray(rows, dtype=np.intp)
+        fresh = equilibrium_state(force_N, self.force_scale_N[rows], self.params, rows.size)
+        self.state.z[:, rows] = fresh.z
+        self.state.force_N[rows] = fresh.force_N
+        self.state.r_pps[rows] = fresh.r_pps
         return self.rate_pps()
+
+    def rows_state(self, rows: np.ndarray) -> TendonOrganState:
+        """A copy of the state of organs ``rows`` (for :meth:`set_rows_state`)."""
+        rows = np.asarray(rows, dtype=np.intp)
+        return TendonOrganState(self.state.z[:, rows].copy(), self.state.force_N[rows].copy(),
+                                self.state.r_pps[rows].copy())
+
+    def set_rows_state(self, rows: np.ndarray, saved: TendonOrganState) -> np.ndarray:
+        """Organs ``rows`` back to ``saved`` (:meth:`rows_state`); returns every rate."""
+        rows = np.asarray(rows, dtype=np.intp)
+        self.state.z[:, rows] = saved.z
+        self.state.force_N[rows] = saved.force_N
+        self.state.r_pps[rows] = saved.r_pps
+        return self.rate_pps()
+
+    def run(self, force_N: np.ndarray, dt_s: float | None = None,
+            first: bool = False) -> np.ndarray:
+        """Steps to each row of ``force_N`` ((steps, n)); Ib after each, (steps, n), with the
+        rates at the start as an extra first row if ``first`` (the C twin's ``run``). Atomic:
+        every row is checked before any step."""
+        p = self.plan if dt_s is None else plan(self.params, dt_s)
+        f = np.asarray(force_N, dtype=np.float64).reshape(-1, self.n)
+        for row in f:
+            _forces(row, self.n)
+        out = np.empty((f.shape[0] + int(first), self.n))
+        if first:
+            out[0] = self.rate_pps()
+        for k in range(f.shape[0]):
+            out[k + int(first)] = step(self.state, f[k], self.force_scale_N, p)
+        return out
 
     def step(self, force_N: object, dt_s: float | None = None) -> np.ndarray:
         """One step of ``dt_s`` (default: the constructor's) to ``force_N``; Ib (pps)."""
@@ -338,7 +376,8 @@ def make_tendon_organs(force_scale_N: object, params: TendonOrganParams = HUMAN,
                        dt_s: float = 1e-3, force_N: object = 0.0,
                        backend: str = DEFAULT_BACKEND):
     """:class:`TendonOrgans` (numpy) or its C twin, by :func:`spindle.backends.resolve_backend`;
-    both have ``.backend``, ``.n``, ``reset``, ``step``, ``rate_pps``."""
+    both have ``.backend``, ``.n``, ``reset`` (all organs or some ``rows``), ``step``, ``run``
+    (many steps in one call), ``rate_pps``."""
     name = resolve_backend(backend)
     if name == "c":
         from spindle.native.tendon_organ import CTendonOrgans  # C only when asked for
@@ -360,10 +399,4 @@ def simulate(force_N: object, dt_s: float, force_scale_N: object,
     organs = make_tendon_organs(force_scale_N, params, dt_s, f2[0], backend)
     if organs.n != f2.shape[1]:
         raise ValueError(f"force_scale_N gives {organs.n} muscles, force_N has {f2.shape[1]}")
-    if hasattr(organs, "run"):
-        return organs.run(f2[1:], first=True).reshape(f.shape)
-    out = np.empty_like(f2)
-    out[0] = organs.rate_pps()
-    for k in range(1, f2.shape[0]):
-        out[k] = organs.step(f2[k])
-    return out.reshape(f.shape)
+    return organs.run(f2[1:], first=True).reshape(f.shape)

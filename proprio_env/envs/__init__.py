@@ -2,7 +2,9 @@
 
 - :class:`ElbowReachEnv` (``proprio_env/ElbowReach-v0``): muscle-driven;
 - :class:`ProsthesisElbowEnv` (``proprio_env/ProsthesisElbow-v0``): servo-driven prosthesis
-  with the encoder chain.
+  with the encoder chain;
+- ``-v1`` of both: ``include_ib=True``, Ib of BRA and TRImed (tendon organs,
+  :mod:`proprio_env.body.force_sense`) observed too.
 
 Both are one env of :class:`~proprio_env.envs.core.EnvCore`, the one implementation of the
 env step over n envs; ``gymnasium.make_vec`` builds its n-env view

@@ -3,11 +3,11 @@
 Three sources feed the spindle chains (``spindle.chain.make_batched_chain``: numpy or C, all
 arms in one call) at different stages:
 
-- ``"exact"``: MuJoCo's fibre lengths (tendon path -> :mod:`proprio_env.muscle_length`), one
+- ``"exact"``: MuJoCo's fibre lengths (tendon path -> :mod:`proprio_env.body.muscle_length`), one
   sample per physics step (2 ms, 500 Hz);
 - ``"reduced"``: MuJoCo's elbow angle through the fitted length model, one sample per physics
   step;
-- ``"encoder"``: a simulated AX-12 encoder per arm (:class:`proprio_env.encoder.EncoderBank`:
+- ``"encoder"``: a simulated AX-12 encoder per arm (:class:`proprio_env.body.encoder.EncoderBank`:
   jittered ~500 Hz sample times, 0.29 deg counts, noise, rare invalid readings) reading the
   elbow angle, then the prosthesis chain (median filter, f(x), fitted lengths), as in the
   seed paper.
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from proprio_env.encoder import EncoderBank
+from proprio_env.body.encoder import EncoderBank
 from spindle.chain import ChainConfig, make_batched_chain
 from spindle.chain.length_model import LengthFits
 from spindle.chain.sensor import AX12, EncoderParams
@@ -55,7 +55,7 @@ class AfferentReadout:
         n: number of arms (one per env).
 
     ``chain`` is the batched chain (its ``counters`` and outputs have a leading axis of
-    arms), ``encoders`` the :class:`~proprio_env.encoder.EncoderBank`.
+    arms), ``encoders`` the :class:`~proprio_env.body.encoder.EncoderBank`.
     """
 
     def __init__(self, source: str, chain_config: ChainConfig,

@@ -29,6 +29,11 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from proprio_env import RATE_SCALE_PPS
+from proprio_env.body.force_sense import TendonForceSense, max_forces_N
+from proprio_env.body.length_fitting import fits_for_model
+from proprio_env.body.model import JOINT, MUSCLES, model_path
+from proprio_env.body.muscle_length import FibreLengths, muscle_geometry
 from proprio_env.envs.afferents import SOURCES, AfferentReadout
 from proprio_env.envs.arguments import (
     check_flag,
@@ -42,16 +47,10 @@ from proprio_env.envs.arguments import (
     frames_per_step,
 )
 from proprio_env.envs.physics import PhysicsBatch, check_threads, load_sensed_model
-from proprio_env.length_fitting import fits_for_model
-from proprio_env.model import JOINT, MUSCLES, model_path
-from proprio_env.muscle_length import FibreLengths, muscle_geometry
 from spindle.backends import BACKEND_CHOICES, DEFAULT_BACKEND, resolve_backend
 from spindle.chain import ChainConfig
 from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.chain.sensor import AX12, EncoderParams
-
-RATE_SCALE_PPS = 100.0
-"""Afferent and fusimotor rates enter the observation divided by this (pps)."""
 
 MUSCLE_GROUP_BIT = 1 << 1
 SERVO_GROUP_BIT = 1 << 2
@@ -76,6 +75,7 @@ class Drive:
     def __init__(self, model: mujoco.MjModel, joint_range_deg: tuple[float, float]) -> None:
         self.model = model
         self.joint_range_deg = joint_range_deg
+        self.muscle_actuators = np.array([model.actuator(m).id for m in MUSCLES])
 
     def action_space(self) -> spaces.Box:
         raise NotImplementedError
@@ -92,18 +92,43 @@ class Drive:
         """This drive's own ``info`` entries, (n,) each, from the controls (n, nu)."""
         return {}
 
+    def prepare_forces(self, model_file: Path) -> None:
+        """Load what :meth:`tendon_forces_N` needs for the model in ``model_file`` (the
+        muscles' force needs nothing more)."""
+
+    def tendon_forces_N(self, actuator_force: np.ndarray, angle_rad: np.ndarray
+                        ) -> np.ndarray:
+        """The tendon forces (N, tension positive) of BRA and TRImed, (..., 2), from MuJoCo's
+        ``actuator_force`` (..., nu) and the elbow angles (...): by default the muscles'
+        own force (MuJoCo's muscle pulls with a negative force), active and passive."""
+        return 0.0 - actuator_force[..., self.muscle_actuators]  # +0.0 for a zero force
+
 
 # -- the arithmetic of a step, over a leading axis of envs --------------------------------------
-def observations(sample: Any, target_rad: np.ndarray, include_fusimotor: bool) -> np.ndarray:
-    """(n, 5) or (n, 9) float32 observations: a batch sample's (n, 2) rates (pps) and the
-    targets (n,) (rad). The rates are divided in float64, then rounded once to float32."""
-    obs = np.empty((target_rad.shape[0], 9 if include_fusimotor else 5), dtype=np.float32)
+def observation_size(include_fusimotor: bool, include_ib: bool) -> int:
+    """Ia, II (4), the target (1), Ib (2, with ``include_ib``), gamma_s, gamma_d (4)."""
+    return 5 + 2 * include_ib + 4 * include_fusimotor
+
+
+def observations(sample: Any, target_rad: np.ndarray, include_fusimotor: bool,
+                 ib_pps: np.ndarray | None = None) -> np.ndarray:
+    """(n, :func:`observation_size`) float32 observations: a batch sample's (n, 2) rates
+    (pps), the targets (n,) (rad) and, given, the Ib rates ``ib_pps`` (n, 2) (pps). The rates
+    are divided in float64, then rounded once to float32."""
+    obs = np.empty((target_rad.shape[0], observation_size(include_fusimotor,
+                                                          ib_pps is not None)),
+                   dtype=np.float32)
     np.divide(sample.ia_pps, RATE_SCALE_PPS, out=obs[:, 0:2], casting="same_kind")
     np.divide(sample.ii_pps, RATE_SCALE_PPS, out=obs[:, 2:4], casting="same_kind")
     obs[:, 4] = target_rad
+    g = 5
+    if ib_pps is not None:
+        np.divide(ib_pps, RATE_SCALE_PPS, out=obs[:, 5:7], casting="same_kind")
+        g = 7
     if include_fusimotor:
-        np.divide(sample.gamma_static_pps, RATE_SCALE_PPS, out=obs[:, 5:7], casting="same_kind")
-        np.divide(sample.gamma_dynamic_pps, RATE_SCALE_PPS, out=obs[:, 7:9],
+        np.divide(sample.gamma_static_pps, RATE_SCALE_PPS, out=obs[:, g:g + 2],
+                  casting="same_kind")
+        np.divide(sample.gamma_dynamic_pps, RATE_SCALE_PPS, out=obs[:, g + 2:g + 4],
                   casting="same_kind")
     # never observed (the chain rejects bad samples); a sum of finite rates stays finite
     if not math.isfinite(obs.sum()):
@@ -134,6 +159,9 @@ MUSCLE_INFO = ("length_L0", "velocity_L0_s", "gamma_static_pps", "gamma_dynamic_
                "ia_pps", "ii_pps")
 """The ``info`` entries with one number per muscle (``MUSCLES`` order): (n, 2) arrays, (2,)
 in a single env."""
+IB_INFO = ("force_N", "ib_pps")
+"""The per-muscle ``info`` entries of the tendon organs (``include_ib``): the tendon force
+(N) and Ib (pps) at the end of the step."""
 
 
 def check_actions(actions: Any, shape: tuple[int, ...], clip: bool,
@@ -217,7 +245,7 @@ class EnvCore:
                  control_hz: float = 50.0, afferent_source: str | None = None,
                  backend: str = DEFAULT_BACKEND, chain_config: ChainConfig | None = None,
                  encoder_params: EncoderParams = AX12, include_fusimotor: bool = False,
-                 target_ranges_deg: Any = ((15.0, 115.0),),
+                 include_ib: bool = False, target_ranges_deg: Any = ((15.0, 115.0),),
                  initial_angle_ranges_deg: Any = ((10.0, 120.0),),
                  distance_reward_weight: float = 1.0, control_cost_weight: float | None = None,
                  clip_actions: bool = False, xml_file: str | Path | None = None,
@@ -235,6 +263,7 @@ class EnvCore:
             check_instance("chain_config", chain_config, ChainConfig)
         check_instance("encoder_params", encoder_params, EncoderParams)
         self.include_fusimotor = check_flag("include_fusimotor", include_fusimotor)
+        self.include_ib = check_flag("include_ib", include_ib)
         self.clip_actions = check_flag("clip_actions", clip_actions)
         self.distance_reward_weight = check_real("distance_reward_weight",
                                                  distance_reward_weight, low=0.0)
@@ -243,7 +272,7 @@ class EnvCore:
             if control_cost_weight is None else control_cost_weight, low=0.0)
         model_file = model_path() if xml_file is None else check_path("xml_file", xml_file)
         # the model: the remaining checks need its buffers, time step and joint range
-        self.model = model = load_sensed_model(model_file)
+        self.model = model = load_sensed_model(model_file, forces=self.include_ib)
         self.width = check_positive_int("width", width, high=int(model.vis.global_.offwidth))
         self.height = check_positive_int("height", height,
                                          high=int(model.vis.global_.offheight))
@@ -269,7 +298,7 @@ class EnvCore:
         self.action_space = self.drive.action_space()
         self._action_bounds = (self.action_space.low.astype(np.float64),
                                self.action_space.high.astype(np.float64))
-        n_obs = 9 if self.include_fusimotor else 5
+        n_obs = observation_size(self.include_fusimotor, self.include_ib)
         low, high = np.zeros(n_obs, np.float32), np.full(n_obs, np.inf, np.float32)
         high[4] = math.radians(self.joint_range_deg[1])
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
@@ -285,6 +314,12 @@ class EnvCore:
         self.target_deg = np.full(n, 0.5 * sum(self.joint_range_deg))
         self._target_rad = np.radians(self.target_deg)
         self.sample = None  # the chains' latest output, after the first reset
+        self.tendon_organs = None
+        if self.include_ib:
+            self.drive.prepare_forces(model_file)
+            self.tendon_organs = TendonForceSense(
+                n, float(model.opt.timestep), max_forces_N(model, self.drive.muscle_actuators),
+                self.backend)
         self._renderer: mujoco.Renderer | None = None
         self._render_data: mujoco.MjData | None = None
         # the first scratch data is the single env's `data`: it holds the state after a step
@@ -324,13 +359,18 @@ class EnvCore:
         if self.afferent_source == "exact":
             lengths = self._fibre_lengths(physics.tendon_lengths_m(self.data))
         self.sample, pushed = self.afferents.push(physics.time_s(), angle_deg, lengths, active)
+        if self.tendon_organs is not None:
+            self.tendon_organs.step(self.drive.tendon_forces_N(
+                physics.actuator_forces(), physics.angle_rad()))
         distance, control = rewards(angle_deg[:, -1], self.target_deg, actions,
                                     self.distance_reward_weight, self.control_cost_weight)
         return distance, control, pushed
 
     def observations(self) -> np.ndarray:
         """(n, 5) or (n, 9) float32: the chains' latest output and the targets."""
-        return observations(self.sample, self._target_rad, self.include_fusimotor)
+        organs = self.tendon_organs
+        return observations(self.sample, self._target_rad, self.include_fusimotor,
+                            None if organs is None else organs.ib_pps)
 
     def info(self, pushed: np.ndarray, distance: np.ndarray, control: np.ndarray,
              env: int | None = None) -> dict[str, Any]:
@@ -346,14 +386,19 @@ class EnvCore:
                             distance, control, *extra.values()))
         np.degrees(scalars[1:3], out=scalars[1:3])
         np.subtract(scalars[1], target, out=scalars[4])
-        muscles = np.array([getattr(sample, name) for name in MUSCLE_INFO])
+        names = MUSCLE_INFO
+        rows = [getattr(sample, name) for name in MUSCLE_INFO]
+        if self.tendon_organs is not None:
+            names = (*MUSCLE_INFO, *IB_INFO)
+            rows += [self.tendon_organs.force_N, self.tendon_organs.ib_pps]
+        muscles = np.array(rows)
         if env is None:
             info = dict(zip((*SCALAR_INFO, *extra), scalars, strict=True))
-            info.update(zip(MUSCLE_INFO, muscles, strict=True))
+            info.update(zip(names, muscles, strict=True))
             info["sensor_samples"] = pushed
         else:
             info = dict(zip((*SCALAR_INFO, *extra), scalars[:, env].tolist(), strict=True))
-            info.update(zip(MUSCLE_INFO, muscles[:, env], strict=True))
+            info.update(zip(names, muscles[:, env], strict=True))
             info["sensor_samples"] = int(pushed[env])
         return info
 
@@ -371,6 +416,7 @@ class EnvCore:
         try:
             targets, angles = np.empty(m), np.empty(m)
             lengths, times = np.empty((m, 2)), np.empty(m)
+            forces = np.zeros((m, 2))
             for j, (i, rng) in enumerate(zip(envs.tolist(), rngs, strict=True)):
                 targets[j] = (draw_from_ranges(rng, self.target_ranges_deg)
                               if target_deg is None else target_deg[j])
@@ -382,8 +428,13 @@ class EnvCore:
                 mujoco.mj_forward(self.model, data)
                 lengths[j] = self._fibre_lengths(data.ten_length[self._tendon_ids])
                 times[j] = data.time
+                if self.tendon_organs is not None:
+                    forces[j] = self.drive.tendon_forces_N(data.actuator_force,
+                                                           data.qpos[self._qadr])
                 physics.store(i, data)
             self.afferents.reset(envs, times, angles, lengths, rngs)
+            if self.tendon_organs is not None:
+                self.tendon_organs.reset(envs, forces)
         except BaseException:
             physics.state[envs], physics.ctrl[envs] = saved[:2]
             for rng, state in zip(rngs, saved[2], strict=True):
@@ -435,6 +486,8 @@ SHOWN_SETTINGS = {
     "target_ranges_deg": "Where targets are drawn (deg).",
     "initial_angle_ranges_deg": "Where initial angles are drawn (deg).",
     "include_fusimotor": "gamma_s, gamma_d observed.",
+    "include_ib": "Ib (tendon organs) observed.",
+    "tendon_organs": "The TendonForceSense (``include_ib``), else None.",
     "clip_actions": "Out-of-box actions clipped (not refused).",
     "distance_reward_weight": "w_dist.",
     "control_cost_weight": "w_ctrl.",

@@ -1,5 +1,6 @@
 # ruff: noqa: E501  (Gymnasium-style markdown tables in the class docstring)
-"""``proprio_env/ElbowReach-v0``: the muscle-driven elbow, felt only through its spindles."""
+"""``proprio_env/ElbowReach-v0`` / ``-v1``: the muscle-driven elbow, felt only through its
+spindles (and, in v1, its tendon organs)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ from typing import Any, ClassVar
 import numpy as np
 from gymnasium import spaces
 
+from proprio_env.body.model import MUSCLES
 from proprio_env.envs.base import ElbowProprioEnv
 from proprio_env.envs.core import SERVO_GROUP_BIT, Drive
-from proprio_env.model import MUSCLES
 
 
 class MuscleDrive(Drive):
@@ -56,20 +57,35 @@ class ElbowReachEnv(ElbowProprioEnv):
     shape or outside the box raises ``ValueError`` naming it; with ``clip_actions=True`` finite out-of-box actions are clipped instead.
 
     ## Observation Space
-    A `Box(low, high, (5,), float32)` (9 with ``include_fusimotor=True``); rates are divided
-    by 100 pps (``RATE_SCALE_PPS``). The joint angle is *not* observed.
+    A `Box(low, high, (5,), float32)` in v0 (9 with ``include_fusimotor=True``), `(7,)` in v1
+    (``include_ib=True``: 11 with the fusimotor drive); rates are divided by 100 pps
+    (``RATE_SCALE_PPS``). The joint angle is *not* observed. v1's first five entries are
+    v0's, bit for bit.
 
-    | Num | Observation                              | Min | Max   | Muscle | Type (Unit)              |
-    |-----|------------------------------------------|-----|-------|--------|--------------------------|
-    | 0   | Ia (primary afferent) rate / 100         | 0   | Inf   | BRA    | firing rate (100 pps)    |
-    | 1   | Ia rate / 100                            | 0   | Inf   | TRImed | firing rate (100 pps)    |
-    | 2   | II (secondary afferent) rate / 100       | 0   | Inf   | BRA    | firing rate (100 pps)    |
-    | 3   | II rate / 100                            | 0   | Inf   | TRImed | firing rate (100 pps)    |
-    | 4   | target elbow flexion                     | 0   | 2.269 | -      | angle (rad)              |
-    | 5   | gamma static drive / 100 (optional)      | 0   | Inf   | BRA    | firing rate (100 pps)    |
-    | 6   | gamma static drive / 100 (optional)      | 0   | Inf   | TRImed | firing rate (100 pps)    |
-    | 7   | gamma dynamic drive / 100 (optional)     | 0   | Inf   | BRA    | firing rate (100 pps)    |
-    | 8   | gamma dynamic drive / 100 (optional)     | 0   | Inf   | TRImed | firing rate (100 pps)    |
+    | Num (v0) | Num (v1) | Observation                          | Min | Max   | Muscle | Type (Unit)           |
+    |----------|----------|--------------------------------------|-----|-------|--------|-----------------------|
+    | 0        | 0        | Ia (primary afferent) rate / 100     | 0   | Inf   | BRA    | firing rate (100 pps) |
+    | 1        | 1        | Ia rate / 100                        | 0   | Inf   | TRImed | firing rate (100 pps) |
+    | 2        | 2        | II (secondary afferent) rate / 100   | 0   | Inf   | BRA    | firing rate (100 pps) |
+    | 3        | 3        | II rate / 100                        | 0   | Inf   | TRImed | firing rate (100 pps) |
+    | 4        | 4        | target elbow flexion                 | 0   | 2.269 | -      | angle (rad)           |
+    | -        | 5        | Ib (tendon organ afferent) rate / 100 | 0  | Inf   | BRA    | firing rate (100 pps) |
+    | -        | 6        | Ib rate / 100                        | 0   | Inf   | TRImed | firing rate (100 pps) |
+    | 5        | 7        | gamma static drive / 100 (optional)  | 0   | Inf   | BRA    | firing rate (100 pps) |
+    | 6        | 8        | gamma static drive / 100 (optional)  | 0   | Inf   | TRImed | firing rate (100 pps) |
+    | 7        | 9        | gamma dynamic drive / 100 (optional) | 0   | Inf   | BRA    | firing rate (100 pps) |
+    | 8        | 10       | gamma dynamic drive / 100 (optional) | 0   | Inf   | TRImed | firing rate (100 pps) |
+
+    Ib (v1) is the aggregate rate of each muscle's Golgi tendon organs (Lin & Crago 2002,
+    ``spindle.tendon_organ``, human preset, ``docs/gto.md``) driven by the muscle's tendon
+    force: its MuJoCo muscle force, active and passive (``-data.actuator_force`` of the BRA
+    and TRImed actuators), read after every 2 ms physics step (``actuatorfrc`` sensors, the
+    last from MuJoCo's ``mj_fwdActuation`` at the step's end state); the organs take one
+    exact step per physics step, so they end each env step with the physics. The force
+    scale is 4 N x F_max / 22 N (BRA 179.5 N, TRImed 113.5 N). A non-finite force (only in
+    a diverged physics state) holds the previous force and one above 10^5 N is clamped, both
+    counted (``env.unwrapped.tendon_organs.held`` / ``.clamped``): Ib is never NaN and never
+    negative.
 
     The rates are the chain's output at the end of the env step. The observation never holds
     NaN: bad sensor samples are rejected by the chain (the previous output is kept), and a
@@ -80,7 +96,9 @@ class ElbowReachEnv(ElbowProprioEnv):
     (the low-passed fibre lengths the spindles were stretched by, (2,)), ``gamma_static_pps``,
     ``gamma_dynamic_pps``, ``ia_pps``, ``ii_pps`` ((2,), BRA then TRImed, in pps),
     ``time_s`` (physics time), ``sensor_time_s`` (the chain's last sample time),
-    ``sensor_samples`` (samples pushed in the step), ``reward_distance``, ``reward_control``.
+    ``sensor_samples`` (samples pushed in the step), ``reward_distance``, ``reward_control``;
+    in v1 also ``force_N`` (the tendon forces at the step's end, (2,), N) and ``ib_pps``
+    ((2,), pps).
 
     ## Rewards
     ***reward*** *=* *reward_distance + reward_control*, with
@@ -121,6 +139,7 @@ class ElbowReachEnv(ElbowProprioEnv):
     | `chain_config`             | ChainConfig | `None`            | chain settings (its `backend` is replaced by `backend`; its `fits_path`, if set, must be fits of `xml_file`) |
     | `encoder_params`           | EncoderParams | `AX12`          | the simulated encoder (source `"encoder"`) |
     | `include_fusimotor`        | bool        | `False`           | append gamma_s, gamma_d to the observation |
+    | `include_ib`               | bool        | v0 `False`, v1 `True` | observe Ib of both muscles (entries 5-6) |
     | `target_ranges_deg`        | pairs       | `((15, 115),)`    | intervals the target is drawn from (e.g. leave bands out for held-out evaluation) |
     | `initial_angle_ranges_deg` | pairs       | `((10, 120),)`    | intervals the initial angle is drawn from |
     | `distance_reward_weight`   | float       | `1`               | $w_{dist}$ (>= 0) |
@@ -149,6 +168,10 @@ class ElbowReachEnv(ElbowProprioEnv):
       ``reset`` refuses a seed that is not ``None`` or an integer >= 0 and checks every
       option before it changes anything (``ValueError``); the chain behind
       ``env.unwrapped.afferents.chain`` is the batched chain of one arm (counters (1,)).
+    * v1: the observation gains Ib of BRA and TRImed (Golgi tendon organs from the muscles'
+      MuJoCo force) at entries 5-6, the fusimotor drive (optional) moving to 7-10; ``info``
+      gains ``force_N`` and ``ib_pps``. The same class with ``include_ib=True``; v0 is
+      unchanged (Gymnasium warns that a newer version exists when v0 is made).
     """
 
     drive = MuscleDrive

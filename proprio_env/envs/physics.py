@@ -18,21 +18,28 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
-from proprio_env.model import MUSCLES
+from proprio_env.body.model import MUSCLES
+from proprio_env.wrappers.muscles import ActuatorKinematics
 
 STATE_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
 """What a stored env state holds (time, qpos, qvel, act, mocap, userdata, plugin state)."""
 _CTRL = int(mujoco.mjtState.mjSTATE_CTRL.value)
 
 
-def load_sensed_model(model_file: str | Path) -> mujoco.MjModel:
+def load_sensed_model(model_file: str | Path, forces: bool = False) -> mujoco.MjModel:
     """The MJCF at ``model_file`` with a ``tendonpos`` sensor per muscle (in MUSCLES order)
-    appended at load time: the file on disk, whose sha256 keys the length fits, is not
+    appended at load time, and with ``forces`` an ``actuatorfrc`` sensor per actuator (in
+    actuator order, after them): the file on disk, whose sha256 keys the length fits, is not
     changed, and sensors do not change the dynamics."""
     spec = mujoco.MjSpec.from_file(str(model_file))
     for name in MUSCLES:
         spec.add_sensor(name=f"_proprio_len_{name}", type=mujoco.mjtSensor.mjSENS_TENDONPOS,
                         objtype=mujoco.mjtObj.mjOBJ_TENDON, objname=name)
+    if forces:
+        for actuator in spec.actuators:
+            spec.add_sensor(name=f"_proprio_frc_{actuator.name}",
+                            type=mujoco.mjtSensor.mjSENS_ACTUATORFRC,
+                            objtype=mujoco.mjtObj.mjOBJ_ACTUATOR, objname=actuator.name)
     return spec.compile()
 
 
@@ -80,6 +87,12 @@ class PhysicsBatch:
         sensor0 = model.sensor(f"_proprio_len_{MUSCLES[0]}").id
         self.sensor_adr = int(model.sensor_adr[sensor0])
         self._tendon_ids = np.array([model.tendon(name).id for name in MUSCLES])
+        self.force_adr = None  # the actuator-force sensors' address, if the model has them
+        if model.nu and mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR,
+                                          f"_proprio_frc_{model.actuator(0).name}") >= 0:
+            self.force_adr = int(model.sensor_adr[model.sensor(
+                f"_proprio_frc_{model.actuator(0).name}").id])
+            self._kinematics = ActuatorKinematics(model, np.arange(model.nu))
 
     def close(self) -> None:
         """Stop the thread pool (stepping afterwards raises RuntimeError)."""
@@ -136,6 +149,24 @@ class PhysicsBatch:
             mujoco.mj_kinematics(m, data)
             mujoco.mj_tendon(m, data)
             out[i, -1] = data.ten_length[self._tendon_ids]
+        return out
+
+    def actuator_forces(self) -> np.ndarray:
+        """(n, frames, nu) ``actuator_force`` (MuJoCo's sign) after each step (needs the
+        model of ``load_sensed_model(..., forces=True)``): the sensors give all but the last
+        (an ``actuatorfrc`` sensor after a step holds the force of the step's start state,
+        i.e. of the state after the previous step), the last is computed from each env's final
+        state and controls with MuJoCo's ``mj_fwdActuation`` on a scratch data
+        (:meth:`~proprio_env.wrappers.muscles.ActuatorKinematics.forces`)."""
+        a, nu, m = self.force_adr, self.model.nu, self.model
+        out = np.empty((self.n, self.frames, nu))
+        out[:, :-1] = self.sensors_out[:, 1:, a:a + nu]
+        nq, nv, na = m.nq, m.nv, m.na
+        for i in range(self.n):
+            s = self.state[i]
+            out[i, -1] = self._kinematics.forces(
+                s[1:1 + nq], s[1 + nq:1 + nq + nv], s[1 + nq + nv:1 + nq + nv + na],
+                self.ctrl[i])
         return out
 
     # -- pickling and copying: the thread pool is rebuilt ------------------------------------

@@ -1,17 +1,20 @@
 # ruff: noqa: E501  (Gymnasium-style markdown tables in the class docstring)
-"""``proprio_env/ProsthesisElbow-v0``: a servo-driven prosthetic elbow with artificial
-proprioception through its encoder, as in the seed paper."""
+"""``proprio_env/ProsthesisElbow-v0`` / ``-v1``: a servo-driven prosthetic elbow with artificial
+proprioception through its encoder, as in the seed paper (and, in v1, the force sense)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium import spaces
 
+from proprio_env.body.model import SERVO
+from proprio_env.body.moment_arm_fitting import fit_moment_arm_document
 from proprio_env.envs.base import ElbowProprioEnv
 from proprio_env.envs.core import MUSCLE_GROUP_BIT, Drive
-from proprio_env.model import SERVO
+from spindle.chain.force import MomentArmFits, load_moment_arm_fits, tendon_forces_N
 
 
 class ServoDrive(Drive):
@@ -46,6 +49,40 @@ class ServoDrive(Drive):
     def info(self, ctrl: np.ndarray) -> dict[str, np.ndarray]:
         return {"command_deg": np.degrees(ctrl[:, self._servo_id])}
 
+    def prepare_forces(self, model_file: Path) -> None:
+        """The moment-arm table of the model: the bundled ``models/moment_arm_fits.json``
+        if it was made from ``model_file``, else tabulated from it now (MuJoCo's tendon
+        Jacobian every 0.5 deg, as ``scripts/fit_moment_arms.py`` does)."""
+        try:
+            self._arms = load_moment_arm_fits(model=model_file)
+        except ValueError:
+            doc = fit_moment_arm_document(model_file)
+            names = tuple(doc["muscles"])
+            self._arms = MomentArmFits(
+                muscles=names, table_m=tuple(tuple(doc["fits"][m]["table_m"]) for m in names),
+                valid_range_rad=tuple(doc["valid_range_rad"]),
+                model_sha256=doc["model_sha256"],
+                max_error_m=tuple(doc["fits"][m]["max_error_m"] for m in names))
+        self._gear = float(self.model.actuator_gear[self._servo_id, 0])
+
+    def tendon_forces_N(self, actuator_force: np.ndarray, angle_rad: np.ndarray
+                        ) -> np.ndarray:
+        """The servo's joint torque split into BRA and TRImed tendon forces by the elbow's
+        moment arms (:func:`spindle.chain.force.tendon_forces_N`: flexion torque on BRA,
+        extension torque on TRImed, none on the other): the muscles are disabled and carry
+        no force, the servo carries the load, as the prosthesis chain reads it from the
+        servo's load reading. A non-finite torque or angle gives NaN forces (the force
+        sense's hold rule)."""
+        torque = self._gear * np.asarray(actuator_force)[..., self._servo_id]
+        angle = np.asarray(angle_rad, dtype=np.float64)
+        bad = ~(np.isfinite(torque) & np.isfinite(angle))
+        if bad.any():
+            torque, angle = np.where(bad, 0.0, torque), np.where(bad, 0.0, angle)
+        forces = tendon_forces_N(torque, angle, self._arms, clip=True)
+        if bad.any():
+            forces[bad] = np.nan
+        return forces
+
 
 class ProsthesisElbowEnv(ElbowProprioEnv):
     r"""
@@ -72,23 +109,34 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
     shape or outside the box raises ``ValueError`` naming it; with ``clip_actions=True`` finite out-of-box actions are clipped instead.
 
     ## Observation Space
-    A `Box(low, high, (5,), float32)` (9 with ``include_fusimotor=True``); rates are divided
-    by 100 pps. The joint angle and the encoder readings are *not* observed.
+    A `Box(low, high, (5,), float32)` in v0 (9 with ``include_fusimotor=True``), `(7,)` in v1
+    (``include_ib=True``; 11 with the fusimotor drive); rates are divided by 100 pps. The
+    joint angle and the encoder readings are *not* observed.
 
-    | Num | Observation                              | Min | Max   | Muscle | Type (Unit)              |
-    |-----|------------------------------------------|-----|-------|--------|--------------------------|
-    | 0   | Ia (primary afferent) rate / 100         | 0   | Inf   | BRA    | firing rate (100 pps)    |
-    | 1   | Ia rate / 100                            | 0   | Inf   | TRImed | firing rate (100 pps)    |
-    | 2   | II (secondary afferent) rate / 100       | 0   | Inf   | BRA    | firing rate (100 pps)    |
-    | 3   | II rate / 100                            | 0   | Inf   | TRImed | firing rate (100 pps)    |
-    | 4   | target elbow flexion                     | 0   | 2.269 | -      | angle (rad)              |
-    | 5-8 | gamma static (BRA, TRImed), gamma dynamic (BRA, TRImed) / 100 (optional) | 0 | Inf | - | firing rate (100 pps) |
+    | Num (v0) | Num (v1) | Observation (BRA, then TRImed)                   | Min | Max   | Type (Unit)           |
+    |----------|----------|--------------------------------------------------|-----|-------|-----------------------|
+    | 0-1      | 0-1      | Ia (primary spindle afferent) rates / 100        | 0   | Inf   | firing rate (100 pps) |
+    | 2-3      | 2-3      | II (secondary spindle afferent) rates / 100      | 0   | Inf   | firing rate (100 pps) |
+    | 4        | 4        | target elbow flexion                             | 0   | 2.269 | angle (rad)           |
+    | -        | 5-6      | Ib (tendon organ afferent) rates / 100           | 0   | Inf   | firing rate (100 pps) |
+    | 5-8      | 7-10     | gamma static, gamma dynamic / 100 (optional)     | 0   | Inf   | firing rate (100 pps) |
+
+    Ib (v1): the muscles are disabled and carry no force, so the tendon forces are the load
+    the servo carries, as the prosthesis chain gets it from the servo's load reading: the
+    servo's joint torque (``data.actuator_force`` of ``r_elbow_servo``, flexion positive)
+    split by the elbow's moment arms (``spindle.chain.force.tendon_forces_N``: a flexion
+    torque on BRA, an extension torque on TRImed, none on the other; the moment arms from
+    ``models/moment_arm_fits.json``, or tabulated from an edited ``xml_file`` on load), read
+    after every 2 ms physics step and fed to the tendon organs (Lin & Crago 2002, human
+    preset), one exact step per physics step. The same rules as ElbowReach-v1: a non-finite
+    torque or angle holds the previous force, a force above 10^5 N is clamped, both counted.
 
     The observation never holds NaN: invalid encoder readings are rejected by the chain
     (counted in ``env.unwrapped.afferents.chain.counters``), the previous output is kept.
     ``info`` carries the same raw signals as ElbowReach-v0 (``angle_deg``, ``target_deg``,
     ``angle_error_deg``, ``length_L0``, ``gamma_static_pps``, ``gamma_dynamic_pps``,
-    ``ia_pps``, ``ii_pps``, ``sensor_samples`` ...) plus ``command_deg``.
+    ``ia_pps``, ``ii_pps``, ``sensor_samples`` ...) plus ``command_deg``; in v1 also
+    ``force_N`` and ``ib_pps`` ((2,), N and pps).
 
     ## Rewards
     ***reward*** *=* $-w_{dist} |\theta - \theta_{target}|$ (rad, after the step)
@@ -125,6 +173,7 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
     | `backend`              | str   | `"auto"`    | spindle chain backend: `"auto"` (C where a compiler or a valid cached library exists, numpy otherwise; `env.unwrapped.backend` says which), `"numpy"` or `"c"` |
     | `afferent_source`      | str   | `"encoder"` | `"encoder"` (the prosthesis chain), `"reduced"` (clean angle -> fitted lengths) or `"exact"` (MuJoCo fibre lengths of the passive muscles) |
     | `control_cost_weight`  | float | `0`         | $w_{ctrl}$ |
+    | `include_ib`           | bool  | v0 `False`, v1 `True` | observe Ib of both muscles (entries 5-6) |
 
     ## Version History
     * v0: initial release (AX-12 encoder chain of the seed paper, human spindle gains, 50 Hz
@@ -136,6 +185,9 @@ class ProsthesisElbowEnv(ElbowProprioEnv):
       ``reset`` refuses a seed that is not ``None`` or an integer >= 0 and checks every
       option before it changes anything (``ValueError``); the chain behind
       ``env.unwrapped.afferents.chain`` is the batched chain of one arm (counters (1,)).
+    * v1: the observation gains Ib of BRA and TRImed from the servo's torque split by the
+      moment arms (entries 5-6, the fusimotor drive moving to 7-10); ``info`` gains
+      ``force_N`` and ``ib_pps``. v0 is unchanged.
     """
 
     drive = ServoDrive

@@ -21,10 +21,14 @@ Targets, each on ``backend="numpy"`` and ``"c"``: ``SpindleAfferents`` on the bu
   nothing (a copy taken before it and the wrapper then take the same step and must agree bit
   for bit).
 
+Every target observes Ia, II and Ib (``afferents=("ia", "ii", "ib")``).
+
 Checks (:class:`WrapperSoakReport`): every observation finite and in the wrapped space (the
-vector's ``final_obs`` too); Ia and II in [0, ``RATE_BOUND_PPS``] pps, fed lengths in
-0.5-1.5 L0; the restarts counted as each clock fault says; copies equal; refused steps
-leave no trace; no unexpected exception; no step longer than ``max_call_s``.
+vector's ``final_obs`` too); Ia, II and Ib in [0, ``RATE_BOUND_PPS``] pps, the tendon forces
+finite, fed lengths in 0.5-1.5 L0; on the C backend, every step's Ib equal to a numpy twin
+started from the C organs' state before the step and fed the forces they took, within
+:data:`IB_TWIN_TOLERANCE_PPS`; the restarts counted as each clock fault says; copies equal;
+refused steps leave no trace; no unexpected exception; no step longer than ``max_call_s``.
 """
 
 from __future__ import annotations
@@ -44,6 +48,9 @@ from spindle.backends import BACKENDS
 
 RATE_BOUND_PPS = 1000.0
 """The highest rate accepted as physiological (as the chain's soak)."""
+IB_TWIN_TOLERANCE_PPS = 1e-9
+"""Largest |Ib (C) - Ib (numpy twin)| accepted at a step (pps)."""
+AFFERENTS = ("ia", "ii", "ib")
 EPISODE_STEPS = 40
 COPY_STEPS = 3
 N_SUB_ENVS = 3
@@ -71,10 +78,10 @@ def make_target(name: str, backend: str):
     if name == "vector":
         env = SpindleAfferentsVector(gym.vector.SyncVectorEnv(
             [elbow_episodes] * N_SUB_ENVS, autoreset_mode=AutoresetMode.SAME_STEP),
-            backend=backend)
+            backend=backend, afferents=AFFERENTS)
     else:
         env = SpindleAfferents(elbow_episodes(), backend=backend,
-                               lag_physics_step=name == "single_lagged")
+                               lag_physics_step=name == "single_lagged", afferents=AFFERENTS)
     env.reset(seed=0)
     return env
 
@@ -96,6 +103,9 @@ class WrapperSoakReport:
     slow_calls: int = 0
     max_call_s: float = 0.0
     max_rate_pps: float = 0.0
+    ib_twin_steps: int = 0
+    ib_twin_max_diff_pps: float = 0.0
+    ib_twin_mismatches: list[str] = field(default_factory=list)
 
     @property
     def failures(self) -> list[str]:
@@ -107,6 +117,7 @@ class WrapperSoakReport:
                 out.append(f"{label}: {dict(value)}")
         for label, value in (("restarts not as the rule says", self.restart_mismatches),
                              ("copies that differ from their original", self.copy_mismatches),
+                             ("C Ib unlike its numpy twin", self.ib_twin_mismatches),
                              ("refused steps that changed the wrapper", self.half_applied),
                              ("unexpected exceptions", self.errors)):
             if value:
@@ -123,7 +134,9 @@ class WrapperSoakReport:
         lines = [f"wrapper soak: {self.steps} steps, faults " + ", ".join(
             f"{f} {self.faults[f]}" for f in WRAPPER_FAULTS),
             "restarts counted: " + ", ".join(f"{k} {v}" for k, v in sorted(self.restarts.items())),
-            f"longest step {self.max_call_s:.3f} s, highest Ia/II {self.max_rate_pps:.1f} pps"]
+            f"longest step {self.max_call_s:.3f} s, highest Ia/II/Ib {self.max_rate_pps:.1f} pps",
+            f"C Ib against its numpy twin: {self.ib_twin_steps} steps, largest difference "
+            f"{self.ib_twin_max_diff_pps:.2e} pps"]
         return "\n".join(lines + (["FAIL: " + f for f in self.failures]
                                   or ["all wrapper checks passed"]))
 
@@ -132,6 +145,7 @@ class WrapperSoakReport:
                 f"outside_space={sum(self.outside_space.values())} "
                 f"restart_mismatches={len(self.restart_mismatches)} "
                 f"copy_mismatches={len(self.copy_mismatches)} "
+                f"ib_twin_mismatches={len(self.ib_twin_mismatches)} "
                 f"half_applied={len(self.half_applied)} errors={len(self.errors)} "
                 f"ok={self.ok}")
 
@@ -154,10 +168,40 @@ def _apply_clock_fault(target, fault: str, rng: np.random.Generator) -> None:
         data.time = rng.choice([np.nan, np.inf, -np.inf])
 
 
+def _ib_twin_before(target):
+    """(numpy twin of the C organs' state now, their step and reset counts), or None on
+    numpy."""
+    sense = target.forces.sense
+    if sense.backend != "c":
+        return None
+    from spindle.tendon_organ import TendonOrgans, TendonOrganState
+
+    organs = sense.organs
+    twin = TendonOrgans(organs.force_scale_N, organs.params, organs.dt_s)
+    twin.state = TendonOrganState(*organs.state_arrays())
+    return twin, sense.steps, sense.resets
+
+
+def _ib_twin_after(target, before, report: WrapperSoakReport, label: str) -> None:
+    """Compare the C organs' rates with the twin's after one step that reset nothing."""
+    sense = target.forces.sense
+    if before is None or sense.steps != before[1] + 1 or sense.resets != before[2]:
+        return
+    f = sense.last_forces_N
+    rates = before[0].run(f.transpose(1, 0, 2).reshape(f.shape[1], -1))[-1]
+    diff = float(np.abs(rates - sense.ib_pps.ravel()).max())
+    report.ib_twin_steps += 1
+    report.ib_twin_max_diff_pps = max(report.ib_twin_max_diff_pps, diff)
+    if not diff <= IB_TWIN_TOLERANCE_PPS:
+        report.ib_twin_mismatches.append(f"{label}: C Ib {diff!r} pps from numpy's")
+
+
 def _step(target, action, report: WrapperSoakReport, max_call_s: float, label: str):
+    before = _ib_twin_before(target)
     t0 = time.perf_counter()
     out = target.step(action)
     elapsed = time.perf_counter() - t0
+    _ib_twin_after(target, before, report, label)
     report.max_call_s = max(report.max_call_s, elapsed)
     report.slow_calls += elapsed > max_call_s
     report.steps += 1
@@ -173,8 +217,10 @@ def _check(target, out, report: WrapperSoakReport, label: str) -> None:
               [o for o, m in zip(info["final_obs"], info["_final_obs"], strict=True) if m])
     space = getattr(target, "single_observation_space", None)
     arrays = [np.asarray(obs, float), *(np.asarray(f, float) for f in finals)]
-    rates = np.concatenate([np.ravel(info[k]) for k in ("spindle_ia_pps", "spindle_ii_pps")])
-    if not all(np.all(np.isfinite(a)) for a in [*arrays, rates]):
+    rates = np.concatenate([np.ravel(info[k]) for k in ("spindle_ia_pps", "spindle_ii_pps",
+                                                         "tendon_ib_pps")])
+    forces = np.ravel(info["tendon_force_N"])
+    if not all(np.all(np.isfinite(a)) for a in [*arrays, rates, forces]):
         report.nonfinite[label] += 1
         return
     if not (target.observation_space.contains(obs)
@@ -192,7 +238,7 @@ def _same(a, b) -> bool:
     for x, y in zip(a[:4], b[:4], strict=True):
         if not np.array_equal(np.asarray(x), np.asarray(y)):
             return False
-    keys = [k for k in a[4] if k.startswith("spindle_") or k == "final_obs"]
+    keys = [k for k in a[4] if k.startswith(("spindle_", "tendon_")) or k == "final_obs"]
     return all(np.array_equal(np.asarray(a[4][k], dtype=object if k == "final_obs" else None),
                               np.asarray(b[4][k], dtype=object if k == "final_obs" else None))
                if k != "final_obs" else all(

@@ -1,7 +1,8 @@
 """Spindle afferents for any MuJoCo musculoskeletal model (imports MuJoCo and Gymnasium).
 
 - :class:`SpindleAfferents`: a ``gymnasium.Wrapper`` adding Ia and II of every muscle to an
-  env's observation;
+  env's observation (``afferents=("ia", "ii", "ib")`` adds the tendon organs' Ib; the
+  tendon forces are in ``info`` either way);
 - :class:`SpindleAfferentsVector`: the same for a ``gymnasium.vector.SyncVectorEnv``, every
   muscle of every env in one batched spindle state;
 - :func:`afferents_from_trajectory`: the afferents of recorded joint motion (motion capture,

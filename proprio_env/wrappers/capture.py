@@ -149,16 +149,19 @@ class PhysicsHook:
     def _bind(self) -> None:
         self._length_view = self.data.actuator_length
         self._velocity_view = self.data.actuator_velocity
+        self._force_view = self.data.actuator_force
         self._staging(16)
 
     def _staging(self, rows: int) -> None:
         nu = self._length_view.size
-        self._lengths, self._velocities = np.empty((rows, nu)), np.empty((rows, nu))
+        self._lengths, self._velocities, self._forces = (np.empty((rows, nu))
+                                                         for _ in range(3))
 
     def __getstate__(self) -> dict[str, Any]:
         # views of MjData arrays would be copied as frozen arrays: rebound on load instead
         return {k: v for k, v in self.__dict__.items()
-                if k not in ("_length_view", "_velocity_view", "_lengths", "_velocities")}
+                if k not in ("_length_view", "_velocity_view", "_force_view", "_lengths",
+                             "_velocities", "_forces")}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
@@ -173,9 +176,10 @@ class PhysicsHook:
         model, data = self.model, self.data
         step = mujoco.mj_step
         length_now, velocity_now = self._length_view, self._velocity_view
+        force_now = self._force_view
         if self._lengths.shape[0] < min(n_frames, _CHUNK_FRAMES):
             self._staging(min(n_frames, _CHUNK_FRAMES))
-        lengths, velocities = self._lengths, self._velocities
+        lengths, velocities, forces = self._lengths, self._velocities, self._forces
         timestep = float(model.opt.timestep)
         while n_frames > 0:
             n = min(n_frames, _CHUNK_FRAMES)
@@ -187,8 +191,9 @@ class PhysicsHook:
                 step(model, data)
                 lengths[k] = length_now
                 velocities[k] = velocity_now
+                forces[k] = force_now
             for recorder in self.recorders:
-                recorder.append(times, lengths[:n], velocities[:n])
+                recorder.append(times, lengths[:n], velocities[:n], forces[:n])
             n_frames -= n
 
     def _step(self, ctrl, n_frames) -> None:
@@ -210,7 +215,8 @@ class PhysicsHook:
 
 
 class FrameRecorder:
-    """Records (time, actuator length, velocity) at the start of every physics step of a
+    """Records (time, actuator length, velocity, force) at the start of every physics step
+    of a
     Gymnasium ``MujocoEnv`` or a MyoSuite 3 env (see the module docstring), through the
     env's one :class:`PhysicsHook`; :meth:`remove` restores the env once no recorder is
     left.
@@ -242,8 +248,8 @@ class FrameRecorder:
         self.dropped = 0
         self._count = 0
         nu = self.hook.data.actuator_length.size
-        self._times, self._lengths, self._velocities = \
-            np.empty(16), np.empty((16, nu)), np.empty((16, nu))
+        self._times, self._lengths, self._velocities, self._forces = \
+            np.empty(16), np.empty((16, nu)), np.empty((16, nu)), np.empty((16, nu))
         self.hook.recorders.append(self)
 
     @property
@@ -254,7 +260,8 @@ class FrameRecorder:
         """Whether this recorder still gets the env's physics steps."""
         return self.hook.installed() and any(r is self for r in self.hook.recorders)
 
-    def append(self, times: np.ndarray, lengths: np.ndarray, velocities: np.ndarray) -> None:
+    def append(self, times: np.ndarray, lengths: np.ndarray, velocities: np.ndarray,
+               forces: np.ndarray) -> None:
         """Add F records (called by the hook), keeping the newest :attr:`max_records`."""
         n = times.size
         if self._count + n > self.max_records:
@@ -262,13 +269,13 @@ class FrameRecorder:
             drop = self._count - keep
             if drop > 0:
                 self.dropped += drop
-                for a in (self._times, self._lengths, self._velocities):
+                for a in (self._times, self._lengths, self._velocities, self._forces):
                     a[:keep] = a[drop:self._count]
                 self._count = keep
             if n > self.max_records:
                 self.dropped += n - self.max_records
-                times, lengths, velocities = (a[-self.max_records:]
-                                              for a in (times, lengths, velocities))
+                times, lengths, velocities, forces = (
+                    a[-self.max_records:] for a in (times, lengths, velocities, forces))
                 n = self.max_records
         start, end = self._count, self._count + n
         if end > self._times.size:
@@ -276,31 +283,40 @@ class FrameRecorder:
         self._times[start:end] = times
         self._lengths[start:end] = lengths
         self._velocities[start:end] = velocities
+        self._forces[start:end] = forces
         self._count = end
 
     def _grow(self, capacity: int) -> None:
         count = self._count
-        for name in ("_times", "_lengths", "_velocities"):
+        for name in ("_times", "_lengths", "_velocities", "_forces"):
             old = getattr(self, name)
             new = np.empty((capacity, *old.shape[1:]))
             new[:count] = old[:count]
             setattr(self, name, new)
 
-    def current(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """(length m, velocity m/s) of the env's current state if its data holds them
-        (MyoSuite, right after its physics steps), else None."""
+    def current(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(length m, velocity m/s, actuator force N) of the env's current state if its data
+        holds them (MyoSuite, right after its physics steps), else None."""
         data = self.hook.data
         if self.hook.end_time == data.time:
             return (data.actuator_length[self.ids].copy(),
-                    data.actuator_velocity[self.ids].copy())
+                    data.actuator_velocity[self.ids].copy(),
+                    data.actuator_force[self.ids].copy())
         return None
 
-    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def take_all(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The records since the last call: times (F,), lengths (F, nu) m, velocities (F, nu)
-        m/s of every actuator, each at the start of a physics step. Views of the recorder's
-        buffers, valid until its next physics step (the wrappers gather them at once)."""
+        m/s and forces (F, nu) (MuJoCo's ``actuator_force``) of every actuator, each at the
+        start of a physics step (``mj_step`` computes the force there, as the lengths). Views
+        of the recorder's buffers, valid until its next physics step (the wrappers gather
+        them at once)."""
         count, self._count = self._count, 0
-        return self._times[:count], self._lengths[:count], self._velocities[:count]
+        return (self._times[:count], self._lengths[:count], self._velocities[:count],
+                self._forces[:count])
+
+    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`take_all` without the forces: (times, lengths, velocities)."""
+        return self.take_all()[:3]
 
     def remove(self) -> None:
         self.hook.detach(self)
@@ -406,6 +422,9 @@ class EnvTap:
             self.timestep_s if self.lag_physics_step else 0.0)
         self._dropped = 0
         self.final: tuple | None = None  # see freeze()
+        # the actuator forces (F, nu) of the last records() (None without them): kept
+        # beside the records, which stay (times, lengths, velocities)
+        self.record_forces: np.ndarray | None = None
 
     def time(self) -> float:
         """The env's time (s); while frozen, the time of the frozen state."""
@@ -420,25 +439,38 @@ class EnvTap:
     def now(self) -> tuple[float, np.ndarray, np.ndarray]:
         """(time s, normalised lengths L0, velocities L0/s) of the env's current state (while
         frozen: of the frozen one)."""
+        return self.state_now()[:3]
+
+    def state_now(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`now` and the tendon forces (N): the muscles' tension
+        (:meth:`~proprio_env.wrappers.muscles.MuscleSet.tension_N`) that MuJoCo's
+        ``mj_fwdActuation`` gives at that state (on a scratch ``MjData`` unless the env's
+        data is current), in the same pass."""
         if self.final is not None:
             return self.final[0]
         current = None if self.recorder is None else self.recorder.current()
-        length, velocity = self.kinematics.of_data(self.data) if current is None else current
+        length, velocity, force = (self.kinematics.state_of_data(self.data)
+                                   if current is None else current)
         return (float(self.data.time), self.muscles.length_L0(length),
-                self.muscles.velocity_L0_s(velocity))
+                self.muscles.velocity_L0_s(velocity), self.muscles.tension_N(force))
 
     def records(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """The raw records since the last call (:meth:`FrameRecorder.take`); None without a
+        """The raw records since the last call (:meth:`FrameRecorder.take_all`); None without a
         recorder, when the env no longer steps through it (something replaced the hook), or
         when records were dropped (a longer interval than the recorder keeps). While
         frozen: the records up to the frozen state."""
         if self.final is not None:
+            self.record_forces = self.final[2]
             return self.final[1]
+        self.record_forces = None
         if self.recorder is None:
             return None
-        out = self.recorder.take()
+        *out, forces = self.recorder.take_all()
         dropped, self._dropped = self.recorder.dropped - self._dropped, self.recorder.dropped
-        return out if self.recorder.installed() and dropped == 0 else None
+        if not (self.recorder.installed() and dropped == 0):
+            return None
+        self.record_forces = forces
+        return tuple(out)
 
     def freeze(self) -> None:
         """Keep the env's state now and its records (copied) as what :meth:`time`,
@@ -446,7 +478,8 @@ class EnvTap:
         that the env is about to reset (a vector env's ``SAME_STEP`` autoreset)."""
         records = self.records()
         kept = None if records is None else tuple(a.copy() for a in records)
-        self.final = (self.now(), kept)
+        forces = None if self.record_forces is None else self.record_forces.copy()
+        self.final = (self.state_now(), kept, forces)
 
     def thaw(self) -> None:
         """Read the env again; the records of whatever stepped since :meth:`freeze` (the
@@ -463,13 +496,14 @@ TIME_TOL_S = 1e-9
 """Times closer than this are the same physics step (sums of ``mj_step``'s dt)."""
 
 
-def gather_records(records: list, rows: np.ndarray, muscles: Any
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The raw records (:meth:`EnvTap.records`) of ``rows`` as normalised arrays: times
-    (F, r), lengths L0 and velocities L0/s (F, r, M); None unless every row has the same
+def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The raw records (:meth:`EnvTap.records`) and their forces
+    (:attr:`EnvTap.record_forces`) of ``rows`` as normalised arrays: times (F, r), lengths
+    L0, velocities L0/s and tendon forces N (F, r, M); None unless every row has the same
     number F >= 1. One stack and one normalisation for all rows."""
-    chosen = [records[i] for i in rows]
-    if not chosen or any(r is None for r in chosen):
+    chosen = [(*records[i], forces[i]) if records[i] is not None else None for i in rows]
+    if not chosen or any(r is None or r[3] is None for r in chosen):
         return None
     count = chosen[0][0].size
     if count == 0 or any(r[0].size != count for r in chosen):
@@ -477,40 +511,44 @@ def gather_records(records: list, rows: np.ndarray, muscles: Any
     t = np.stack([r[0] for r in chosen], axis=1)
     length = np.stack([r[1] for r in chosen], axis=1)[..., muscles.ids]
     velocity = np.stack([r[2] for r in chosen], axis=1)[..., muscles.ids]
-    return t, muscles.length_L0(length), muscles.velocity_L0_s(velocity)
+    force = np.stack([r[3] for r in chosen], axis=1)[..., muscles.ids]
+    return (t, muscles.length_L0(length), muscles.velocity_L0_s(velocity),
+            muscles.tension_N(force))
 
 
-def _stacked(states: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return (np.array([x[0] for x in states]), np.stack([x[1] for x in states]),
-            np.stack([x[2] for x in states]))
+def _stacked(states: list) -> tuple[np.ndarray, ...]:
+    return (np.array([x[0] for x in states]), *(np.stack([x[k] for x in states])
+                                                for k in (1, 2, 3)))
 
 
-def _step_end(taps: list, records: list, rows: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The last knot of each row's env step, (r,) and (r, M): its env's state now, or,
-    lagging, its last record (its env's state now if it has none)."""
+def _step_end(taps: list, records: list, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The last knot of each row's env step, (r,) and (r, M) x 3 (lengths, velocities,
+    forces): its env's state now, or, lagging, its last record (its env's state now if it
+    has none)."""
     ends = []
     for i in rows:
-        tap, r = taps[i], records[i]
-        if not tap.lag_physics_step or r is None or r[0].size == 0:
-            ends.append(tap.now())
+        tap, r, f = taps[i], records[i], taps[i].record_forces
+        if not tap.lag_physics_step or r is None or r[0].size == 0 or f is None:
+            ends.append(tap.state_now())
         else:
             m = tap.muscles
             ends.append((float(r[0][-1]), m.length_L0(r[1][-1, m.ids]),
-                         m.velocity_L0_s(r[2][-1, m.ids])))
+                         m.velocity_L0_s(r[2][-1, m.ids]), m.tension_N(f[-1, m.ids])))
     return _stacked(ends)
 
 
 def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray,
-               V_prev: np.ndarray, moving: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+               V_prev: np.ndarray, moving: np.ndarray, F_prev: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
     """The knots of one env step of n envs (``taps``, one per row, all alike): times (K, n),
-    normalised lengths and velocities (K, n, M), and ``"frames"`` or ``"hermite"``.
+    normalised lengths, velocities and tendon forces (N) (K, n, M), and ``"frames"`` or
+    ``"hermite"``.
 
     Args:
         taps: the envs' :class:`EnvTap`.
         records: each env's raw records of this step (:meth:`EnvTap.records`).
-        t_prev, L_prev, V_prev: each row's previous knot, (n,) and (n, M).
+        t_prev, L_prev, V_prev: each row's previous knot, (n,) and (n, M); F_prev its
+            forces (n, M) (the Hermite path draws the forces' line from them; default 0).
         moving: (n,) bool, the rows to advance. The others get copies of the first moving
             row's times (the bank holds them still).
 
@@ -520,14 +558,17 @@ def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray
     (lagging). The env's state now follows them, unless lagging (then the last record is the
     step's last knot, and the state after the last physics step is the next env step's first
     record: every physics step's lengths are used exactly once). Otherwise the Hermite curve
-    from the previous knot to the step's end, sampled every physics step.
+    from the previous knot to the step's end, sampled every physics step, and the forces on
+    the straight line between the step's ends (a wrapper sees no force in between).
     """
     rows = np.flatnonzero(moving)
     n, M = L_prev.shape
+    F_prev = np.zeros((n, M)) if F_prev is None else F_prev
     lag, timestep_s = taps[0].lag_physics_step, taps[0].timestep_s
-    stacked = gather_records(records, rows, taps[0].muscles)
+    stacked = gather_records(records, rows, taps[0].muscles,
+                             [tap.record_forces for tap in taps])
     if stacked is not None:
-        t_rec, L_rec, V_rec = stacked
+        t_rec = stacked[0]
         first = t_rec[0] - t_prev[rows]
         # a clock far from 0 (set forward by hand, a long run) resolves its physics steps
         # only to a few of its units in the last place
@@ -535,23 +576,21 @@ def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray
         drop = int(np.all(np.abs(first) <= tol))
         follows = drop or bool(np.all(np.abs(first - timestep_s) <= tol))
         if follows and t_rec.shape[0] - drop + (not lag) >= 1:
-            t_r, L_r, V_r = t_rec[drop:], L_rec[drop:], V_rec[drop:]
+            knots = [a[drop:] for a in stacked]
             if not lag:
-                t_end, L_end, V_end = _step_end(taps, records, rows)
-                t_r = np.concatenate((t_r, t_end[None]))
-                L_r = np.concatenate((L_r, L_end[None]))
-                V_r = np.concatenate((V_r, V_end[None]))
+                ends = _step_end(taps, records, rows)
+                knots = [np.concatenate((a, e[None])) for a, e in zip(knots, ends,
+                                                                       strict=True)]
             if rows.size == n:
-                return t_r, L_r, V_r, "frames"
-            K = t_r.shape[0]
-            t, L, V = np.empty((K, n)), np.empty((K, n, M)), np.empty((K, n, M))
-            t[:, rows], L[:, rows], V[:, rows] = t_r, L_r, V_r
+                return (*knots, "frames")
+            K = knots[0].shape[0]
+            t, L, V, F = np.empty((K, n)), *(np.empty((K, n, M)) for _ in range(3))
+            t[:, rows], L[:, rows], V[:, rows], F[:, rows] = knots
             _fill_held(t, L, V, rows, moving)
-            return t, L, V, "frames"
-    t_end, L_end, V_end = (np.array(t_prev, float), np.array(L_prev, float),
-                           np.array(V_prev, float))
+            return t, L, V, F, "frames"
+    t_end, L_end, V_end, F_end = (np.array(a, float) for a in (t_prev, L_prev, V_prev, F_prev))
     if rows.size:
-        t_end[rows], L_end[rows], V_end[rows] = _step_end(taps, records, rows)
+        t_end[rows], L_end[rows], V_end[rows], F_end[rows] = _step_end(taps, records, rows)
     span = t_end[rows] - t_prev[rows]
     counts = np.maximum(1, np.rint(span / timestep_s)).astype(int)
     if rows.size and np.any(counts != counts[0]):
@@ -559,8 +598,11 @@ def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray
     K = int(counts[0]) if rows.size else 1
     t, L, V = hermite_knots(t_prev, L_prev, V_prev, np.where(moving, t_end, t_prev + 1.0),
                             L_end, V_end, K)
+    s = (np.arange(1, K + 1) / K)[:, None, None]
+    F = F_prev[None] + s * (F_end - F_prev)[None]
+    F[-1] = F_end
     _fill_held(t, L, V, rows, moving)
-    return t, L, V, "hermite"
+    return t, L, V, F, "hermite"
 
 
 def _fill_held(t, L, V, rows, moving) -> None:

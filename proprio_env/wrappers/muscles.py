@@ -39,6 +39,7 @@ class MuscleSet:
         lengthrange_low_m: ``actuator_lengthrange[:, 0]`` (m), (M,).
         range_low_L0, range_high_L0: ``gainprm[0:2]``, the normalised lengths that
             ``lengthrange`` maps onto (L0), (M,).
+        gear: ``actuator_gear[:, 0]``, (M,): actuator force x gear is the tendon's.
     """
 
     names: tuple[str, ...]
@@ -47,6 +48,7 @@ class MuscleSet:
     lengthrange_low_m: np.ndarray
     range_low_L0: np.ndarray
     range_high_L0: np.ndarray
+    gear: np.ndarray
 
     @property
     def n(self) -> int:
@@ -56,6 +58,12 @@ class MuscleSet:
         """MuJoCo's normalised length of actuator lengths (m), (..., M)."""
         return self.range_low_L0 + (actuator_length_m - self.lengthrange_low_m) \
             / self.optimal_length_m
+
+    def tension_N(self, actuator_force: np.ndarray) -> np.ndarray:
+        """The tendon tension (N, pulling positive) of MuJoCo's ``actuator_force`` (..., M):
+        ``-gear * force`` (a MuJoCo muscle pulls with a negative force; the gear scales the
+        actuator's force into its tendon's)."""
+        return -self.gear * actuator_force
 
     def velocity_L0_s(self, actuator_velocity_m_s: np.ndarray) -> np.ndarray:
         """Normalised velocity (L0/s, lengthening positive) of actuator velocities, (..., M)."""
@@ -116,7 +124,8 @@ def find_muscles(model: mujoco.MjModel, names: Sequence[str] | None = None) -> M
     return MuscleSet(
         names=names_out, ids=ids, optimal_length_m=(lr[:, 1] - lr[:, 0]) / (r[:, 1] - r[:, 0]),
         lengthrange_low_m=lr[:, 0].copy(), range_low_L0=r[:, 0].copy(),
-        range_high_L0=r[:, 1].copy())
+        range_high_L0=r[:, 1].copy(),
+        gear=np.array(model.actuator_gear[ids, 0], dtype=float))
 
 
 class ActuatorKinematics:
@@ -159,6 +168,30 @@ class ActuatorKinematics:
         mujoco.mj_tendon(m, d)
         mujoco.mj_transmission(m, d)
         return d.actuator_length[self.ids].copy(), self._velocity(qvel)
+
+    def forces(self, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray,
+               mocap_pos: np.ndarray | None = None, mocap_quat: np.ndarray | None = None
+               ) -> np.ndarray:
+        """``actuator_force`` (MuJoCo's sign: a muscle pulling is negative) of every
+        actuator, (nu,), at the state (qpos, qvel, act) under ``ctrl``: the stages of
+        ``mj_forward`` that the force needs (:meth:`compute`, the actuator velocities, then
+        MuJoCo's own ``mj_fwdActuation``), so it equals what ``mj_forward`` gives there."""
+        d = self.scratch
+        self.compute(qpos, qvel, mocap_pos, mocap_quat)
+        d.actuator_velocity[:] = self._moment @ qvel
+        d.act[:] = act
+        d.ctrl[:] = ctrl
+        mujoco.mj_fwdActuation(self.model, d)
+        return d.actuator_force.copy()
+
+    def state_of_data(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(length_m, velocity_m_s, actuator_force) of the actuators ``ids``, (M,) each, at
+        the state held in ``data`` (which is not modified), in one pass (:meth:`forces`)."""
+        force = self.forces(data.qpos, data.qvel, data.act, data.ctrl, data.mocap_pos,
+                            data.mocap_quat)
+        d = self.scratch
+        return (d.actuator_length[self.ids].copy(), d.actuator_velocity[self.ids].copy(),
+                force[self.ids])
 
     def of_data(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`compute` at the state held in ``data`` (which is not modified)."""

@@ -9,7 +9,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from proprio_env import RATE_SCALE_PPS
 from proprio_env.wrappers.capture import MAX_INTERVAL_S, EnvTap, check_max_interval, step_knots
+from proprio_env.wrappers.forces import DEFAULT_AFFERENTS, ForceReadout, check_afferents
 from proprio_env.wrappers.muscles import MuscleSet, find_muscles, model_and_data
 from spindle.backends import DEFAULT_BACKEND
 from spindle.chain.bank import (
@@ -22,9 +24,8 @@ from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
 
 OBSERVATION_MODES = ("box", "dict")
-RATE_SCALE_PPS = 100.0
-"""Default divisor of the rates in the observation (pps), as in the elbow envs."""
-DICT_KEYS = ("spindle_ia", "spindle_ii")
+DICT_KEYS = {"ia": "spindle_ia", "ii": "spindle_ii", "ib": "tendon_ib"}
+"""The Dict observation's key of each afferent."""
 
 
 def check_rate_scale(rate_scale_pps: float) -> float:
@@ -34,40 +35,51 @@ def check_rate_scale(rate_scale_pps: float) -> float:
     return float(rate_scale_pps)
 
 
-def afferent_spaces(base: spaces.Space, n_muscles: int, mode: str) -> spaces.Space:
-    """The observation space with the rates added: a Box concatenation (``"box"``, the env's
-    space must be a 1-D Box) or a Dict (``"dict"``: the env's Dict with two more keys, or
-    ``{"observation": the env's space, "spindle_ia", "spindle_ii"}``)."""
+def afferent_spaces(base: spaces.Space, n_muscles: int, mode: str,
+                    afferents: tuple[str, ...] = DEFAULT_AFFERENTS) -> spaces.Space:
+    """The observation space with the rates of ``afferents`` added: a Box concatenation
+    (``"box"``, the env's space must be a 1-D Box) or a Dict (``"dict"``: the env's Dict with
+    a key per afferent, :data:`DICT_KEYS`, or ``{"observation": the env's space, ...}``)."""
     if mode not in OBSERVATION_MODES:
         raise ValueError(f"observation={mode!r} is not one of {OBSERVATION_MODES}")
+    width = len(afferents) * n_muscles
     if mode == "box":
         if not (isinstance(base, spaces.Box) and len(base.shape) == 1):
             raise ValueError(f"observation='box' needs a 1-D Box observation space, the env "
                              f"has {base}; pass observation='dict'")
         dtype = base.dtype
-        low = np.concatenate((base.low, np.zeros(2 * n_muscles, dtype=dtype)))
-        high = np.concatenate((base.high, np.full(2 * n_muscles, np.inf, dtype=dtype)))
+        low = np.concatenate((base.low, np.zeros(width, dtype=dtype)))
+        high = np.concatenate((base.high, np.full(width, np.inf, dtype=dtype)))
         return spaces.Box(low, high, dtype=dtype)
     rate = spaces.Box(0.0, np.inf, shape=(n_muscles,), dtype=np.float64)
+    keys = {DICT_KEYS[a]: rate for a in afferents}
     if isinstance(base, spaces.Dict):
-        clash = set(DICT_KEYS) & set(base.spaces)
+        clash = set(keys) & set(base.spaces)
         if clash:
             raise ValueError(f"the env's Dict observation already has keys {sorted(clash)}")
-        return spaces.Dict({**base.spaces, DICT_KEYS[0]: rate, DICT_KEYS[1]: rate})
-    return spaces.Dict({"observation": base, DICT_KEYS[0]: rate, DICT_KEYS[1]: rate})
+        return spaces.Dict({**base.spaces, **keys})
+    return spaces.Dict({"observation": base, **keys})
 
 
-def add_afferents(obs: Any, ia: np.ndarray, ii: np.ndarray, mode: str, scale: float,
+def add_afferents(obs: Any, rates: dict[str, np.ndarray], mode: str, scale: float,
                   dtype: Any = None) -> Any:
-    """``obs`` with the rates (pps) added (the last axis is the muscles; a leading env axis
-    for a vector env)."""
+    """``obs`` with the ``rates`` (pps, by afferent name, in observation order) added (the
+    last axis is the muscles; a leading env axis for a vector env)."""
     if mode == "box":
-        parts = (np.asarray(obs), ia / scale, ii / scale)
+        parts = (np.asarray(obs), *(r / scale for r in rates.values()))
         return np.concatenate(parts, axis=-1).astype(dtype or np.asarray(obs).dtype)
-    extra = {DICT_KEYS[0]: ia / scale, DICT_KEYS[1]: ii / scale}
+    extra = {DICT_KEYS[name]: r / scale for name, r in rates.items()}
     if isinstance(obs, dict):
         return {**obs, **extra}
     return {"observation": obs, **extra}
+
+
+def afferent_rates(bank: SpindleBank, forces: ForceReadout, afferents: tuple[str, ...],
+                   row: int | slice = slice(None)) -> dict[str, np.ndarray]:
+    """The rates (pps) of ``afferents`` of row ``row`` (every row by default)."""
+    source = {"ia": lambda: bank.ia_pps, "ii": lambda: bank.ii_pps,
+              "ib": lambda: forces.ib_pps}
+    return {name: source[name]()[row] for name in afferents}
 
 
 def bank_info(bank: SpindleBank, measured_L0: np.ndarray, source: str,
@@ -102,19 +114,26 @@ class SpindleAfferents(gym.Wrapper):
     the spindles take 1 ms sub-steps along the lengths after every physics step
     (:mod:`proprio_env.wrappers.capture`); the rates are appended to the observation.
 
-    Observation: the env's, then Ia of each muscle, then II of each muscle, divided by
+    Observation: the env's, then, for each of ``afferents`` in turn (default Ia then II;
+    ``("ia", "ii", "ib")`` adds the tendon organs' Ib), its rate of each muscle, divided by
     ``rate_scale_pps`` (``observation="box"``: a Box concatenation, the env's space must be a
-    1-D Box); or a Dict with keys ``"spindle_ia"``, ``"spindle_ii"`` (``observation="dict"``).
-    Muscles are in :attr:`muscle_names` order (actuator ids unless ``muscles`` names them).
+    1-D Box); or a Dict with keys ``"spindle_ia"``, ``"spindle_ii"``, ``"tendon_ib"`` (those
+    chosen; ``observation="dict"``). Muscles are in :attr:`muscle_names` order (actuator ids
+    unless ``muscles`` names them).
 
     ``info`` gains ``spindle_ia_pps``, ``spindle_ii_pps`` (M,) in pps;
     ``spindle_length_L0`` (as fed to the spindles: clamped to 0.5-1.5 L0, slew-limited) and
     ``spindle_measured_length_L0`` (MuJoCo's normalisation, unclamped); ``spindle_velocity_L0_s``;
     ``spindle_gamma_static_pps``, ``spindle_gamma_dynamic_pps``; per-muscle counters
     ``spindle_length_clamped``, ``spindle_slew_limited`` (since reset); and
-    ``spindle_substep_source``, ``spindle_substeps_limited``, ``spindle_restarts``.
+    ``spindle_substep_source``, ``spindle_substeps_limited``, ``spindle_restarts``; and the
+    force side (:mod:`proprio_env.wrappers.forces`): ``tendon_force_N`` (M,), each muscle's
+    tendon tension from MuJoCo's ``actuator_force`` at the env's state, and with ``"ib"``
+    ``tendon_ib_pps`` (M,) and the force rule's counts ``tendon_force_held`` (non-finite
+    forces that held the previous one) and ``tendon_force_clamped`` (above 10^5 N).
 
-    Reset: the spindles at equilibrium at the reset lengths with the drive there.
+    Reset: the spindles at equilibrium at the reset lengths with the drive there, the tendon
+    organs at rest at the reset forces.
 
     Args:
         env: the env to wrap.
@@ -143,6 +162,11 @@ class SpindleAfferents(gym.Wrapper):
             step, ``docs/wrapper.md``). Needs the recorded physics steps
             (``substep_source`` ``"frames"``). After a reset, the spindles rest at the reset
             lengths from one physics step before it. Default False: the env's state now.
+        afferents: which rates go into the observation, in that order: names from
+            ``("ia", "ii", "ib")`` (default ``("ia", "ii")``). Ib (Lin & Crago 2002 tendon
+            organs, :mod:`spindle.tendon_organ`, human preset, the force scale from each
+            muscle's maximum isometric force ``gainprm[2]``) is computed only when asked for;
+            the forces are in ``info`` either way.
         max_interval_s: the longest env step (s) the spindles are carried through (default
             1 s). A longer one (the env's clock set forward, a reset inside ``step`` that
             moves time, the env stepped for long without the wrapper) restarts them at rest
@@ -156,7 +180,7 @@ class SpindleAfferents(gym.Wrapper):
 
     Version history: v0 (first release); v0.1: ``backend``; v0.2: ``lag_physics_step``;
     v0.3: ``max_interval_s``, copies, wrappers stacked on one env; ``backend`` defaults to
-    ``"auto"`` (was ``"numpy"``).
+    ``"auto"`` (was ``"numpy"``); v0.4: ``afferents`` (Ib), ``info["tendon_force_N"]``.
     """
 
     def __init__(self, env: gym.Env, muscles: Sequence[str] | None = None,
@@ -166,19 +190,23 @@ class SpindleAfferents(gym.Wrapper):
                  substep_source: str = "auto", method: str = "trapezoidal",
                  step_s: float | None = None, max_speed_L0_s: float = SLEW_LIMIT_L0_S,
                  backend: str = DEFAULT_BACKEND, lag_physics_step: bool = False,
-                 max_interval_s: float = MAX_INTERVAL_S) -> None:
+                 max_interval_s: float = MAX_INTERVAL_S,
+                 afferents: Sequence[str] = DEFAULT_AFFERENTS) -> None:
         super().__init__(env)
         model, _ = model_and_data(env)
         self.muscles: MuscleSet = find_muscles(model, muscles)
+        self.afferents = check_afferents(afferents)
         self.rate_scale_pps = check_rate_scale(rate_scale_pps)
         self.observation_mode = observation
         self.observation_space = afferent_spaces(env.observation_space, self.muscles.n,
-                                                 observation)
+                                                 observation, self.afferents)
         bank = SpindleBank(1, self.muscles.range_low_L0, self.muscles.range_high_L0,
                            params, fusimotor, method, step_s, max_speed_L0_s, backend)
         self.max_interval_s = check_max_interval(
             max_interval_s, float(model.opt.timestep), bank.step_s,
             getattr(env.unwrapped, "dt", None))
+        self.forces = ForceReadout(model, self.muscles.ids, 1, "ib" in self.afferents,
+                                   float(model.opt.timestep), bank.backend)
         self.tap = EnvTap(env, self.muscles, substep_source, lag_physics_step,
                           self.max_interval_s)
         self.bank = bank
@@ -220,10 +248,13 @@ class SpindleAfferents(gym.Wrapper):
             self.bank.restarts += 1
             self._rest()
         elif t_env > t_prev:
-            t, L, V, self._source = step_knots([self.tap], records, self.bank.t_s,
-                                               self.bank.length_L0, self.bank.velocity_L0_s,
-                                               np.ones(1, bool))
+            moving = np.ones(1, bool)
+            t, L, V, F, self._source = step_knots([self.tap], records, self.bank.t_s,
+                                                  self.bank.length_L0,
+                                                  self.bank.velocity_L0_s, moving,
+                                                  self.forces.force_N)
             self.bank.advance(t, L, V)
+            self.forces.advance(F, moving)
             self._measured[0] = L[-1, 0]
         return (self._observation(obs), reward, terminated, truncated,
                 {**info, **self._info()})
@@ -233,14 +264,16 @@ class SpindleAfferents(gym.Wrapper):
         super().close()
 
     def _rest(self) -> None:
-        t, L, V = self.tap.now()
+        t, L, V, F = self.tap.state_now()
         self.bank.reset(None, np.array([self.tap.rest_time(t)]), L[None], V[None])
+        self.forces.reset(np.zeros(1, int), F[None])
         self._measured[0] = L
 
     def _observation(self, obs):
-        return add_afferents(obs, self.bank.ia_pps[0], self.bank.ii_pps[0],
+        return add_afferents(obs, afferent_rates(self.bank, self.forces, self.afferents, 0),
                              self.observation_mode, self.rate_scale_pps,
                              getattr(self.observation_space, "dtype", None))
 
     def _info(self) -> dict[str, Any]:
-        return bank_info(self.bank, self._measured, self._source, row=0)
+        return {**bank_info(self.bank, self._measured, self._source, row=0),
+                **self.forces.info(0)}

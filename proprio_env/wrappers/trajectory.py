@@ -9,6 +9,7 @@ from numbers import Integral
 import mujoco
 import numpy as np
 
+from proprio_env.body.force_sense import max_forces_N
 from proprio_env.wrappers.muscles import ActuatorKinematics, find_muscles
 from spindle.backends import DEFAULT_BACKEND
 from spindle.chain.bank import (
@@ -20,6 +21,10 @@ from spindle.chain.bank import (
 from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
 from spindle.substeps import substeps
+from spindle.tendon_organ import MAX_FORCE_N, check_step
+from spindle.tendon_organ import simulate as tendon_simulate
+from spindle.tendon_organ_params import HUMAN as TENDON_HUMAN
+from spindle.tendon_organ_params import TendonOrganParams, force_scales_N
 
 UNIFORM_TOLERANCE = 1e-6
 """Largest relative spread of the sample intervals of a trajectory (it must be uniform)."""
@@ -47,6 +52,8 @@ class TrajectoryAfferents:
         velocity_L0_s: normalised velocities (as fed: clipped to the slew limit).
         gamma_static_pps, gamma_dynamic_pps: the fusimotor drive.
         counters: the bank's per-muscle counters (M,) over the whole trajectory.
+        force_N: the tendon forces given (``force_N_t``), or None.
+        ib_pps: Ib of the muscles' tendon organs along those forces, or None without them.
     """
 
     t_s: np.ndarray
@@ -59,6 +66,8 @@ class TrajectoryAfferents:
     gamma_static_pps: np.ndarray
     gamma_dynamic_pps: np.ndarray
     counters: dict[str, np.ndarray]
+    force_N: np.ndarray | None = None
+    ib_pps: np.ndarray | None = None
 
 
 def afferents_from_trajectory(
@@ -74,6 +83,8 @@ def afferents_from_trajectory(
     max_speed_L0_s: float = SLEW_LIMIT_L0_S,
     backend: str = DEFAULT_BACKEND,
     max_substeps: int = MAX_TRAJECTORY_SUBSTEPS,
+    force_N_t: np.ndarray | None = None,
+    ib_params: TendonOrganParams = TENDON_HUMAN,
 ) -> TrajectoryAfferents:
     """Ia and II of every muscle of ``model`` along recorded joint motion.
 
@@ -96,6 +107,15 @@ def afferents_from_trajectory(
             take in all; ``ValueError`` naming the count and the limit beyond it, or beyond
             ``spindle.simulation.MAX_SUBSTEPS`` in one sample interval (both checked before any
             work).
+        force_N_t: (T, M) tendon forces (N, tension positive) of the muscles at the samples
+            (e.g. OpenSim's static optimisation, or a recorded ``info["tendon_force_N"]``), or
+            None. Only with them does the result hold Ib: the motion alone does not give the
+            forces (they depend on the activations, which a replay of ``qpos`` does not
+            have). Ib is :func:`spindle.tendon_organ.simulate` on them (one organ step per
+            sample interval, at most ``spindle.tendon_organ.MAX_STEP_S``), from rest at the
+            first sample, with the force scale from each muscle's ``gainprm[2]``. Finite,
+            at most ``MAX_FORCE_N``; a negative force is a slack tendon (0).
+        ib_params: the tendon-organ preset (default human).
 
     Returns:
         :class:`TrajectoryAfferents`.
@@ -103,20 +123,11 @@ def afferents_from_trajectory(
     q, t, qv = _checked_trajectory(model, qpos_t, t_s, qvel_t)
     dt = np.diff(t)
     muscle_set = find_muscles(model, muscles)
+    forces, scales = _checked_forces(model, force_N_t, dt, muscle_set, ib_params)
     bank = SpindleBank(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
                        fusimotor, method, step_s, max_speed_L0_s, backend)
     per_interval = _check_work(dt, bank.step_s, max_substeps)
-    kinematics = ActuatorKinematics(model, muscle_set.ids)
-    zero = np.zeros(model.nv)
-    length_m = np.empty((t.size, muscle_set.n))
-    velocity_m_s = np.empty_like(length_m)
-    for i in range(t.size):
-        length_m[i], velocity_m_s[i] = kinematics.compute(
-            q[i], zero if qv is None else qv[i])
-    if qvel_t is None:
-        velocity_m_s = np.gradient(length_m, t, axis=0)
-    L = muscle_set.length_L0(length_m)
-    V = muscle_set.velocity_L0_s(velocity_m_s)
+    L, V = _normalised_lengths(model, muscle_set, q, t, qv)
 
     bank.reset(None, t[:1], L[:1], V[:1])
     out = {key: np.empty_like(L) for key in ("ia_pps", "ii_pps", "length_L0", "velocity_L0_s",
@@ -132,8 +143,44 @@ def afferents_from_trajectory(
         for key in out:
             out[key][i0:i1] = bank.knots[key][:, 0]
     counters = {name: bank.counters[name][0].copy() for name in COUNTERS}
+    ib = (None if forces is None
+          else tendon_simulate(forces, float(dt.mean()), scales, ib_params, backend))
     return TrajectoryAfferents(t_s=t.copy(), muscle_names=muscle_set.names,
-                               measured_length_L0=L, counters=counters, **out)
+                               measured_length_L0=L, counters=counters, force_N=forces,
+                               ib_pps=ib, **out)
+
+
+def _normalised_lengths(model: mujoco.MjModel, muscle_set, q: np.ndarray, t: np.ndarray,
+                        qv: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(lengths L0, velocities L0/s), (T, M), of the samples: the velocities through the
+    moment arms from ``qv``, or the lengths' time derivative (second order) without it."""
+    kinematics = ActuatorKinematics(model, muscle_set.ids)
+    zero = np.zeros(model.nv)
+    length_m = np.empty((t.size, muscle_set.n))
+    velocity_m_s = np.empty_like(length_m)
+    for i in range(t.size):
+        length_m[i], velocity_m_s[i] = kinematics.compute(
+            q[i], zero if qv is None else qv[i])
+    if qv is None:
+        velocity_m_s = np.gradient(length_m, t, axis=0)
+    return muscle_set.length_L0(length_m), muscle_set.velocity_L0_s(velocity_m_s)
+
+
+def _checked_forces(model: mujoco.MjModel, force_N_t, dt_s: np.ndarray, muscle_set,
+                    params: TendonOrganParams) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(forces (T, M) N, force scales (M,) N), or (None, None) without ``force_N_t``; shape,
+    finiteness, the force limit and the sample interval (the organs' step) checked."""
+    if force_N_t is None:
+        return None, None
+    forces = np.array(force_N_t, dtype=float)
+    if forces.shape != (dt_s.size + 1, muscle_set.n):
+        raise ValueError(f"force_N_t has shape {forces.shape}; expected "
+                         f"({dt_s.size + 1}, {muscle_set.n}) (samples, muscles)")
+    if not np.all(np.isfinite(forces)) or np.any(forces > MAX_FORCE_N):
+        raise ValueError(f"force_N_t must be finite and at most MAX_FORCE_N = "
+                         f"{MAX_FORCE_N} N (max {np.nanmax(forces)!r})")
+    check_step(float(dt_s.mean()))
+    return forces, force_scales_N(params, max_forces_N(model, muscle_set.ids))
 
 
 def _checked_trajectory(model: mujoco.MjModel, qpos_t, t_s, qvel_t

@@ -11,10 +11,12 @@ from gymnasium.vector import AutoresetMode, VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
 from proprio_env.wrappers.capture import MAX_INTERVAL_S, EnvTap, check_max_interval, step_knots
+from proprio_env.wrappers.forces import DEFAULT_AFFERENTS, ForceReadout, check_afferents
 from proprio_env.wrappers.muscles import find_muscles, model_and_data
 from proprio_env.wrappers.single import (
     RATE_SCALE_PPS,
     add_afferents,
+    afferent_rates,
     afferent_spaces,
     bank_info,
     check_rate_scale,
@@ -45,7 +47,8 @@ class SpindleAfferentsVector(VectorWrapper):
     re-equilibrated at its state (counted in ``spindle_restarts``).
 
     ``info`` gains the single wrapper's per-muscle keys as (n_envs, M) arrays (each with its
-    ``_key`` mask, all True), ``spindle_substep_source``, ``spindle_substeps_limited`` and
+    ``_key`` mask, all True; the tendon forces and, with ``"ib"``, Ib and the force rule's
+    counts too), ``spindle_substep_source``, ``spindle_substeps_limited`` and
     ``spindle_restarts``.
 
     Arguments: as :class:`~proprio_env.wrappers.SpindleAfferents`.
@@ -58,8 +61,10 @@ class SpindleAfferentsVector(VectorWrapper):
                  substep_source: str = "auto", method: str = "trapezoidal",
                  step_s: float | None = None, max_speed_L0_s: float = SLEW_LIMIT_L0_S,
                  backend: str = DEFAULT_BACKEND, lag_physics_step: bool = False,
-                 max_interval_s: float = MAX_INTERVAL_S) -> None:
+                 max_interval_s: float = MAX_INTERVAL_S,
+                 afferents: Sequence[str] = DEFAULT_AFFERENTS) -> None:
         super().__init__(env)
+        afferents = check_afferents(afferents)
         subs = getattr(env, "envs", None)
         if subs is None:
             raise ValueError(
@@ -88,8 +93,11 @@ class SpindleAfferentsVector(VectorWrapper):
         self.autoreset_mode = env.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         self.rate_scale_pps = rate_scale_pps
         self.observation_mode = observation
+        self.afferents = afferents
         self.single_observation_space = afferent_spaces(env.single_observation_space,
-                                                        self.muscles.n, observation)
+                                                        self.muscles.n, observation, afferents)
+        self.forces = ForceReadout(model_and_data(subs[0])[0], self.muscles.ids, len(subs),
+                                   "ib" in afferents, timestep_s, bank.backend)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         # the sub-envs are hooked last, once every argument has been accepted
         self.taps = [EnvTap(e, s, substep_source, lag_physics_step, self.max_interval_s)
@@ -158,10 +166,11 @@ class SpindleAfferentsVector(VectorWrapper):
         self.bank.restarts += int(np.count_nonzero(restart))
         moving = ~reset & ~restart & (t_env > self.bank.t_s)
         if moving.any():
-            t, L, V, self._source = step_knots(
+            t, L, V, F, self._source = step_knots(
                 self.taps, records, self.bank.t_s, self.bank.length_L0,
-                self.bank.velocity_L0_s, moving)
+                self.bank.velocity_L0_s, moving, self.forces.force_N)
             self.bank.advance(t, L, V, hold=~moving)
+            self.forces.advance(F, moving)
             self._measured[moving] = L[-1, moving]
         self._rest(np.flatnonzero(restart))
         if final.any():
@@ -196,12 +205,14 @@ class SpindleAfferentsVector(VectorWrapper):
         final_obs = info["final_obs"].copy()
         final_info = dict(info.get("final_info", {}))
         for i in rows:
-            final_obs[i] = add_afferents(final_obs[i], self.bank.ia_pps[i], self.bank.ii_pps[i],
-                                         self.observation_mode, self.rate_scale_pps,
-                                         getattr(self.single_observation_space, "dtype", None))
+            final_obs[i] = add_afferents(
+                final_obs[i], afferent_rates(self.bank, self.forces, self.afferents, int(i)),
+                self.observation_mode, self.rate_scale_pps,
+                getattr(self.single_observation_space, "dtype", None))
             # batched the way the vector env batches the sub-envs' infos (arrays, _key masks)
             final_info = VectorEnv._add_info(
-                self, final_info, bank_info(self.bank, self._measured, self._source, row=int(i)),
+                self, final_info, {**bank_info(self.bank, self._measured, self._source,
+                                               row=int(i)), **self.forces.info(int(i))},
                 int(i))
             self.taps[i].thaw()
         info["final_obs"], info["final_info"] = final_obs, final_info
@@ -224,21 +235,23 @@ class SpindleAfferentsVector(VectorWrapper):
         for i in rows:
             if discard_records:
                 self.taps[i].records()
-            now.append(self.taps[i].now())
+            now.append(self.taps[i].state_now())
         t = np.array([self.taps[i].rest_time(x[0]) for i, x in zip(rows, now, strict=True)])
         L = np.stack([x[1] for x in now])
         V = np.stack([x[2] for x in now])
         self.bank.reset(rows, t, L, V)
+        self.forces.reset(rows, np.stack([x[3] for x in now]))
         self._measured[rows] = L
 
     def _observation(self, obs):
-        return add_afferents(obs, self.bank.ia_pps, self.bank.ii_pps, self.observation_mode,
-                             self.rate_scale_pps,
+        return add_afferents(obs, afferent_rates(self.bank, self.forces, self.afferents),
+                             self.observation_mode, self.rate_scale_pps,
                              getattr(self.single_observation_space, "dtype", None))
 
     def _info(self, info: dict[str, Any]) -> dict[str, Any]:
         out = dict(info)
-        for key, value in bank_info(self.bank, self._measured, self._source).items():
+        signals = {**bank_info(self.bank, self._measured, self._source), **self.forces.info()}
+        for key, value in signals.items():
             out[key] = value
             out[f"_{key}"] = np.ones(self.num_envs, dtype=bool)
         out["spindle_substep_source"] = self._source

@@ -139,16 +139,28 @@ class CTendonOrgans:
             raise ValueError(f"force_N has shape {f.shape}; expected a scalar or "
                              f"({self.n},)") from None
 
-    def reset(self, force_N: object = 0.0) -> np.ndarray:
-        """At rest at ``force_N``; returns the rates there. Nothing changes on a bad force."""
-        f = self._forces(force_N, 1)
-        lib, fresh = library(), (PsGto * self.n)()
-        for i in range(self.n):
-            code = lib.ps_gto_init(ctypes.byref(fresh[i]), ctypes.byref(self.plan), f[i],
+    def reset(self, force_N: object = 0.0, rows: np.ndarray | None = None) -> np.ndarray:
+        """At rest at ``force_N``; returns the rates there. With ``rows`` (organ indices),
+        only those organs, ``force_N`` then a scalar or one per row. Nothing changes on a bad
+        force."""
+        which = np.arange(self.n) if rows is None else np.asarray(rows, dtype=np.intp)
+        f = np.asarray(force_N, dtype=np.float64)
+        try:
+            f = np.ascontiguousarray(np.broadcast_to(f, which.shape))
+        except ValueError:
+            raise ValueError(f"force_N has shape {f.shape}; expected a scalar or "
+                             f"({which.size},)") from None
+        lib, fresh = library(), (PsGto * which.size)()
+        for j, i in enumerate(which.tolist()):
+            code = lib.ps_gto_init(ctypes.byref(fresh[j]), ctypes.byref(self.plan), f[j],
                                    self.force_scale_N[i])
             if code != Status.PS_OK:
-                _raise_for(code, f, i)
-        self._states = fresh
+                _raise_for(code, f, j)
+        if rows is None:
+            self._states = fresh
+        else:
+            for j, i in enumerate(which.tolist()):
+                self._states[i] = fresh[j]
         return self.rate_pps()
 
     def run(self, force_N: np.ndarray, dt_s: float | None = None,
@@ -178,6 +190,31 @@ class CTendonOrgans:
         lib = library()
         return np.array([lib.ps_gto_rate(ctypes.byref(s), ctypes.byref(self.plan))
                          for s in self._states])
+
+    def rows_state(self, rows: np.ndarray) -> list[bytes]:
+        """The states of organs ``rows`` as bytes (for :meth:`set_rows_state`)."""
+        return [bytes(self._states[i]) for i in np.asarray(rows, dtype=np.intp).tolist()]
+
+    def set_rows_state(self, rows: np.ndarray, saved: list[bytes]) -> np.ndarray:
+        """Organs ``rows`` back to ``saved`` (:meth:`rows_state`); returns every rate."""
+        for i, raw in zip(np.asarray(rows, dtype=np.intp).tolist(), saved, strict=True):
+            self._states[i] = PsGto.from_buffer_copy(raw)
+        return self.rate_pps()
+
+    def __getstate__(self) -> dict[str, object]:
+        """Copies and pickles: the states travel as their bytes, the plans are made again
+        (ctypes arrays of structs do not pickle)."""
+        state = {k: v for k, v in self.__dict__.items() if k not in ("_states", "_plans",
+                                                                      "plan")}
+        state["_state_bytes"] = bytes(self._states)
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        raw = state.pop("_state_bytes")
+        self.__dict__.update(state)
+        self._plans = {}
+        self.plan = self._plan(self.dt_s)
+        self._states = (PsGto * self.n).from_buffer_copy(raw)
 
     def state_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(z (3, n), force_N (n,), r_pps (n,)) copied out of the C states."""
