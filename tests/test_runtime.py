@@ -287,3 +287,32 @@ def test_a_stage_that_returns_nan_stops_with_its_name_and_the_log_is_closed(tmp_
     with open(tmp_path / "log.csv", newline="") as f:
         log = list(csv.DictReader(f))
     assert log[-1]["status"] == "error" and log[-1]["counts"] != ""  # the reading is kept
+
+
+def test_the_stimulation_encoder_pulses_equal_the_offline_stimulator_on_the_published_rates():
+    """The runtime's default pulse encoder (the stimulator stage) against the stimulator run
+    offline (spindle.stimulation, the same backend) on the rates the runtime published: each
+    sample's rates held until the next, the same events bit for bit."""
+    from proprio_env.runtime.sources import SimulatedElbowSource
+    from proprio_env.runtime.stages import StimulationEncoder
+    from spindle.stimulation import make_stimulator
+
+    rows = []
+    encoder = StimulationEncoder(backend="c")
+    runtime = Runtime(SimulatedElbowSource("scripted"), backend="c", pulse_encoder=encoder,
+                      sinks=[CallbackSink(rows.append)], duration_s=1.5)
+    runtime.run()
+    published = [r for r in rows if r.values is not None]
+    labels = runtime.layout.channel_labels
+    columns = [labels.index(f"{c.muscle}_{c.afferent}_pps")
+               for c in encoder.config.channels.channels]
+    t = np.array([r.t_s for r in published])
+    rates = np.array([r.values for r in published])[:, columns]
+    assert np.all(np.diff(t) > 0) and encoder.restarts == 0
+    offline = make_stimulator(encoder.config, backend="c", t0_s=float(t[0]))
+    want = offline.run(rates[:-1], np.diff(t))
+    got = np.concatenate([r.events for r in published])
+    assert want.size > 20  # measured 51 pulses over 1.5 s of the scripted motion
+    np.testing.assert_array_equal(got["t_s"], want["time_s"])
+    for name in ("channel", "amplitude_uA", "cathodic_us", "gap_us", "anodic_us"):
+        np.testing.assert_array_equal(got[name], want[name])

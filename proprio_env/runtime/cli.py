@@ -44,7 +44,10 @@ def parser() -> argparse.ArgumentParser:
                     help="keep LSL on this machine (writes an lsl_api.cfg, sets LSLAPICFG)")
     ap.add_argument("--stage", action="append", default=[],
                     help="MODULE:FACTORY of an extra rate stage (called with no arguments)")
-    ap.add_argument("--pulse-encoder", default=None, help="MODULE:FACTORY of a pulse encoder")
+    ap.add_argument("--pulse-encoder", default="stimulation",
+                    help="'stimulation' (the default: the stimulator stage, BRA and TRImed Ia, "
+                         "II and Ib frequency-coded into pulse events), 'none', or "
+                         "MODULE:FACTORY of a pulse encoder")
     ap.add_argument("--rt-priority", type=int, default=None,
                     help="run the loop (and a virtual servo) under SCHED_FIFO at this "
                          "priority, 1-99 (needs root or CAP_SYS_NICE)")
@@ -116,7 +119,14 @@ def main(argv: list[str] | None = None) -> int:
             from spindle.chain import ChainConfig
 
             config = ChainConfig(load=servo_load_params())
-        encoder = load_factory(args.pulse_encoder) if args.pulse_encoder else None
+        if args.pulse_encoder == "stimulation":
+            from proprio_env.runtime.stages import StimulationEncoder
+
+            encoder = StimulationEncoder(backend=args.backend)
+        elif args.pulse_encoder in ("", "none"):
+            encoder = None
+        else:
+            encoder = load_factory(args.pulse_encoder)
         sinks = [] if args.no_lsl else [LslSink(args.lsl_name)]
         runtime = Runtime(source, rate_hz=args.rate, backend=args.backend, config=config,
                           stages=stages, pulse_encoder=encoder, sinks=sinks,

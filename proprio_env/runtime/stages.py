@@ -24,6 +24,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from proprio_env.runtime.sources import Reading
+from spindle.backends import DEFAULT_BACKEND
 from spindle.chain import MUSCLES, ArmSample
 
 
@@ -103,3 +104,54 @@ def check_pulse_encoder(encoder: object) -> tuple[str, ...]:
         raise ValueError(f"{encoder!r}: event_fields {fields} must name distinct fields, "
                          "t_s among them")
     return fields
+
+
+class StimulationEncoder:
+    """The stimulator stage as the runtime's pulse encoder (:mod:`spindle.stimulation`):
+    the rate stream's ``<muscle>_<afferent>_pps`` channel of every electrode channel of
+    ``config`` (default: BRA and TRImed Ia, II and Ib, frequency coding), each sample's rates
+    held until the next sample (causal), encoded into charge-balanced pulse events on the
+    runtime's clock.
+
+    An interval longer than the encoder's ``MAX_DT_S`` (1 s: the servo unplugged) or not
+    after the last sample restarts the encoder at rest at the new sample: no pulses for the
+    gap (``restarts``).
+    """
+
+    event_fields = ("t_s", "channel", "amplitude_uA", "cathodic_us", "gap_us", "anodic_us")
+
+    def __init__(self, config: object | None = None, backend: str = DEFAULT_BACKEND) -> None:
+        from spindle.stimulation import ELBOW_ALL, StimConfig, make_stimulator
+
+        self.config = StimConfig(channels=ELBOW_ALL) if config is None else config
+        self._stimulator = make_stimulator(self.config, backend)
+        self.backend = self._stimulator.backend
+        self._columns: np.ndarray | None = None
+        self._last: tuple[float, np.ndarray] | None = None
+        self.restarts = 0
+
+    def bind(self, channel_labels: tuple[str, ...], units: tuple[str, ...]) -> None:
+        wanted = [f"{c.muscle}_{c.afferent}_pps" for c in self.config.channels.channels]
+        missing = [w for w in wanted if w not in channel_labels]
+        if missing:
+            raise ValueError(f"the rate stream has no channels {missing} for the stimulator "
+                             f"(it has {list(channel_labels)})")
+        self._columns = np.array([channel_labels.index(w) for w in wanted])
+
+    def step(self, t_s: float, rates: np.ndarray) -> np.ndarray:
+        from spindle.stimulation.config import MAX_DT_S
+
+        if self._columns is None:
+            raise RuntimeError("StimulationEncoder.step before bind")
+        now = np.asarray(rates, dtype=float)[self._columns]
+        last, self._last = self._last, (t_s, now)
+        if last is None or not 0.0 < t_s - last[0] <= MAX_DT_S:
+            self.restarts += last is not None
+            self._stimulator.reset(t_s)
+            return np.zeros(0, dtype=[(f, "<f8") for f in self.event_fields])
+        pulses = self._stimulator.step(last[1], t_s - last[0])
+        events = np.zeros(pulses.size, dtype=[(f, "<f8") for f in self.event_fields])
+        events["t_s"] = pulses["time_s"]
+        for name in self.event_fields[1:]:
+            events[name] = pulses[name]
+        return events
