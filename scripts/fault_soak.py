@@ -17,7 +17,10 @@ Then the wrapper section (:mod:`proprio_env.experiments.wrapper_fault_injection`
 ``--wrapper-steps`` wrapped steps per target (single, single lagged, vector with SAME_STEP
 autoreset) and backend, with clock jumps, copies and refused actions between steps; its table
 and a line
-``wrapper_soak steps=<n> ... ok=<bool>`` come before the chain's last line.
+``wrapper_soak steps=<n> ... ok=<bool>`` come before the chain's last line; then the
+vector-env section (:mod:`proprio_env.experiments.vector_fault_injection`, ``--vector-steps``):
+native vector envs of both ids beside a twin, refused resets with bad seeds and options
+between steps, a line ``vector_soak ... ok=<bool>`` per id.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import argparse
 import sys
 
 from proprio_env.experiments.fault_injection import run_soak
+from proprio_env.experiments.vector_fault_injection import run_vector_soak
 from proprio_env.experiments.wrapper_fault_injection import run_wrapper_soak
 
 
@@ -41,19 +45,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--wrapper-steps", type=int, default=None,
                         help="wrapped steps per wrapper target and backend (default 2000, "
                              "--quick 200; 0: no wrapper section)")
+    parser.add_argument("--vector-steps", type=int, default=None,
+                        help="vector-env steps per env id with refused resets between them "
+                             "(default 2000, --quick 200; 0: no vector-env section)")
     args = parser.parse_args(argv)
     n = 10_000 if args.quick else args.samples
     wrapper_steps = (200 if args.quick else 2000) if args.wrapper_steps is None \
         else args.wrapper_steps
-    if n < 0 or wrapper_steps < 0 or n + wrapper_steps < 1:
-        parser.error(f"--samples={n} and --wrapper-steps={wrapper_steps} must be >= 0, "
-                     "not both 0")
+    vector_steps = (200 if args.quick else 2000) if args.vector_steps is None \
+        else args.vector_steps
+    if n < 0 or wrapper_steps < 0 or vector_steps < 0 or n + wrapper_steps + vector_steps < 1:
+        parser.error(f"--samples={n}, --wrapper-steps={wrapper_steps} and --vector-steps="
+                     f"{vector_steps} must be >= 0, not all 0")
     wrappers = (run_wrapper_soak(wrapper_steps, seed=args.seed, max_call_s=args.max_call_s)
                 if wrapper_steps else None)
+    vectors = run_vector_soak(vector_steps, seed=args.seed) if vector_steps else {}
+    sections_ok = (wrappers is None or wrappers.ok) and all(r.ok for r in vectors.values())
     if n == 0:
-        print(wrappers.table())
-        print(wrappers.last_line())
-        return 0 if wrappers.ok else 1
+        _print_sections(wrappers, vectors)
+        return 0 if sections_ok else 1
 
     bar = None
     if not args.no_progress:
@@ -67,11 +77,18 @@ def main(argv: list[str] | None = None) -> int:
         if bar is not None:
             bar.close()
     print(report.table())
+    _print_sections(wrappers, vectors)
+    print(report.last_line())
+    return 0 if report.ok and sections_ok else 1
+
+
+def _print_sections(wrappers, vectors) -> None:
     if wrappers is not None:
         print(wrappers.table())
         print(wrappers.last_line())
-    print(report.last_line())
-    return 0 if report.ok and (wrappers is None or wrappers.ok) else 1
+    for env_id, vector in vectors.items():
+        print(f"{env_id}: refused resets {vector.refused}")
+        print(vector.last_line())
 
 
 if __name__ == "__main__":

@@ -177,3 +177,36 @@ def test_wrapper_soak_checks_catch_a_copy_that_drifts(monkeypatch):
                                   backends=("numpy",))
     assert report.copy_mismatches and not report.ok
     assert "copy_mismatches=0" not in report.last_line()
+
+
+# -- the vector-env section: refused resets between steps --------------------------------------
+def test_vector_soak_refuses_every_bad_reset_and_changes_nothing():
+    """Both ids beside a twin: every kind of bad reset refused with ValueError/TypeError, and
+    the soaked env equal to its twin bit for bit at every step (nothing half-applied)."""
+    from proprio_env.experiments import vector_fault_injection as vfi
+
+    for env_id, report in vfi.run_vector_soak(300, seed=2).items():
+        assert report.ok, (env_id, report)
+        assert all(report.refused.values()), report.refused  # every kind drawn
+        assert report.good_resets > 0 and report.steps == 300
+
+
+def test_vector_soak_catches_a_half_applied_reset(monkeypatch):
+    """Put the old fault back (a refused reset that already reset sub-env 0, as the vector
+    env once did): the section must see the soaked env leave its twin."""
+    from proprio_env.envs.vector import ElbowProprioVectorEnv
+    from proprio_env.experiments import vector_fault_injection as vfi
+
+    original = ElbowProprioVectorEnv.reset
+
+    def half_applied(self, *, seed=None, options=None):
+        try:
+            return original(self, seed=seed, options=options)
+        except (ValueError, TypeError):
+            self.core.reset(np.array([0]), [np.random.default_rng(12345)])
+            raise
+
+    monkeypatch.setattr(ElbowProprioVectorEnv, "reset", half_applied)
+    report = vfi.soak_vector_resets("proprio_env/ElbowReach-v1", 200, seed=2)
+    assert sum(report.refused.values()) > 0
+    assert report.differing_steps > 0 and not report.ok
