@@ -18,8 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from spindle import simulation as _numpy_simulate
-from spindle.backends import DEFAULT_BACKEND, resolve_backend
+from spindle.backends import DEFAULT_BACKEND, implementation
 from spindle.chain.length_model import (
     LengthFit,
     LengthFits,
@@ -121,13 +120,7 @@ def simulate(
             TypeError) for a bool, string, bytes, complex or None where a number belongs
             (``dt=True``, string or complex lengths).
     """
-    if resolve_backend(backend) == "c":
-        # imported here so that numpy-only use never loads ctypes or the C build
-        from spindle.native import spindle as native
-
-        run = native.simulate
-    else:
-        run = _numpy_simulate.simulate
+    _, run = implementation("simulate", backend)
     return run(length, dt, velocity=velocity, acceleration=acceleration, gamma_dyn=gamma_dyn,
                gamma_stat=gamma_stat, params=params, method=method, step=step,
                chunk_samples=chunk_samples)

@@ -6,14 +6,20 @@ the spindle banks, the envs, the wrappers, training, the scripts) takes
 resolves it here once with :func:`resolve_backend`, and stores and reports the resolved name
 (``.backend``), never ``"auto"``.
 
-This module imports no C: ``"auto"`` loads :mod:`spindle.native.build` only to ask whether
-the library can be used.
+:data:`IMPLEMENTATIONS` is the one table of what each backend of each component is, by import
+path; :func:`implementation` resolves a ``backend=`` and imports the class or function it
+names. So no module of the numpy rooms imports the C port: the receptor models, the chain and
+the stimulator name their C twins here, and :mod:`spindle.native` is loaded only when a
+backend resolves to ``"c"``. This module imports no C itself: ``"auto"`` loads
+:mod:`spindle.native.build` only to ask whether the library can be used.
 """
 
 from __future__ import annotations
 
+import importlib
 import os
 from functools import cache
+from typing import Any
 
 BACKENDS = ("numpy", "c")
 """The implementations: ``"numpy"`` (the readable reference) and ``"c"``
@@ -23,6 +29,39 @@ BACKEND_CHOICES = (*BACKENDS, "auto")
 library loads or builds here, else numpy)."""
 DEFAULT_BACKEND = "auto"
 """The one default of every ``backend=`` argument."""
+
+
+IMPLEMENTATIONS: dict[str, dict[str, str]] = {
+    "simulate": {"numpy": "spindle.simulation:simulate",
+                 "c": "spindle.native.spindle:simulate"},
+    "spindle_batch": {"c": "spindle.native.spindle:SpindleBatch"},
+    "tendon_organs": {"numpy": "spindle.tendon_organ:TendonOrgans",
+                      "c": "spindle.native.tendon_organ:CTendonOrgans"},
+    "chain": {"numpy": "spindle.chain.arm:ArmChain", "c": "spindle.native.chain:CArmChain"},
+    "chain_batch": {"numpy": "spindle.chain.batch:BatchedArmChain",
+                    "c": "spindle.native.chain:CBatchedArmChain"},
+    "stimulator": {"numpy": "spindle.stimulation.stimulator:NumpyStimulator",
+                   "c": "spindle.native.stimulation:CStimulator"},
+}
+"""component -> backend -> ``module:attribute`` of its implementation (the spindle bank's
+numpy path is its own code: it has only a C twin to load)."""
+
+
+def implementation(component: str, backend: str = DEFAULT_BACKEND) -> tuple[str, Any]:
+    """(the resolved backend, the class or function implementing ``component`` there),
+    imported on first use (:data:`IMPLEMENTATIONS`).
+
+    Raises:
+        ValueError: ``backend`` is not one of :data:`BACKEND_CHOICES`, or ``component`` has
+            no implementation on it.
+    """
+    name = resolve_backend(backend)
+    path = IMPLEMENTATIONS.get(component, {}).get(name)
+    if path is None:
+        raise ValueError(f"{component!r} has no {name!r} implementation "
+                         f"(it has {sorted(IMPLEMENTATIONS.get(component, {}))})")
+    module, attribute = path.split(":")
+    return name, getattr(importlib.import_module(module), attribute)
 
 
 def resolve_backend(name: str = DEFAULT_BACKEND) -> str:

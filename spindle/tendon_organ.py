@@ -59,7 +59,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from spindle.backends import DEFAULT_BACKEND, resolve_backend
+from spindle.backends import DEFAULT_BACKEND, implementation
 from spindle.tendon_organ_params import (
     HUMAN,
     MAX_FORCE_N,
@@ -378,12 +378,7 @@ def make_tendon_organs(force_scale_N: object, params: TendonOrganParams = HUMAN,
     """:class:`TendonOrgans` (numpy) or its C twin, by :func:`spindle.backends.resolve_backend`;
     both have ``.backend``, ``.n``, ``reset`` (all organs or some ``rows``), ``step``, ``run``
     (many steps in one call), ``rate_pps``."""
-    name = resolve_backend(backend)
-    if name == "c":
-        from spindle.native.tendon_organ import CTendonOrgans  # C only when asked for
-
-        return CTendonOrgans(force_scale_N, params, dt_s, force_N)
-    return TendonOrgans(force_scale_N, params, dt_s, force_N)
+    return implementation("tendon_organs", backend)[1](force_scale_N, params, dt_s, force_N)
 
 
 def simulate(force_N: object, dt_s: float, force_scale_N: object,

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from spindle import core
-from spindle.backends import DEFAULT_BACKEND, resolve_backend
+from spindle.backends import DEFAULT_BACKEND, implementation, resolve_backend
 from spindle.chain.fusimotor import SEED_PAPER, Fusimotor, FusimotorParams
 from spindle.methods import get_method
 from spindle.number_rule import real_scalar
@@ -154,9 +154,8 @@ class SpindleBank:
                                              params)
         self._batch = None
         if self.backend == "c":
-            from spindle.native.spindle import SpindleBatch
-
-            self._batch = SpindleBatch(self._state, params, self.step_s, self._method.theta)
+            self._batch = implementation("spindle_batch", "c")[1](
+                self._state, params, self.step_s, self._method.theta)
         self.length_L0 = np.ones(shape)      # the last knot as fed (clamped, slew-limited)
         self.velocity_L0_s = np.zeros(shape)
         self.t_s = np.zeros(self.n_rows)
@@ -175,10 +174,8 @@ class SpindleBank:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         if self.backend == "c":
-            from spindle.native.spindle import SpindleBatch
-
-            self._batch = SpindleBatch(self._state, self.params, self.step_s,
-                                       self._method.theta)
+            self._batch = implementation("spindle_batch", "c")[1](
+                self._state, self.params, self.step_s, self._method.theta)
 
     @property
     def state(self) -> core.SpindleState:

@@ -6,8 +6,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from spindle.backends import resolve_backend
-from spindle.chain.arm import ArmChain
+from spindle.backends import implementation, resolve_backend
 from spindle.chain.config import Chain, ChainConfig
 from spindle.chain.length_model import LengthFits
 
@@ -24,11 +23,7 @@ def make_chain(config: ChainConfig | None = None, fits: LengthFits | None = None
     :class:`~spindle.native.build.CBackendError` without a C compiler); ``"auto"``: as
     :func:`resolve_backend` decides. The chain's ``config.backend`` is the resolved one."""
     config = _resolved(config)
-    if config.backend == "c":
-        from spindle.native.chain import CArmChain
-
-        return CArmChain(config, fits)
-    return ArmChain(config, fits)
+    return implementation("chain", config.backend)[1](config, fits)
 
 
 def make_batched_chain(n_arms: int, config: ChainConfig | None = None,
@@ -39,10 +34,4 @@ def make_batched_chain(n_arms: int, config: ChainConfig | None = None,
     ``"auto"`` as :func:`resolve_backend` decides. Both have the same API; the chain's
     ``config.backend`` is the resolved one."""
     config = _resolved(config)
-    if config.backend == "c":
-        from spindle.native.chain import CBatchedArmChain
-
-        return CBatchedArmChain(n_arms, config, fits)
-    from spindle.chain.batch import BatchedArmChain
-
-    return BatchedArmChain(n_arms, config, fits)
+    return implementation("chain_batch", config.backend)[1](n_arms, config, fits)

@@ -11,7 +11,7 @@ from typing import Protocol
 
 import numpy as np
 
-from spindle.backends import DEFAULT_BACKEND, resolve_backend
+from spindle.backends import DEFAULT_BACKEND, implementation
 from spindle.stimulation import encoder
 from spindle.stimulation.config import StimConfig
 from spindle.stimulation.encoder import COUNTERS, EncoderState
@@ -88,8 +88,4 @@ def make_stimulator(config: StimConfig | None = None, backend: str = DEFAULT_BAC
         raise TypeError(f"config must be a StimConfig, got {type(config).__name__}")
     if not (isinstance(t0_s, int | float) and math.isfinite(t0_s)):
         raise ValueError(f"t0_s={t0_s!r} must be a finite number")
-    if resolve_backend(backend) == "c":
-        from spindle.native.stimulation import CStimulator  # C only when asked for
-
-        return CStimulator(config, t0_s)
-    return NumpyStimulator(config, t0_s)
+    return implementation("stimulator", backend)[1](config, t0_s)
