@@ -9,6 +9,7 @@ import spindle
 from proprio_env.body.encoder import Encoder
 from spindle.chain import COUNTERS, ArmChain, ChainConfig, make_chain, resolve_backend, run_chain
 from spindle.chain.conditioning import difference, track, tracking_step
+from spindle.chain.config import MAX_SLEW_LIMIT_L0_S
 from spindle.chain.fusimotor import (
     SEED_PAPER,
     FusimotorParams,
@@ -262,9 +263,7 @@ def test_the_low_pass_makes_noisy_lengths_usable():
     angle = 20 + 90 * (1 - np.abs(2 * ((t % (180 / 130)) / (180 / 130)) - 1))
     clean_L = spindle.load_length_fits().length_L0(np.radians(angle))
     noisy_L = clean_L + 0.005 * rng.normal(size=clean_L.shape)
-    # numpy: the C spindle refuses sub-steps at exactly its 10 L0/s speed limit, which the
-    # unfiltered noise reaches with this slew limit (PS_ERR_SPEED at 4 ms)
-    raw_cfg = ChainConfig(lowpass_hz=None, max_speed_L0_s=10.0, backend="numpy")
+    raw_cfg = ChainConfig(lowpass_hz=None, max_speed_L0_s=MAX_SLEW_LIMIT_L0_S, backend="numpy")
     reference = run_chain(t, length_L0=clean_L, config=raw_cfg)
     raw = run_chain(t, length_L0=noisy_L, config=raw_cfg)
     filtered = run_chain(t, length_L0=noisy_L, config=ChainConfig(backend="numpy"))
@@ -439,3 +438,23 @@ def test_reset_with_exact_lengths_at_an_extreme_angle_keeps_outputs_finite():
     assert np.isfinite(s.counts_filtered) and 0 <= s.counts_filtered <= AX12.max_count
     assert np.isfinite(s.angle_deg)
     assert np.isfinite(s.ia_pps).all() and np.isfinite(s.ii_pps).all()
+
+
+def test_the_slew_limit_keeps_a_rounding_margin_below_the_spindles_speed_limit():
+    """At exactly 10 L0/s (the spindle's limit) the C chain refused sub-steps that rounded a
+    hair above it (PS_ERR_SPEED) where numpy took them; the limit is now refused, and at the
+    largest accepted one the unfiltered noisy lengths that reach it run on both backends,
+    equal."""
+    with pytest.raises(ValueError, match=r"max_speed_L0_s=10\.0 must lie in"):
+        ChainConfig(max_speed_L0_s=10.0)
+    rng = np.random.default_rng(4)
+    t = np.arange(0, 1.0, 2e-3)
+    angle = 20 + 90 * (1 - np.abs(2 * ((t % (180 / 130)) / (180 / 130)) - 1))
+    noisy_L = spindle.load_length_fits().length_L0(np.radians(angle)) + 0.005 * rng.normal(
+        size=(t.size, 2))
+    traces = {b: run_chain(t, length_L0=noisy_L, config=ChainConfig(
+        lowpass_hz=None, max_speed_L0_s=MAX_SLEW_LIMIT_L0_S, backend=b)) for b in ("numpy", "c")}
+    assert traces["c"].counters["slew_limited"] > 0  # the limit is reached
+    assert traces["c"].counters == traces["numpy"].counters
+    # measured 1.0e-12 pps apart (the backends' usual agreement)
+    np.testing.assert_allclose(traces["c"].ia_pps, traces["numpy"].ia_pps, atol=1e-9)

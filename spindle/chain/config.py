@@ -36,6 +36,11 @@ from spindle.tendon_organ_params import MAX_STEP_S as GTO_MAX_STEP_S
 
 MUSCLES = ("BRA", "TRImed")
 """The muscles of the arm, in the order of every per-muscle axis of the project."""
+MAX_SLEW_LIMIT_L0_S = core.MAX_SPEED_L0_S * (1.0 - 1e-9)
+"""The largest ``max_speed_L0_s``: the spindle's speed limit less a rounding margin, so that no
+sub-step the slew limit allows can round above the limit the C spindle step checks (at exactly
+10 L0/s the C chain refused such sub-steps, ``PS_ERR_SPEED``, where numpy took them)."""
+
 COUNTERS = (
     "accepted", "invalid_reading", "invalid_angle", "invalid_length", "repeated_time",
     "time_backwards", "bad_time", "gaps", "slew_limited", "angle_clamped", "restarts",
@@ -91,7 +96,8 @@ class ChainConfig:
             The default, 7, is the median window: as many readings as the filter needs before
             it follows a change.
         max_speed_deg_s: slew limit of the conditioned angle (deg/s).
-        max_speed_L0_s: slew limit of the lengths (L0/s), below the spindle's 10 L0/s.
+        max_speed_L0_s: slew limit of the lengths (L0/s), at most :data:`MAX_SLEW_LIMIT_L0_S`
+            (below the spindle's 10 L0/s by a rounding margin).
         fits_path: length fits (``None``: the bundled ``models/length_fits.json``).
         load: the servo's load reading (:class:`~spindle.chain.sensor.LoadParams`, default
             :data:`~spindle.chain.sensor.AX12_LOAD`): the torque a load word stands for.
@@ -155,10 +161,12 @@ class ChainConfig:
             raise ValueError(
                 f"max_bridge_s={self.max_bridge_s!r} needs {updates:.3g} spindle sub-steps or "
                 f"predictor updates per push, above {MAX_BRIDGE_UPDATES}")
-        if not float(self.max_speed_L0_s) <= core.MAX_SPEED_L0_S:
+        if not float(self.max_speed_L0_s) <= MAX_SLEW_LIMIT_L0_S:
             raise ValueError(
                 f"max_speed_L0_s={self.max_speed_L0_s!r} must lie in (0, "
-                f"{core.MAX_SPEED_L0_S}] (the spindle's speed limit)"
+                f"{MAX_SLEW_LIMIT_L0_S!r}] L0/s: below the spindle's {core.MAX_SPEED_L0_S} L0/s "
+                "speed limit by a rounding margin (a sub-step at exactly the limit can round "
+                "above it)"
             )
         if not float(self.max_bridge_s) <= GTO_MAX_STEP_S:
             raise ValueError(
