@@ -212,6 +212,10 @@ def test_every_argument_is_checked_before_an_env_or_ray_exists(args, message, tm
     places["file"].write_text("x")
     _checkpoint(places["prosthesis"], "proprio_env/ProsthesisElbow-v0")
     argv = [a.format(**places) for a in args]
+    # Ray unloaded for the call (another test of this process may have imported it), so that
+    # only this command's own import of it would show
+    for name in [m for m in sys.modules if m == "ray" or m.startswith("ray.")]:
+        monkeypatch.delitem(sys.modules, name)
     with pytest.raises(SystemExit) as exit_info:
         script.main(argv + (["--out", str(tmp_path / "out")] if "--out" not in argv else []))
     assert exit_info.value.code == 2
