@@ -65,7 +65,7 @@ def accuracy_table(duration_s: float) -> dict[str, list[float]]:
         for h in STEPS_S:
             stride = round(h / 1e-3)
             t = t_ref[::stride]
-            ib = gto.simulate(sampled(force, t), h, CAT.force_scale_N, CAT, backend="numpy")
+            ib = gto.simulate(sampled(force, t), h, CAT.force_scale_N, CAT)
             row.append(float(np.sqrt(np.mean((ib - ref[::stride]) ** 2))))
         out[name] = row
     return out
@@ -126,7 +126,7 @@ def _ramp_hold(params: TendonOrganParams, g2: float, f1: float, h: float, hold_s
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     t = np.arange(0.0, 1.5 + hold_s + h / 2, h)
     force = rise(1.0, 0.5, 0.0, f1)
-    ib = gto.simulate(sampled(force, t), h, g2, params, backend="numpy")
+    ib = gto.simulate(sampled(force, t), h, g2, params)
     return t, ib, reference_rates(force, t[::10], g2, params)
 
 
@@ -217,8 +217,8 @@ def plot_implementations(out: Path, hold_s: float) -> float:
     h = 1e-3
     t = np.arange(0.0, 1.5 + hold_s + h / 2, h)
     f = sampled(rise(1.0, 0.5, 0.0, 10.0), t)
-    ours = gto.simulate(f, h, 4.0, CAT, backend="numpy")
-    opensim = gto.simulate(f, h, 4.0, opensim_variant(CAT), backend="numpy")
+    ours = gto.simulate(f, h, 4.0, CAT)
+    opensim = gto.simulate(f, h, 4.0, opensim_variant(CAT))
     myogen = myogen_rates(f, h)
     fig, ax = plt.subplots(figsize=(6.5, 3.6))
     ax.semilogy(t, np.maximum(ours, 1e-2), label="Lin & Crago as here (CAT: G1 60, H(0) 1)")
