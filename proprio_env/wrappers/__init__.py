@@ -16,8 +16,15 @@ from proprio_env.wrappers.muscles import MuscleSet, find_muscles
 from proprio_env.wrappers.single import SpindleAfferents
 from proprio_env.wrappers.trajectory import TrajectoryAfferents, afferents_from_trajectory
 from proprio_env.wrappers.vector import SpindleAfferentsVector
-from spindle.chain.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
+from spindle.chain.driver import ConstantFusimotor, SpindleDriver, TemplateFusimotor
+from spindle.renamed import renamed_attribute
 
 __all__ = ["ConstantFusimotor", "MuscleSet", "SpindleAfferents", "SpindleAfferentsVector",
-           "SpindleBank", "TemplateFusimotor", "TrajectoryAfferents",
+           "SpindleDriver", "TemplateFusimotor", "TrajectoryAfferents",
            "afferents_from_trajectory", "find_muscles"]
+
+_RENAMED = {"SpindleBank": "SpindleDriver"}  # renamed-from: the old names (spindle.renamed)
+
+
+def __getattr__(name: str) -> object:
+    return renamed_attribute(__name__, name, _RENAMED, globals())

@@ -5,7 +5,7 @@ The library is compiled on first use by :mod:`spindle.native.build` (a clear
 ``spindle.simulate(..., backend="c")``: the same validation and ValueErrors as the numpy path
 (:func:`spindle.simulation.prepare_inputs`), the same sub-step lengths
 (:func:`spindle.substeps.substep_lengths`), then one ``ps_spindle_run`` call per spindle.
-:class:`SpindleBatch` holds many independent spindles in one C array and advances them all by
+:class:`CSpindleBatch` holds many independent spindles in one C array and advances them all by
 one ``ps_spindle_batch_step`` call per step (the C counterpart of ``spindle.core.advance`` on
 a :class:`~spindle.core.SpindleState`).
 """
@@ -22,6 +22,7 @@ from spindle.methods import Method
 from spindle.native import build
 from spindle.native.abi import Status, params_struct, plan_struct, real_type, status_name, structs
 from spindle.params import CAT, SpindleParams
+from spindle.renamed import renamed_attribute
 from spindle.simulation import SpindleResult, chunk_bounds, prepare_inputs
 from spindle.substeps import substep_lengths
 
@@ -199,7 +200,7 @@ STATE_FIELDS = (("tension_FU", 0, 3), ("polar_velocity_L0_s", 3, 6), ("velocity_
 (T[3], v[3], z[3], f[3], L, gd, gs)."""
 
 
-class SpindleBatch:
+class CSpindleBatch:
     """``n`` independent C spindles in one contiguous ``ps_spindle`` array, all with the same
     constants and step, advanced together by one ``ps_spindle_batch_step`` call per step
     (each spindle's step is ``ps_spindle_step_plan``, the C port's planned step).
@@ -337,3 +338,9 @@ class SpindleBatch:
         self.lib.ps_spindle_batch_afferents(self._address, self.n, ctypes.byref(self._plan),
                                             ia.ctypes.data, ii.ctypes.data)
         return ia, ii
+
+_RENAMED = {"SpindleBatch": "CSpindleBatch"}  # renamed-from: the old names (spindle.renamed)
+
+
+def __getattr__(name: str) -> object:
+    return renamed_attribute(__name__, name, _RENAMED, globals())
