@@ -646,6 +646,10 @@ int ps_gto_step(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps_real force_
 /* Ib (pps) of a state: max(0, c z); 0 for a NULL argument. */
 ps_real ps_gto_rate(const ps_gto *s, const ps_gto_plan *q);
 
+/* ln(1 + x) for x >= 0, as the log stage takes it: the double build's own (inline in the
+ * step and the batch's SIMD lanes; max 0.79 ulp), the float build's log1pf. */
+ps_real ps_gto_log1p(ps_real x);
+
 /* `steps` steps of n tendon organs: force_N is steps x n (row-major: step k's forces at
  * force_N + k n), force_scale_N n, ib steps x n (NULL: not written). Every input is checked
  * before any state changes: on failure nothing is written, *failed (if not NULL) is the

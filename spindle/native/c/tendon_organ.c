@@ -9,8 +9,10 @@
  */
 #include "proprio.h"
 
+#include <float.h>
 #include <math.h>
 #include <stddef.h>
+#include <string.h>
 
 /* the step's pieces inlined where speed is the aim, the compiler's choice under -Os */
 #if defined(__GNUC__) && !defined(__OPTIMIZE_SIZE__)
@@ -118,13 +120,51 @@ GTO_INLINE int check_force(ps_real force_N, ps_real force_scale_N)
 
 GTO_INLINE ps_real rectified(ps_real force_N) { return force_N > 0 ? force_N : (ps_real)0; }
 
+#ifdef PS_FLOAT
+GTO_INLINE ps_real gto_log1p(ps_real x) { return log1pf(x); }
+#else
+#define GTO_SQRT_HALF_BITS 0x3fe6a09e667f3bcdULL /* sqrt(1/2), rounded */
+#define GTO_LN2_HI 0x1.62e42fefa3800p-1          /* ln 2 to 42 bits: k GTO_LN2_HI is exact */
+#define GTO_LN2_LO 0x1.ef35793c76730p-45         /* ln 2 - GTO_LN2_HI */
+
+/* ln(1 + x) for x >= 0 (+inf: +inf), the double build's own: inline, so that the batch's
+ * lanes become SIMD (libm's log1p is a call per element). 1 + x = u + e exactly (e by
+ * Fast2Sum, the larger operand first), u = 2^k m with m in [sqrt(1/2), sqrt 2) from u's
+ * bits (k converted to double through the bits of 2^52 + k + 1023, as SIMD has no int64 to
+ * double), and ln(1 + x) = k ln 2 + ln m + e/u with ln m = f - f^2/2 + s (f^2/2 + R),
+ * f = m - 1, s = f / (2 + f), R = sum_{j=1..10} 2 s^(2j) / (2j + 1) (2 atanh s = ln m;
+ * |s| <= 0.1716, so the first term left out is under 1e-18 of the sum). Measured against
+ * long-double log1pl on 0 .. 1e308 (tests/test_c_tendon_organ.py): max 0.79 ulp, libm's
+ * log1p 0.59 ulp. */
+GTO_INLINE double gto_log1p(double x)
+{
+    const double u = 1.0 + x;
+    const double e = x > 1.0 ? 1.0 - (u - x) : x - (u - 1.0);
+    uint64_t bits, top, m_bits;
+    double k, m, f, s, w, R, hfsq, out;
+    memcpy(&bits, &u, sizeof bits);
+    top = bits + (0x3ff0000000000000ULL - GTO_SQRT_HALF_BITS);
+    m_bits = (top & 0x000fffffffffffffULL) + GTO_SQRT_HALF_BITS;
+    top = (top >> 52) | 0x4330000000000000ULL;
+    memcpy(&k, &top, sizeof k);
+    memcpy(&m, &m_bits, sizeof m);
+    k -= 0x1p52 + 1023.0;
+    f = m - 1.0;
+    s = f / (2.0 + f);
+    w = s * s;
+    R = w * (2.0 / 3 + w * (2.0 / 5 + w * (2.0 / 7 + w * (2.0 / 9 + w * (2.0 / 11
+        + w * (2.0 / 13 + w * (2.0 / 15 + w * (2.0 / 17 + w * (2.0 / 19 + w * (2.0 / 21))))))))));
+    hfsq = 0.5 * f * f;
+    out = k * GTO_LN2_HI + (f - (hfsq - (s * (hfsq + R) + (k * GTO_LN2_LO + e / u))));
+    return u < HUGE_VAL ? out : u;
+}
+#endif
+
+ps_real ps_gto_log1p(ps_real x) { return gto_log1p(x); }
+
 GTO_INLINE ps_real log_stage(const ps_gto_plan *q, ps_real force_N, ps_real force_scale_N)
 {
-#ifdef PS_FLOAT
-    return q->gain_pps * log1pf(force_N / force_scale_N);
-#else
-    return q->gain_pps * log1p(force_N / force_scale_N);
-#endif
+    return q->gain_pps * gto_log1p(force_N / force_scale_N);
 }
 
 int ps_gto_init(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps_real force_scale_N)
@@ -144,28 +184,61 @@ int ps_gto_init(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps_real force_
     return PS_OK;
 }
 
+/* Ib (pps) of z: max(0, c z) */
+GTO_INLINE ps_real rate_of(const ps_gto_plan *q, ps_real z0, ps_real z1, ps_real z2)
+{
+    const ps_real y = q->c[0] * z0 + q->c[1] * z1 + q->c[2] * z2;
+    return y > 0 ? y : (ps_real)0;
+}
+
 ps_real ps_gto_rate(const ps_gto *s, const ps_gto_plan *q)
 {
-    ps_real y;
     if (s == NULL || q == NULL) return 0;
-    y = q->c[0] * s->z[0] + q->c[1] * s->z[1] + q->c[2] * s->z[2];
-    return y > 0 ? y : (ps_real)0;
+    return rate_of(q, s->z[0], s->z[1], s->z[2]);
 }
 
 /* ln cosh d: three terms of the series below |d| = 0.03 (spindle.tendon_organ.SERIES_D),
  * else |d| + ln(1 + e^{-2|d|}) - ln 2 */
-GTO_INLINE ps_real gto_ln_cosh(ps_real d)
+GTO_INLINE int ln_cosh_series_holds(ps_real d) { return d < (ps_real)0.03 && d > (ps_real)-0.03; }
+
+GTO_INLINE ps_real ln_cosh_series(ps_real d)
 {
     const ps_real d2 = d * d;
+    return d2 * ((ps_real)0.5 - d2 * ((ps_real)(1.0 / 12.0) - d2 * (ps_real)(1.0 / 45.0)));
+}
+
+GTO_INLINE ps_real gto_ln_cosh(ps_real d)
+{
     ps_real a;
-    if (d < (ps_real)0.03 && d > (ps_real)-0.03)
-        return d2 * ((ps_real)0.5 - d2 * ((ps_real)(1.0 / 12.0) - d2 * (ps_real)(1.0 / 45.0)));
+    if (ln_cosh_series_holds(d)) return ln_cosh_series(d);
     a = d < 0 ? -d : d;
 #ifdef PS_FLOAT
-    return a + log1pf(expf(-2.0f * a)) - logf(2.0f);
+    return a + gto_log1p(expf(-2.0f * a)) - logf(2.0f);
 #else
-    return a + log1p(exp(-2.0 * a)) - log(2.0);
+    return a + gto_log1p(exp(-2.0 * a)) - log(2.0);
 #endif
+}
+
+/* d = (r1 - r0) / (2 G1), the argument of ln cosh */
+GTO_INLINE ps_real half_log_ratio(const ps_gto_plan *q, ps_real r0, ps_real r1)
+{
+    return (r1 - r0) * ((ps_real)0.5 / q->gain_pps);
+}
+
+/* alpha = r0 + (2 G1 / 3) ln cosh d, the line's value at the step's start */
+GTO_INLINE ps_real line_start(const ps_gto_plan *q, ps_real r0, ps_real ln_cosh_d)
+{
+    return r0 + (ps_real)2 * q->gain_pps / (ps_real)3 * ln_cosh_d;
+}
+
+/* row i of z1 = phi z0 + g0 alpha + g1 beta */
+GTO_INLINE ps_real advanced_z(const ps_gto_plan *q, int i, ps_real z0, ps_real z1, ps_real z2,
+                              ps_real alpha, ps_real beta)
+{
+    ps_real z = q->phi[i][0] * z0 + q->phi[i][1] * z1 + q->phi[i][2] * z2;
+    z += q->g0[i] * alpha;
+    z += q->g1[i] * beta;
+    return z;
 }
 
 /* the step on checked inputs */
@@ -173,17 +246,14 @@ GTO_INLINE void gto_advance(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps
 {
     const ps_real f1 = rectified(force_N);
     const ps_real r0 = s->r_pps, r1 = log_stage(q, f1, scale);
-    const ps_real alpha = r0 + (ps_real)2 * q->gain_pps / (ps_real)3
-                                   * gto_ln_cosh((r1 - r0) * ((ps_real)0.5 / q->gain_pps));
+    const ps_real alpha = line_start(q, r0, gto_ln_cosh(half_log_ratio(q, r0, r1)));
     const ps_real beta = r1 - r0;
-    ps_real z[3];
-    int i;
-    for (i = 0; i < 3; ++i) {
-        z[i] = q->phi[i][0] * s->z[0] + q->phi[i][1] * s->z[1] + q->phi[i][2] * s->z[2];
-        z[i] += q->g0[i] * alpha;
-        z[i] += q->g1[i] * beta;
-    }
-    for (i = 0; i < 3; ++i) s->z[i] = z[i];
+    const ps_real z0 = advanced_z(q, 0, s->z[0], s->z[1], s->z[2], alpha, beta);
+    const ps_real z1 = advanced_z(q, 1, s->z[0], s->z[1], s->z[2], alpha, beta);
+    const ps_real z2 = advanced_z(q, 2, s->z[0], s->z[1], s->z[2], alpha, beta);
+    s->z[0] = z0;
+    s->z[1] = z1;
+    s->z[2] = z2;
     s->force_N = f1;
     s->r_pps = r1;
 }
@@ -200,29 +270,216 @@ int ps_gto_step(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps_real force_
     return PS_OK;
 }
 
-int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
-                     const ps_real *force_N, const ps_real *force_scale_N, ps_real *ib,
-                     long *failed)
+/* ---- the batch --------------------------------------------------------------------------
+ * Organs [j0, n) through every step, one at a time (the tail of the lanes, or the whole batch
+ * where there are none). */
+static void scalar_run(ps_gto *s, long j0, long n, const ps_gto_plan *q, long steps,
+                       const ps_real *force_N, const ps_real *force_scale_N, ps_real *ib)
 {
     long i, k;
-    if (n < 0 || steps < 0) return PS_ERR_ARGUMENT;
-    if (n == 0 || steps == 0) return PS_OK;
-    if (s == NULL || q == NULL || force_N == NULL || force_scale_N == NULL) return PS_ERR_NULL;
-    for (k = 0; k < steps; ++k) {
-        for (i = 0; i < n; ++i) {
-            int code = check_force(force_N[k * n + i], force_scale_N[i]);
-            if (code != PS_OK) {
-                if (failed != NULL) *failed = k * n + i;
-                return code;
-            }
-        }
-    }
-    for (k = 0; k < steps; ++k) {
-        for (i = 0; i < n; ++i) {
+    for (i = j0; i < n; ++i) {
+        for (k = 0; k < steps; ++k) {
             gto_advance(&s[i], q, force_N[k * n + i], force_scale_N[i]);
             if (ib != NULL) ib[k * n + i] = ps_gto_rate(&s[i], q);
         }
     }
+}
+
+#ifdef PS_FLOAT
+#define GTO_REAL_MAX FLT_MAX
+#else
+#define GTO_REAL_MAX DBL_MAX
+#endif
+
+GTO_INLINE int force_in_range(ps_real f)
+{
+    return (f >= -GTO_REAL_MAX) & (f <= (ps_real)PS_GTO_MAX_FORCE_N);
+}
+
+/* 1 if every force and scale passes check_force: the same comparisons in one pass with no
+ * exit inside, which the compiler vectorises with AVX2 (not with SSE2 alone: no vector type
+ * for the comparisons' flags, gcc 12) */
+GTO_INLINE int inputs_ok(long n, long steps, const ps_real *force_N,
+                         const ps_real *force_scale_N)
+{
+    const long total = n * steps;
+    long long bad = 0;
+    long i;
+    int l;
+    for (i = 0; i < n; ++i)
+        bad |= !((force_scale_N[i] > 0) & (force_scale_N[i] <= GTO_REAL_MAX));
+    for (i = 0; i + 8 <= total; i += 8) { /* in blocks of a known length, for the vectoriser */
+        for (l = 0; l < 8; ++l) bad |= !force_in_range(force_N[i + l]);
+    }
+    for (; i < total; ++i) bad |= !force_in_range(force_N[i]);
+    return !bad;
+}
+
+/* LANES_DOC */
+#if !defined(PS_FLOAT) && !defined(PS_GTO_BATCH_SCALAR) && defined(__GNUC__) \
+    && defined(__x86_64__) && (!defined(__clang__) || __clang_major__ >= 6)
+#ifdef PS_GTO_LANES_NO_AVX2
+#define GTO_LANES_MODE 1 /* the lanes in the baseline instruction set, always */
+#else
+#define GTO_LANES_MODE 2 /* the AVX2 lanes where the CPU has AVX2, else the scalar loop */
+#endif
+#endif
+
+#ifdef GTO_LANES_MODE
+#ifndef GTO_LANES
+#define GTO_LANES 8
+#endif
+#define GTO_LANE_LOOP(l) for ((l) = 0; (l) < GTO_LANES; ++(l))
+
+typedef long long gto_lane_flag; /* as wide as a double: a select on it stays in one vector */
+
+#ifndef GTO_CHUNK
+#define GTO_CHUNK 16
+#endif
+
+typedef struct gto_lanes {
+    double z0[GTO_LANES], z1[GTO_LANES], z2[GTO_LANES], force[GTO_LANES], scale[GTO_LANES];
+    double r[GTO_CHUNK + 1][GTO_LANES]; /* r[0] at the chunk's start, r[k + 1] after step k */
+    double d[GTO_LANES], ln_cosh_d[GTO_LANES];
+    gto_lane_flag jump[GTO_LANES];
+} gto_lanes;
+
+/* The log stages of the chunk's `steps` steps (forces f, rows n apart): independent of the
+ * state, so taken together, out of the recurrence. */
+static inline __attribute__((always_inline)) void lanes_logs(gto_lanes *b, const ps_gto_plan *q,
+                                                             const double *f, long n, int steps)
+{
+    int k, l;
+    for (k = 0; k < steps; ++k)
+        GTO_LANE_LOOP(l) b->r[k + 1][l] = log_stage(q, rectified(f[k * n + l]), b->scale[l]);
+    GTO_LANE_LOOP(l) b->force[l] = rectified(f[(steps - 1) * n + l]);
+}
+
+/* Step k of the chunk (r[k] to r[k + 1]), Ib to ib if not NULL. */
+static inline __attribute__((always_inline)) void lanes_advance(gto_lanes *b,
+                                                                const ps_gto_plan *q, int k,
+                                                                double *ib)
+{
+    gto_lane_flag any_jump = 0;
+    int l;
+    GTO_LANE_LOOP(l) {
+        b->d[l] = half_log_ratio(q, b->r[k][l], b->r[k + 1][l]);
+        b->ln_cosh_d[l] = ln_cosh_series(b->d[l]);
+        b->jump[l] = !ln_cosh_series_holds(b->d[l]);
+    }
+    GTO_LANE_LOOP(l) any_jump |= b->jump[l];
+    if (any_jump) GTO_LANE_LOOP(l) b->ln_cosh_d[l] = gto_ln_cosh(b->d[l]);
+    GTO_LANE_LOOP(l) {
+        const double alpha = line_start(q, b->r[k][l], b->ln_cosh_d[l]);
+        const double beta = b->r[k + 1][l] - b->r[k][l];
+        const double z0 = advanced_z(q, 0, b->z0[l], b->z1[l], b->z2[l], alpha, beta);
+        const double z1 = advanced_z(q, 1, b->z0[l], b->z1[l], b->z2[l], alpha, beta);
+        const double z2 = advanced_z(q, 2, b->z0[l], b->z1[l], b->z2[l], alpha, beta);
+        b->z0[l] = z0;
+        b->z1[l] = z1;
+        b->z2[l] = z2;
+    }
+    if (ib != NULL) GTO_LANE_LOOP(l) ib[l] = rate_of(q, b->z0[l], b->z1[l], b->z2[l]);
+}
+
+/* Organs [0, m) (m a multiple of GTO_LANES) through every step, GTO_LANES at a time, each
+ * block's state in lanes from the first step to the last. */
+static inline __attribute__((always_inline)) void lanes_run(
+    ps_gto *s, long m, long n, const ps_gto_plan *q, long steps, const double *force_N,
+    const double *force_scale_N, double *ib)
+{
+    const ps_gto_plan p = *q; /* a copy that no store to ib can alias: its loads leave the loops */
+    gto_lanes b;
+    long j0, k0;
+    int k, l;
+    for (j0 = 0; j0 < m; j0 += GTO_LANES) {
+        ps_gto *sb = &s[j0];
+        GTO_LANE_LOOP(l) b.z0[l] = sb[l].z[0];
+        GTO_LANE_LOOP(l) b.z1[l] = sb[l].z[1];
+        GTO_LANE_LOOP(l) b.z2[l] = sb[l].z[2];
+        GTO_LANE_LOOP(l) b.r[0][l] = sb[l].r_pps;
+        GTO_LANE_LOOP(l) b.scale[l] = force_scale_N[j0 + l];
+        for (k0 = 0; k0 < steps; k0 += GTO_CHUNK) {
+            const int chunk = steps - k0 < GTO_CHUNK ? (int)(steps - k0) : GTO_CHUNK;
+            lanes_logs(&b, &p, force_N + k0 * n + j0, n, chunk);
+            for (k = 0; k < chunk; ++k)
+                lanes_advance(&b, &p, k, ib != NULL ? ib + (k0 + k) * n + j0 : NULL);
+            GTO_LANE_LOOP(l) b.r[0][l] = b.r[chunk][l];
+        }
+        GTO_LANE_LOOP(l) {
+            sb[l].z[0] = b.z0[l];
+            sb[l].z[1] = b.z1[l];
+            sb[l].z[2] = b.z2[l];
+            sb[l].force_N = b.force[l];
+            sb[l].r_pps = b.r[0][l];
+        }
+    }
+}
+
+#if GTO_LANES_MODE == 2
+__attribute__((target("avx2"))) static void lanes_run_avx2(
+    ps_gto *s, long m, long n, const ps_gto_plan *q, long steps, const double *force_N,
+    const double *force_scale_N, double *ib)
+{
+    lanes_run(s, m, n, q, steps, force_N, force_scale_N, ib);
+}
+
+__attribute__((target("avx2"))) static int inputs_ok_avx2(long n, long steps,
+                                                          const double *force_N,
+                                                          const double *force_scale_N)
+{
+    return inputs_ok(n, steps, force_N, force_scale_N);
+}
+#endif
+
+/* The organs the lanes stepped: [0, n - n mod GTO_LANES), or none where they do not pay. */
+static long lanes_dispatch(ps_gto *s, long n, const ps_gto_plan *q, long steps,
+                           const double *force_N, const double *force_scale_N, double *ib)
+{
+    const long m = n - n % GTO_LANES;
+#if GTO_LANES_MODE == 2
+    if (!__builtin_cpu_supports("avx2")) return 0;
+    lanes_run_avx2(s, m, n, q, steps, force_N, force_scale_N, ib);
+#else
+    lanes_run(s, m, n, q, steps, force_N, force_scale_N, ib);
+#endif
+    return m;
+}
+#endif /* GTO_LANES_MODE */
+
+/* inputs_ok in the best instruction set the CPU has */
+static int batch_inputs_ok(long n, long steps, const ps_real *force_N,
+                           const ps_real *force_scale_N)
+{
+#if defined(GTO_LANES_MODE) && GTO_LANES_MODE == 2
+    if (__builtin_cpu_supports("avx2")) return inputs_ok_avx2(n, steps, force_N, force_scale_N);
+#endif
+    return inputs_ok(n, steps, force_N, force_scale_N);
+}
+
+int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
+                     const ps_real *force_N, const ps_real *force_scale_N, ps_real *ib,
+                     long *failed)
+{
+    long i, k, j = 0;
+    if (n < 0 || steps < 0) return PS_ERR_ARGUMENT;
+    if (n == 0 || steps == 0) return PS_OK;
+    if (s == NULL || q == NULL || force_N == NULL || force_scale_N == NULL) return PS_ERR_NULL;
+    if (!batch_inputs_ok(n, steps, force_N, force_scale_N)) {
+        for (k = 0; k < steps; ++k) { /* the first bad input in the order of the steps */
+            for (i = 0; i < n; ++i) {
+                int code = check_force(force_N[k * n + i], force_scale_N[i]);
+                if (code != PS_OK) {
+                    if (failed != NULL) *failed = k * n + i;
+                    return code;
+                }
+            }
+        }
+    }
+#ifdef GTO_LANES_MODE
+    j = lanes_dispatch(s, n, q, steps, force_N, force_scale_N, ib);
+#endif
+    scalar_run(s, j, n, q, steps, force_N, force_scale_N, ib);
     return PS_OK;
 }
 
