@@ -21,6 +21,12 @@
 #define GTO_INLINE static
 #endif
 
+#ifdef PS_FLOAT
+#define ps_fabs fabsf
+#else
+#define ps_fabs fabs
+#endif
+
 #define GTO_TAYLOR_TERMS 20
 #define GTO_N 5 /* the augmented system: z (3), the line's value, its change over the step */
 
@@ -126,20 +132,30 @@ GTO_INLINE ps_real gto_log1p(ps_real x) { return log1pf(x); }
 #define GTO_SQRT_HALF_BITS 0x3fe6a09e667f3bcdULL /* sqrt(1/2), rounded */
 #define GTO_LN2_HI 0x1.62e42fefa3800p-1          /* ln 2 to 42 bits: k GTO_LN2_HI is exact */
 #define GTO_LN2_LO 0x1.ef35793c76730p-45         /* ln 2 - GTO_LN2_HI */
+/* Q(w) = 2 (atanh(s)/s - 1) / w, s^2 = w, by its interpolant at the Chebyshev points of
+ * [0, 0.0294] (w's range): PYTHONPATH=. python scripts/fit_log1p.py (largest error 4.7e-18
+ * of ln m, 0.04 ulp) */
+#define GTO_LOG_Q0 0x1.5555555555558p-1
+#define GTO_LOG_Q1 0x1.99999999952e2p-2
+#define GTO_LOG_Q2 0x1.2492492df148dp-2
+#define GTO_LOG_Q3 0x1.c71c62e5800a1p-3
+#define GTO_LOG_Q4 0x1.7462b4ab2ef6bp-3
+#define GTO_LOG_Q5 0x1.39fe606542ddep-3
+#define GTO_LOG_Q6 0x1.2b584aae78a57p-3
 
 /* ln(1 + x) for x >= 0 (+inf: +inf), the double build's own: inline, so that the batch's
- * lanes become SIMD (libm's log1p is a call per element). 1 + x = u + e exactly (e by
- * Fast2Sum, the larger operand first), u = 2^k m with m in [sqrt(1/2), sqrt 2) from u's
- * bits (k converted to double through the bits of 2^52 + k + 1023, as SIMD has no int64 to
- * double), and ln(1 + x) = k ln 2 + ln m + e/u with ln m = f - f^2/2 + s (f^2/2 + R),
- * f = m - 1, s = f / (2 + f), R = sum_{j=1..10} 2 s^(2j) / (2j + 1) (2 atanh s = ln m;
- * |s| <= 0.1716, so the first term left out is under 1e-18 of the sum). Measured against
- * long-double log1pl on 0 .. 1e308 (tests/test_c_tendon_organ.py): max 0.79 ulp, libm's
- * log1p 0.59 ulp. */
+ * lanes become SIMD (libm's log1p is a call per element). 1 + x = u + e with u = fl(1 + x)
+ * and e = x - (u - 1), exact for u < 2^53 (u - 1 is, and e is the representable error of
+ * the sum; above, e/u is under 2^-52 against a result over 36); u = 2^k m with m in
+ * [sqrt(1/2), sqrt 2) from u's bits (k converted to double through the bits of
+ * 2^52 + k + 1023: SIMD has no int64 to double); ln(1 + x) = k ln 2 + ln m + e/u with
+ * ln m = f - f^2/2 + s (f^2/2 + w Q(w)), f = m - 1, s = f / (2 + f), w = s^2 (2 atanh s =
+ * ln m). Measured against long-double log1pl on 0 .. 1e308 (tests/test_c_tendon_organ.py):
+ * MAXULP ulp at most, libm's log1p LIBMULP. */
 GTO_INLINE double gto_log1p(double x)
 {
     const double u = 1.0 + x;
-    const double e = x > 1.0 ? 1.0 - (u - x) : x - (u - 1.0);
+    const double e = x - (u - 1.0);
     uint64_t bits, top, m_bits;
     double k, m, f, s, w, R, hfsq, out;
     memcpy(&bits, &u, sizeof bits);
@@ -152,8 +168,8 @@ GTO_INLINE double gto_log1p(double x)
     f = m - 1.0;
     s = f / (2.0 + f);
     w = s * s;
-    R = w * (2.0 / 3 + w * (2.0 / 5 + w * (2.0 / 7 + w * (2.0 / 9 + w * (2.0 / 11
-        + w * (2.0 / 13 + w * (2.0 / 15 + w * (2.0 / 17 + w * (2.0 / 19 + w * (2.0 / 21))))))))));
+    R = w * (GTO_LOG_Q0 + w * (GTO_LOG_Q1 + w * (GTO_LOG_Q2 + w * (GTO_LOG_Q3 + w * (GTO_LOG_Q4
+        + w * (GTO_LOG_Q5 + w * GTO_LOG_Q6))))));
     hfsq = 0.5 * f * f;
     out = k * GTO_LN2_HI + (f - (hfsq - (s * (hfsq + R) + (k * GTO_LN2_LO + e / u))));
     return u < HUGE_VAL ? out : u;
@@ -199,7 +215,7 @@ ps_real ps_gto_rate(const ps_gto *s, const ps_gto_plan *q)
 
 /* ln cosh d: three terms of the series below |d| = 0.03 (spindle.tendon_organ.SERIES_D),
  * else |d| + ln(1 + e^{-2|d|}) - ln 2 */
-GTO_INLINE int ln_cosh_series_holds(ps_real d) { return d < (ps_real)0.03 && d > (ps_real)-0.03; }
+GTO_INLINE int ln_cosh_series_holds(ps_real d) { return ps_fabs(d) < (ps_real)0.03; }
 
 GTO_INLINE ps_real ln_cosh_series(ps_real d)
 {
@@ -209,9 +225,8 @@ GTO_INLINE ps_real ln_cosh_series(ps_real d)
 
 GTO_INLINE ps_real gto_ln_cosh(ps_real d)
 {
-    ps_real a;
+    const ps_real a = ps_fabs(d);
     if (ln_cosh_series_holds(d)) return ln_cosh_series(d);
-    a = d < 0 ? -d : d;
 #ifdef PS_FLOAT
     return a + gto_log1p(expf(-2.0f * a)) - logf(2.0f);
 #else
@@ -316,13 +331,19 @@ GTO_INLINE int inputs_ok(long n, long steps, const ps_real *force_N,
 }
 
 /* LANES_DOC */
-#if !defined(PS_FLOAT) && !defined(PS_GTO_BATCH_SCALAR) && defined(__GNUC__) \
-    && defined(__x86_64__) && (!defined(__clang__) || __clang_major__ >= 6)
-#ifdef PS_GTO_LANES_NO_AVX2
-#define GTO_LANES_MODE 1 /* the lanes in the baseline instruction set, always */
+#if !defined(PS_FLOAT) && !defined(PS_GTO_BATCH_SCALAR)
+#if defined(__GNUC__) && defined(__x86_64__) && (!defined(__clang__) || __clang_major__ >= 6) \
+    && !defined(PS_GTO_LANES_NO_AVX2)
+#define GTO_LANES_MODE 2 /* copies for AVX-512 and AVX2 chosen at run time, else the baseline */
 #else
-#define GTO_LANES_MODE 2 /* the AVX2 lanes where the CPU has AVX2, else the scalar loop */
+#define GTO_LANES_MODE 1 /* the lanes in the baseline instruction set */
 #endif
+#endif
+
+#if defined(__GNUC__)
+#define GTO_LANE_FN static inline __attribute__((always_inline))
+#else
+#define GTO_LANE_FN static
 #endif
 
 #ifdef GTO_LANES_MODE
@@ -346,8 +367,8 @@ typedef struct gto_lanes {
 
 /* The log stages of the chunk's `steps` steps (forces f, rows n apart): independent of the
  * state, so taken together, out of the recurrence. */
-static inline __attribute__((always_inline)) void lanes_logs(gto_lanes *b, const ps_gto_plan *q,
-                                                             const double *f, long n, int steps)
+GTO_LANE_FN void lanes_logs(gto_lanes *b, const ps_gto_plan *q, const double *f, long n,
+                            int steps)
 {
     int k, l;
     for (k = 0; k < steps; ++k)
@@ -356,9 +377,7 @@ static inline __attribute__((always_inline)) void lanes_logs(gto_lanes *b, const
 }
 
 /* Step k of the chunk (r[k] to r[k + 1]), Ib to ib if not NULL. */
-static inline __attribute__((always_inline)) void lanes_advance(gto_lanes *b,
-                                                                const ps_gto_plan *q, int k,
-                                                                double *ib)
+GTO_LANE_FN void lanes_advance(gto_lanes *b, const ps_gto_plan *q, int k, double *ib)
 {
     gto_lane_flag any_jump = 0;
     int l;
@@ -384,7 +403,7 @@ static inline __attribute__((always_inline)) void lanes_advance(gto_lanes *b,
 
 /* Organs [0, m) (m a multiple of GTO_LANES) through every step, GTO_LANES at a time, each
  * block's state in lanes from the first step to the last. */
-static inline __attribute__((always_inline)) void lanes_run(
+GTO_LANE_FN void lanes_run(
     ps_gto *s, long m, long n, const ps_gto_plan *q, long steps, const double *force_N,
     const double *force_scale_N, double *ib)
 {
@@ -417,6 +436,15 @@ static inline __attribute__((always_inline)) void lanes_run(
 }
 
 #if GTO_LANES_MODE == 2
+#ifndef PS_GTO_LANES_NO_AVX512
+__attribute__((target("avx512f"))) static void lanes_run_avx512(
+    ps_gto *s, long m, long n, const ps_gto_plan *q, long steps, const double *force_N,
+    const double *force_scale_N, double *ib)
+{
+    lanes_run(s, m, n, q, steps, force_N, force_scale_N, ib);
+}
+#endif
+
 __attribute__((target("avx2"))) static void lanes_run_avx2(
     ps_gto *s, long m, long n, const ps_gto_plan *q, long steps, const double *force_N,
     const double *force_scale_N, double *ib)
@@ -432,17 +460,25 @@ __attribute__((target("avx2"))) static int inputs_ok_avx2(long n, long steps,
 }
 #endif
 
-/* The organs the lanes stepped: [0, n - n mod GTO_LANES), or none where they do not pay. */
+/* lanes_run in the best instruction set the CPU has, on organs [0, n - n mod GTO_LANES);
+ * returns that count */
 static long lanes_dispatch(ps_gto *s, long n, const ps_gto_plan *q, long steps,
                            const double *force_N, const double *force_scale_N, double *ib)
 {
     const long m = n - n % GTO_LANES;
 #if GTO_LANES_MODE == 2
-    if (!__builtin_cpu_supports("avx2")) return 0;
-    lanes_run_avx2(s, m, n, q, steps, force_N, force_scale_N, ib);
-#else
-    lanes_run(s, m, n, q, steps, force_N, force_scale_N, ib);
+#ifndef PS_GTO_LANES_NO_AVX512
+    if (__builtin_cpu_supports("avx512f")) {
+        lanes_run_avx512(s, m, n, q, steps, force_N, force_scale_N, ib);
+        return m;
+    }
 #endif
+    if (__builtin_cpu_supports("avx2")) {
+        lanes_run_avx2(s, m, n, q, steps, force_N, force_scale_N, ib);
+        return m;
+    }
+#endif
+    lanes_run(s, m, n, q, steps, force_N, force_scale_N, ib);
     return m;
 }
 #endif /* GTO_LANES_MODE */
