@@ -7,12 +7,15 @@ per step:
 - numpy, n = ``--n`` (4096) muscles, one call per step: ``spindle.step`` (HUMAN, 1 ms,
   the default method) against ``TendonOrgans.step`` (HUMAN, 1 ms);
 - C, the same n, ``--steps`` steps in one call: ``SpindleBatch.steps`` against
-  ``CTendonOrgans.run``.
+  ``CTendonOrgans.run`` (its SIMD lanes in the best instruction set the CPU has: AVX-512,
+  AVX2 or the baseline), and the GTO of a build without the AVX-512 copy
+  (``-DPS_GTO_LANES_NO_AVX512``, ``tendon_organ.c`` compiled side by side with the library's
+  flags: what a CPU with AVX2 alone runs), ``ps_gto_batch_run`` on the same states and forces.
 
 Inputs: lengths 1 +- 0.05 L0 and forces 200 +- 150 N, sinusoids with a phase per muscle.
 Target (issue 24): GTO / spindle <= 0.1 in both.
 
-Last line: ``bench_gto numpy_ratio=... c_ratio=...``.
+Last line: ``bench_gto numpy_ratio=... c_ratio=... c_avx2_ratio=...``.
 
 Usage: ``PYTHONPATH=. python scripts/bench_gto.py [--n 4096] [--steps 50] [--rounds 5]``
 """
@@ -20,7 +23,11 @@ Usage: ``PYTHONPATH=. python scripts/bench_gto.py [--n 4096] [--steps 50] [--rou
 from __future__ import annotations
 
 import argparse
+import ctypes
+import subprocess
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -71,20 +78,50 @@ def numpy_figures(n: int, steps: int, rounds: int) -> tuple[float, float]:
     return median_ns(spindles, rounds, per), median_ns(organs, rounds, per)
 
 
-def c_figures(n: int, steps: int, rounds: int) -> tuple[float, float]:
+def avx2_library(directory: Path) -> ctypes.CDLL:
+    """``tendon_organ.c`` alone, with the library's flags and ``-DPS_GTO_LANES_NO_AVX512``."""
+    from spindle.native import build
+    from spindle.native.tendon_organ import library
+
+    out = directory / "libgto-avx2.so"
+    subprocess.run([*build.compiler_command(), *build.compile_flags("double"),
+                    "-DPS_GTO_LANES_NO_AVX512", "-I", str(build.SOURCE_DIR),
+                    str(build.SOURCE_DIR / "tendon_organ.c"), "-o", str(out), "-lm"],
+                   check=True, capture_output=True)
+    lib = ctypes.CDLL(str(out))
+    lib.ps_gto_batch_run.argtypes = library().ps_gto_batch_run.argtypes
+    return lib
+
+
+def c_figures(n: int, steps: int, rounds: int) -> tuple[float, float, float]:
     from spindle.native.spindle import SpindleBatch
-    from spindle.native.tendon_organ import CTendonOrgans
+    from spindle.native.tendon_organ import CTendonOrgans, PsGto
 
     L, F = inputs(n, steps)
     gd, gs = np.full((steps - 1, n), 50.0), np.full((steps - 1, n), 50.0)
     rest = spindle.equilibrium_state(L[0], 50.0, 50.0, spindle.HUMAN)
     batch = SpindleBatch(rest, spindle.HUMAN, DT_S)
     bank = CTendonOrgans(np.full(n, 179.5), GTO_HUMAN, DT_S, force_N=F[0])
+    start = bytes(bank._states)
+    states = (PsGto * n).from_buffer_copy(start)
+    forces = np.ascontiguousarray(F[1:])
+    ib = np.empty_like(forces)
+    with tempfile.TemporaryDirectory() as tmp:
+        lib = avx2_library(Path(tmp))
 
-    per = n * (steps - 1)
-    return (median_ns(lambda: batch.steps(L[1:], gd, gs), rounds, per,
-                      lambda: batch.load(rest)),
-            median_ns(lambda: bank.run(F[1:]), rounds, per, lambda: bank.reset(F[0])))
+        def avx2_run() -> None:
+            lib.ps_gto_batch_run(ctypes.addressof(states), n, ctypes.byref(bank.plan),
+                                 steps - 1, forces.ctypes.data, bank.force_scale_N.ctypes.data,
+                                 ib.ctypes.data, None)
+
+        def avx2_reset() -> None:
+            ctypes.memmove(states, start, len(start))
+
+        per = n * (steps - 1)
+        return (median_ns(lambda: batch.steps(L[1:], gd, gs), rounds, per,
+                          lambda: batch.load(rest)),
+                median_ns(lambda: bank.run(F[1:]), rounds, per, lambda: bank.reset(F[0])),
+                median_ns(avx2_run, rounds, per, avx2_reset))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -96,10 +133,13 @@ def main(argv: list[str] | None = None) -> None:
     ns_sp, ns_gto = numpy_figures(args.n, args.steps, args.rounds)
     print(f"numpy n={args.n}: spindle {ns_sp:8.1f} ns/muscle/step, GTO {ns_gto:6.1f}  "
           f"ratio {ns_gto / ns_sp:.3f}")
-    cs_sp, cs_gto = c_figures(args.n, args.steps, args.rounds)
+    cs_sp, cs_gto, cs_avx2 = c_figures(args.n, args.steps, args.rounds)
     print(f"C     n={args.n}: spindle {cs_sp:8.1f} ns/muscle/step, GTO {cs_gto:6.1f}  "
           f"ratio {cs_gto / cs_sp:.3f}")
-    print(f"bench_gto numpy_ratio={ns_gto / ns_sp:.3f} c_ratio={cs_gto / cs_sp:.3f}")
+    print(f"C     n={args.n}: GTO without the AVX-512 copy {cs_avx2:6.1f}  "
+          f"ratio {cs_avx2 / cs_sp:.3f}")
+    print(f"bench_gto numpy_ratio={ns_gto / ns_sp:.3f} c_ratio={cs_gto / cs_sp:.3f} "
+          f"c_avx2_ratio={cs_avx2 / cs_sp:.3f}")
 
 
 if __name__ == "__main__":
