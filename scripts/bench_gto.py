@@ -1,16 +1,17 @@
 """Cost of a tendon organ (Ib) step against a spindle step, per muscle, side by side.
 
-Four figures in one run, each the median over ``--rounds`` rounds of the CPU time of this
-thread (time the shared machine gives to other processes is not counted), in ns per muscle
-per step:
+Figures in one run, each the median over ``--rounds`` rounds of the CPU time of this thread
+(time the shared machine gives to other processes is not counted), in ns per muscle per step
+(the C cases one after the other in each round):
 
 - numpy, n = ``--n`` (4096) muscles, one call per step: ``spindle.step`` (HUMAN, 1 ms,
   the default method) against ``TendonOrgans.step`` (HUMAN, 1 ms);
 - C, the same n, ``--steps`` steps in one call: ``SpindleBatch.steps`` against
   ``CTendonOrgans.run`` (its SIMD lanes in the best instruction set the CPU has: AVX-512,
-  AVX2 or the baseline), and the GTO of a build without the AVX-512 copy
-  (``-DPS_GTO_LANES_NO_AVX512``, ``tendon_organ.c`` compiled side by side with the library's
-  flags: what a CPU with AVX2 alone runs), ``ps_gto_batch_run`` on the same states and forces.
+  AVX2 or the baseline); and ``ps_gto_batch_run`` on the same states and forces in three
+  builds of ``tendon_organ.c`` compiled side by side with the library's flags
+  (:data:`BUILDS`): without the AVX-512 copy (what a CPU with AVX2 alone runs), the lanes in
+  the baseline instruction set (SSE2), the scalar loop of ``ps_gto_step`` (no lanes).
 
 Inputs: lengths 1 +- 0.05 L0 and forces 200 +- 150 N, sinusoids with a phase per muscle.
 Target (issue 24): GTO / spindle <= 0.1 in both.
@@ -36,6 +37,8 @@ from spindle import tendon_organ as gto
 from spindle.tendon_organ_params import HUMAN as GTO_HUMAN
 
 DT_S = 1e-3
+BUILDS = {"avx2": "-DPS_GTO_LANES_NO_AVX512", "sse2": "-DPS_GTO_LANES_NO_AVX2",
+          "scalar": "-DPS_GTO_BATCH_SCALAR"}
 
 
 def inputs(n: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
@@ -78,22 +81,22 @@ def numpy_figures(n: int, steps: int, rounds: int) -> tuple[float, float]:
     return median_ns(spindles, rounds, per), median_ns(organs, rounds, per)
 
 
-def avx2_library(directory: Path) -> ctypes.CDLL:
-    """``tendon_organ.c`` alone, with the library's flags and ``-DPS_GTO_LANES_NO_AVX512``."""
+def variant_library(directory: Path, define: str) -> ctypes.CDLL:
+    """``tendon_organ.c`` alone, with the library's flags and ``define``."""
     from spindle.native import build
     from spindle.native.tendon_organ import library
 
-    out = directory / "libgto-avx2.so"
-    subprocess.run([*build.compiler_command(), *build.compile_flags("double"),
-                    "-DPS_GTO_LANES_NO_AVX512", "-I", str(build.SOURCE_DIR),
-                    str(build.SOURCE_DIR / "tendon_organ.c"), "-o", str(out), "-lm"],
-                   check=True, capture_output=True)
+    out = directory / f"libgto{define}.so"
+    subprocess.run([*build.compiler_command(), *build.compile_flags("double"), define, "-I",
+                    str(build.SOURCE_DIR), str(build.SOURCE_DIR / "tendon_organ.c"), "-o",
+                    str(out), "-lm"], check=True, capture_output=True)
     lib = ctypes.CDLL(str(out))
     lib.ps_gto_batch_run.argtypes = library().ps_gto_batch_run.argtypes
     return lib
 
 
-def c_figures(n: int, steps: int, rounds: int) -> tuple[float, float, float]:
+def c_figures(n: int, steps: int, rounds: int) -> dict[str, float]:
+    """ns per muscle and step: the spindle, the GTO as shipped, and each of :data:`BUILDS`."""
     from spindle.native.spindle import SpindleBatch
     from spindle.native.tendon_organ import CTendonOrgans, PsGto
 
@@ -106,22 +109,23 @@ def c_figures(n: int, steps: int, rounds: int) -> tuple[float, float, float]:
     states = (PsGto * n).from_buffer_copy(start)
     forces = np.ascontiguousarray(F[1:])
     ib = np.empty_like(forces)
+    per = n * (steps - 1)
+    cases = {"spindle": (lambda: batch.steps(L[1:], gd, gs), lambda: batch.load(rest)),
+             "gto": (lambda: bank.run(F[1:]), lambda: bank.reset(F[0]))}
     with tempfile.TemporaryDirectory() as tmp:
-        lib = avx2_library(Path(tmp))
-
-        def avx2_run() -> None:
-            lib.ps_gto_batch_run(ctypes.addressof(states), n, ctypes.byref(bank.plan),
-                                 steps - 1, forces.ctypes.data, bank.force_scale_N.ctypes.data,
-                                 ib.ctypes.data, None)
-
-        def avx2_reset() -> None:
-            ctypes.memmove(states, start, len(start))
-
-        per = n * (steps - 1)
-        return (median_ns(lambda: batch.steps(L[1:], gd, gs), rounds, per,
-                          lambda: batch.load(rest)),
-                median_ns(lambda: bank.run(F[1:]), rounds, per, lambda: bank.reset(F[0])),
-                median_ns(avx2_run, rounds, per, avx2_reset))
+        for name, define in BUILDS.items():
+            lib = variant_library(Path(tmp), define)
+            cases[name] = (
+                lambda lib=lib: lib.ps_gto_batch_run(
+                    ctypes.addressof(states), n, ctypes.byref(bank.plan), steps - 1,
+                    forces.ctypes.data, bank.force_scale_N.ctypes.data, ib.ctypes.data, None),
+                lambda: ctypes.memmove(states, start, len(start)))
+        times: dict[str, list[float]] = {name: [] for name in cases}
+        for _ in range(rounds):  # each case once per round, so that a busy spell hits all
+            for name, (fn, prepare) in cases.items():
+                times[name].append(median_ns(fn, 1, per, prepare))
+    out = {name: float(np.median(t)) for name, t in times.items()}
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -133,14 +137,14 @@ def main(argv: list[str] | None = None) -> None:
     ns_sp, ns_gto = numpy_figures(args.n, args.steps, args.rounds)
     print(f"numpy n={args.n}: spindle {ns_sp:8.1f} ns/muscle/step, GTO {ns_gto:6.1f}  "
           f"ratio {ns_gto / ns_sp:.3f}")
-    cs_sp, cs_gto, cs_avx2 = c_figures(args.n, args.steps, args.rounds)
-    print(f"C     n={args.n}: spindle {cs_sp:8.1f} ns/muscle/step, GTO {cs_gto:6.1f}  "
-          f"ratio {cs_gto / cs_sp:.3f}")
-    print(f"C     n={args.n}: GTO without the AVX-512 copy {cs_avx2:6.1f}  "
-          f"ratio {cs_avx2 / cs_sp:.3f}")
-    print(f"bench_gto numpy_ratio={ns_gto / ns_sp:.3f} c_ratio={cs_gto / cs_sp:.3f} "
-          f"c_avx2_ratio={cs_avx2 / cs_sp:.3f}")
-
+    c = c_figures(args.n, args.steps, args.rounds)
+    print(f"C     n={args.n}: spindle {c['spindle']:8.1f} ns/muscle/step, GTO {c['gto']:6.1f}  "
+          f"ratio {c['gto'] / c['spindle']:.3f}")
+    for name, define in BUILDS.items():
+        print(f"C     n={args.n}: GTO {name:6s} ({define}) {c[name]:6.1f}  "
+              f"ratio {c[name] / c['spindle']:.3f}")
+    print(f"bench_gto numpy_ratio={ns_gto / ns_sp:.3f} c_ratio={c['gto'] / c['spindle']:.3f} "
+          f"c_avx2_ratio={c['avx2'] / c['spindle']:.3f}")
 
 if __name__ == "__main__":
     main()
