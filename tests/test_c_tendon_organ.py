@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import ctypes
+import re
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -103,6 +105,19 @@ def test_own_log1p_within_one_ulp_over_the_whole_range():
     assert float(ulps.max()) < 0.8
     assert lib.ps_gto_log1p(0.0) == 0.0 and lib.ps_gto_log1p(5e-324) == 5e-324
     assert lib.ps_gto_log1p(np.inf) == np.inf
+
+
+def test_log1p_constants_are_the_fit_scripts():
+    """The #defines of gto_log1p (ln 2 split, Q's coefficients) are what
+    scripts/fit_log1p.py prints."""
+    pytest.importorskip("mpmath")
+    script = build.SOURCE_DIR.parents[2] / "scripts" / "fit_log1p.py"
+    printed = subprocess.run([sys.executable, str(script)], check=True, capture_output=True,
+                             text=True).stdout
+    want = dict(re.findall(r"#define (GTO_\w+) (\S+)", printed))
+    source = (build.SOURCE_DIR / "tendon_organ.c").read_text()
+    have = dict(re.findall(r"#define (GTO_LN2_\w+|GTO_LOG_Q\d) (\S+)", source))
+    assert len(want) == 9 and have == want
 
 
 def lanes_forces(n: int, steps: int) -> np.ndarray:
