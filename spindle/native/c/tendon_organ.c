@@ -341,9 +341,10 @@ GTO_INLINE int inputs_ok(long n, long steps, const ps_real *force_N,
  * file's log1p 22-24 (libm's is faster one at a time, but a call per element cannot be
  * SIMD), these lanes in SSE2 8.6-10, AVX2 3.9-4.9, AVX-512 2.3-4.2 (the spindle's batch step
  * 48-73 on the same machine). GTO_LANES organs per block, their state in lanes from the first
- * step to the last; within a block the log stages of GTO_CHUNK steps are taken first (they
- * do not depend on the state: independent work for the SIMD units, 1.7x over one step at a
- * time), then the recurrence step by step. Each line is a loop over the lanes that the
+ * step to the last; within a block the log stages of GTO_CHUNK steps are taken first, then
+ * their lines (ln cosh, alpha, beta), then the recurrence step by step (the logs and lines do
+ * not depend on the state: independent work for the SIMD units, 1.7x over one whole step at
+ * a time). Each line is a loop over the lanes that the
  * compiler turns into SIMD (copies for AVX-512 and AVX2 chosen at run time with
  * __builtin_cpu_supports: the cached library must load on any x86-64, so no -march); the
  * same IEEE operations in the same order as the scalar step (no contraction:
@@ -383,12 +384,11 @@ typedef long long gto_lane_flag; /* as wide as a double: a select on it stays in
 typedef struct gto_lanes {
     double z0[GTO_LANES], z1[GTO_LANES], z2[GTO_LANES], force[GTO_LANES], scale[GTO_LANES];
     double r[GTO_CHUNK + 1][GTO_LANES]; /* r[0] at the chunk's start, r[k + 1] after step k */
-    double d[GTO_LANES], ln_cosh_d[GTO_LANES];
+    double alpha[GTO_CHUNK][GTO_LANES], beta[GTO_CHUNK][GTO_LANES]; /* step k's line */
     gto_lane_flag jump[GTO_LANES];
 } gto_lanes;
 
-/* The log stages of the chunk's `steps` steps (forces f, rows n apart): independent of the
- * state, so taken together, out of the recurrence. */
+/* The log stages of the chunk's `steps` steps (forces f, rows n apart). */
 GTO_LANE_FN void lanes_logs(gto_lanes *b, const ps_gto_plan *q, const double *f, long n,
                             int steps)
 {
@@ -398,21 +398,36 @@ GTO_LANE_FN void lanes_logs(gto_lanes *b, const ps_gto_plan *q, const double *f,
     GTO_LANE_LOOP(l) b->force[l] = rectified(f[(steps - 1) * n + l]);
 }
 
-/* Step k of the chunk (r[k] to r[k + 1]), Ib to ib if not NULL. */
-GTO_LANE_FN void lanes_advance(gto_lanes *b, const ps_gto_plan *q, int k, double *ib)
+/* The lines (alpha, beta) of the chunk's steps from their logs. */
+GTO_LANE_FN void lanes_lines(gto_lanes *b, const ps_gto_plan *q, int steps)
 {
     gto_lane_flag any_jump = 0;
-    int l;
-    GTO_LANE_LOOP(l) {
-        b->d[l] = half_log_ratio(q, b->r[k][l], b->r[k + 1][l]);
-        b->ln_cosh_d[l] = ln_cosh_series(b->d[l]);
-        b->jump[l] = !ln_cosh_series_holds(b->d[l]);
+    int k, l;
+    GTO_LANE_LOOP(l) b->jump[l] = 0;
+    for (k = 0; k < steps; ++k) {
+        GTO_LANE_LOOP(l) {
+            const double d = half_log_ratio(q, b->r[k][l], b->r[k + 1][l]);
+            b->alpha[k][l] = ln_cosh_series(d);
+            b->jump[l] |= !ln_cosh_series_holds(d);
+            b->beta[k][l] = b->r[k + 1][l] - b->r[k][l];
+        }
     }
     GTO_LANE_LOOP(l) any_jump |= b->jump[l];
-    if (any_jump) GTO_LANE_LOOP(l) b->ln_cosh_d[l] = gto_ln_cosh(b->d[l]);
+    if (any_jump) {
+        for (k = 0; k < steps; ++k)
+            GTO_LANE_LOOP(l) b->alpha[k][l] = gto_ln_cosh(half_log_ratio(q, b->r[k][l],
+                                                                         b->r[k + 1][l]));
+    }
+    for (k = 0; k < steps; ++k)
+        GTO_LANE_LOOP(l) b->alpha[k][l] = line_start(q, b->r[k][l], b->alpha[k][l]);
+}
+
+/* Step k of the chunk, Ib to ib if not NULL. */
+GTO_LANE_FN void lanes_advance(gto_lanes *b, const ps_gto_plan *q, int k, double *ib)
+{
+    int l;
     GTO_LANE_LOOP(l) {
-        const double alpha = line_start(q, b->r[k][l], b->ln_cosh_d[l]);
-        const double beta = b->r[k + 1][l] - b->r[k][l];
+        const double alpha = b->alpha[k][l], beta = b->beta[k][l];
         const double z0 = advanced_z(q, 0, b->z0[l], b->z1[l], b->z2[l], alpha, beta);
         const double z1 = advanced_z(q, 1, b->z0[l], b->z1[l], b->z2[l], alpha, beta);
         const double z2 = advanced_z(q, 2, b->z0[l], b->z1[l], b->z2[l], alpha, beta);
@@ -443,6 +458,7 @@ GTO_LANE_FN void lanes_run(
         for (k0 = 0; k0 < steps; k0 += GTO_CHUNK) {
             const int chunk = steps - k0 < GTO_CHUNK ? (int)(steps - k0) : GTO_CHUNK;
             lanes_logs(&b, &p, force_N + k0 * n + j0, n, chunk);
+            lanes_lines(&b, &p, chunk);
             for (k = 0; k < chunk; ++k)
                 lanes_advance(&b, &p, k, ib != NULL ? ib + (k0 + k) * n + j0 : NULL);
             GTO_LANE_LOOP(l) b.r[0][l] = b.r[chunk][l];
