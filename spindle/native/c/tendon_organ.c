@@ -353,8 +353,9 @@ GTO_INLINE int inputs_ok(long n, long steps, const ps_real *force_N,
  * before (batch_inputs_ok). 4 and 16 lanes, chunks of 8 and 32 gave the same within the
  * noise. The tail (n mod GTO_LANES) is the scalar loop's. */
 /* Builds: -DPS_GTO_BATCH_SCALAR no lanes, -DPS_GTO_LANES_NO_AVX2 the baseline lanes only,
- * -DPS_GTO_LANES_NO_AVX512 no AVX-512 copy. The float build has none (log1pf: no SIMD). */
-#if !defined(PS_FLOAT) && !defined(PS_GTO_BATCH_SCALAR)
+ * -DPS_GTO_LANES_NO_AVX512 no AVX-512 copy. The float build has none (log1pf: no SIMD), nor
+ * do -Os builds (the embedded ones: no vectoriser, and a block takes 3.5 kB of stack). */
+#if !defined(PS_FLOAT) && !defined(PS_GTO_BATCH_SCALAR) && !defined(__OPTIMIZE_SIZE__)
 #if defined(__GNUC__) && defined(__x86_64__) && (!defined(__clang__) || __clang_major__ >= 6) \
     && !defined(PS_GTO_LANES_NO_AVX2)
 #define GTO_LANES_MODE 2 /* copies for AVX-512 and AVX2 chosen at run time, else the baseline */
