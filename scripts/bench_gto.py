@@ -2,7 +2,7 @@
 
 Figures in one run, each the median over ``--rounds`` rounds of the CPU time of this thread
 (time the shared machine gives to other processes is not counted), in ns per muscle per step
-(the C cases one after the other in each round):
+(the cases of numpy, then of C, one after the other in each round: :func:`median_ns`):
 
 - numpy, n = ``--n`` (4096) muscles, one call per step: ``spindle.step`` (HUMAN, 1 ms,
   the default method) against ``TendonOrgans.step`` (HUMAN, 1 ms);
@@ -48,16 +48,22 @@ def inputs(n: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
         2 * np.pi * 2 * t + phase)
 
 
-def median_ns(fn, rounds: int, per: int, prepare=None) -> float:
-    """Median CPU time of ``fn()`` in ns per ``per`` (``prepare()`` first, untimed)."""
-    times = []
-    for _ in range(rounds):
-        if prepare is not None:
-            prepare()
-        t0 = time.thread_time()
-        fn()
-        times.append(time.thread_time() - t0)
-    return float(np.median(times)) / per * 1e9
+def median_ns(cases: dict, rounds: int, per: int) -> dict[str, float]:
+    """Median CPU time of each case's ``fn()`` in ns per ``per``; ``cases`` maps a name to
+    ``(fn, prepare)`` (``prepare()`` first, untimed, or None). Each case once per round, so
+    that a busy spell of the shared machine hits all, each round starting one case further
+    on (a case right after another finds its data in cache)."""
+    names = list(cases)
+    times: dict[str, list[float]] = {name: [] for name in names}
+    for r in range(rounds):
+        for name in names[r % len(names):] + names[:r % len(names)]:
+            fn, prepare = cases[name]
+            if prepare is not None:
+                prepare()
+            t0 = time.thread_time()
+            fn()
+            times[name].append(time.thread_time() - t0)
+    return {name: float(np.median(t)) / per * 1e9 for name, t in times.items()}
 
 
 def numpy_figures(n: int, steps: int, rounds: int) -> tuple[float, float]:
@@ -77,8 +83,9 @@ def numpy_figures(n: int, steps: int, rounds: int) -> tuple[float, float]:
         for row in F[1:]:
             bank.step(row)
 
-    per = n * (steps - 1)
-    return median_ns(spindles, rounds, per), median_ns(organs, rounds, per)
+    out = median_ns({"spindle": (spindles, None), "gto": (organs, None)}, rounds,
+                    n * (steps - 1))
+    return out["spindle"], out["gto"]
 
 
 def variant_library(directory: Path, define: str) -> ctypes.CDLL:
@@ -121,11 +128,7 @@ def c_figures(n: int, steps: int, rounds: int) -> dict[str, float]:
                     ctypes.addressof(states), n, ctypes.byref(bank.plan), steps - 1,
                     forces.ctypes.data, bank.force_scale_N.ctypes.data, ib.ctypes.data, None),
                 lambda: ctypes.memmove(states, start, len(start)))
-        times: dict[str, list[float]] = {name: [] for name in cases}
-        for _ in range(rounds):  # each case once per round, so that a busy spell hits all
-            for name, (fn, prepare) in cases.items():
-                times[name].append(median_ns(fn, 1, per, prepare))
-    out = {name: float(np.median(t)) for name, t in times.items()}
+        out = median_ns(cases, rounds, per)
     return out
 
 
