@@ -335,23 +335,23 @@ GTO_INLINE int inputs_ok(long n, long steps, const ps_real *force_N,
 }
 
 /* The batch in lanes: a second form of the scalar loop, kept because it pays. ns per organ
- * and step of ps_gto_batch_run, n = 4096, 49 steps (PYTHONPATH=. python scripts/bench_gto.py,
- * and the same call timed alone from C with the data in cache; x86-64 AMD EPYC, gcc 12 -O2,
- * shared 2-core machine): the scalar loop with libm's log1p (before) 18.7-19.1, with this
- * file's log1p 22-24 (libm's is faster one at a time, but a call per element cannot be
- * SIMD), these lanes in SSE2 8.6-10, AVX2 3.9-4.9, AVX-512 2.3-4.2 (the spindle's batch step
- * 48-73 on the same machine). GTO_LANES organs per block, their state in lanes from the first
- * step to the last; within a block the log stages of GTO_CHUNK steps are taken first, then
- * their lines (ln cosh, alpha, beta), then the recurrence step by step (the logs and lines do
- * not depend on the state: independent work for the SIMD units, 1.7x over one whole step at
- * a time). Each line is a loop over the lanes that the
- * compiler turns into SIMD (copies for AVX-512 and AVX2 chosen at run time with
- * __builtin_cpu_supports: the cached library must load on any x86-64, so no -march); the
- * same IEEE operations in the same order as the scalar step (no contraction:
- * -ffp-contract=off, and neither target enables FMA), ln cosh off its series (a jump) redone
- * lane by lane by the scalar function. Nothing in the lanes can fail: every input is checked
- * before (batch_inputs_ok). 4 and 16 lanes, chunks of 8 and 32 gave the same within the
- * noise. The tail (n mod GTO_LANES) is the scalar loop's. */
+ * and step of ps_gto_batch_run, n = 4096, 49 steps, x86-64 AMD EPYC, gcc 12 -O2, the shared
+ * 2-core machine busy (PYTHONPATH=. python scripts/bench_gto.py, builds side by side): the
+ * scalar loop with libm's log1p (before) 18-28, with this file's log1p 25-43 (libm's is
+ * faster one at a time, but a call per element cannot be SIMD); these lanes in SSE2 8.9-17,
+ * AVX2 5.3-8.1, AVX-512 3.6-6.0, against the spindle's batch step at 54-93. Timed alone
+ * from C with the data in cache: 18.7-19.1, 22, 8.0-8.9, 3.7-4.1, 2.0-2.6. GTO_LANES organs
+ * per block, their state in lanes from the first step to the last; within a block the log
+ * stages of GTO_CHUNK steps are taken first, then their lines (ln cosh, alpha, beta), then
+ * the recurrence step by step (the logs and lines do not depend on the state: independent
+ * work for the SIMD units, 1.7x over one whole step at a time). Each line is a loop over
+ * the lanes that the compiler turns into SIMD (copies for AVX-512 and AVX2 chosen at run
+ * time with __builtin_cpu_supports: the cached library must load on any x86-64, so no
+ * -march); the same IEEE operations in the same order as the scalar step (no contraction:
+ * -ffp-contract=off, and neither target enables FMA), ln cosh off its series (a jump)
+ * redone lane by lane by the scalar function. Nothing in the lanes can fail: every input is
+ * checked before (batch_inputs_ok). 4 and 16 lanes, chunks of 8 and 32 gave the same within
+ * the noise. The tail (n mod GTO_LANES) is the scalar loop's. */
 /* Builds: -DPS_GTO_BATCH_SCALAR no lanes, -DPS_GTO_LANES_NO_AVX2 the baseline lanes only,
  * -DPS_GTO_LANES_NO_AVX512 no AVX-512 copy. The float build has none (log1pf: no SIMD), nor
  * do -Os builds (the embedded ones: no vectoriser, and a block takes 3.5 kB of stack). */
@@ -445,7 +445,7 @@ GTO_LANE_FN void lanes_run(
     ps_gto *s, long m, long n, const ps_gto_plan *q, long steps, const double *force_N,
     const double *force_scale_N, double *ib)
 {
-    const ps_gto_plan p = *q; /* a copy that no store to ib can alias: its loads leave the loops */
+    const ps_gto_plan p = *q; /* no store to ib can alias this copy: its loads leave loops */
     gto_lanes b;
     long j0, k0;
     int k, l;
