@@ -267,8 +267,9 @@ is under 1e-11 of the sum."""
 def ln_cosh(d: np.ndarray) -> np.ndarray:
     """ln cosh d by the rule of :data:`SERIES_D` (``gto_ln_cosh`` in C); beyond it
     |d| + ln(1 + e^{-2|d|}) - ln 2, which cannot overflow."""
+    d = np.asarray(d, dtype=np.float64)
     d2 = d * d
-    out = d2 * (1.0 / 45.0)  # in place from here: d2 (1/2 - d2 (1/12 - d2/45))
+    out = np.multiply(d2, 1.0 / 45.0, out=np.empty_like(d))  # d2 (1/2 - d2 (1/12 - d2/45))
     np.subtract(1.0 / 12.0, out, out=out)
     out *= d2
     np.subtract(0.5, out, out=out)
