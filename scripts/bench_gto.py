@@ -6,7 +6,7 @@ Figures in one run, each the median over ``--rounds`` rounds of the CPU time of 
 
 - numpy, n = ``--n`` (4096) muscles, one call per step: ``spindle.step`` (HUMAN, 1 ms,
   the default method) against ``TendonOrgans.step`` (HUMAN, 1 ms);
-- C, the same n, ``--steps`` steps in one call: ``SpindleBatch.steps`` against
+- C, the same n, ``--steps`` steps in one call: ``CSpindleBatch.steps`` against
   ``CTendonOrgans.run`` (its SIMD lanes in the best instruction set the CPU has: AVX-512,
   AVX2 or the baseline); and ``ps_gto_batch_run`` on the same states and forces in three
   builds of ``tendon_organ.c`` compiled side by side with the library's flags
@@ -104,13 +104,13 @@ def variant_library(directory: Path, define: str) -> ctypes.CDLL:
 
 def c_figures(n: int, steps: int, rounds: int) -> dict[str, float]:
     """ns per muscle and step: the spindle, the GTO as shipped, and each of :data:`BUILDS`."""
-    from spindle.native.spindle import SpindleBatch
+    from spindle.native.spindle import CSpindleBatch
     from spindle.native.tendon_organ import CTendonOrgans, PsGto
 
     L, F = inputs(n, steps)
     gd, gs = np.full((steps - 1, n), 50.0), np.full((steps - 1, n), 50.0)
     rest = spindle.equilibrium_state(L[0], 50.0, 50.0, spindle.HUMAN)
-    batch = SpindleBatch(rest, spindle.HUMAN, DT_S)
+    batch = CSpindleBatch(rest, spindle.HUMAN, DT_S)
     bank = CTendonOrgans(np.full(n, 179.5), GTO_HUMAN, DT_S, force_N=F[0])
     start = bytes(bank._states)
     states = (PsGto * n).from_buffer_copy(start)
