@@ -207,7 +207,11 @@ def _forces(force_N: object, n: int | None) -> np.ndarray:
     f = np.asarray(force_N, dtype=np.float64)
     if f.ndim > 1 or (n is not None and f.ndim == 1 and f.shape[0] != n):
         raise ValueError(f"force_N has shape {f.shape}; expected a scalar or ({n},)")
-    f = np.broadcast_to(f, (n if n is not None else (f.size if f.ndim == 1 else 1),))
+    m = n if n is not None else (f.size if f.ndim == 1 else 1)
+    if f.shape != (m,):  # a scalar (broadcast_to costs as much as a pass over 4096 values)
+        f = np.broadcast_to(f, (m,))
+    if f.size == 0 or (f.min() > -np.inf and f.max() <= MAX_FORCE_N):  # NaN fails both
+        return f
     bad = ~np.isfinite(f)
     if bad.any():
         raise ValueError(f"force_N={f[bad][0]!r} is not finite (muscle {int(np.argmax(bad))})")
@@ -219,8 +223,10 @@ def _forces(force_N: object, n: int | None) -> np.ndarray:
 
 
 def _scales(force_scale_N: object, n: int) -> np.ndarray:
-    g = np.broadcast_to(np.asarray(force_scale_N, dtype=np.float64), (n,))
-    if not np.all(np.isfinite(g) & (g > 0)):
+    g = np.asarray(force_scale_N, dtype=np.float64)
+    if g.shape != (n,):
+        g = np.broadcast_to(g, (n,))
+    if g.size and not (g.min() > 0 and g.max() < np.inf):  # NaN fails both
         raise ValueError(f"force_scale_N={force_scale_N!r} must be finite and > 0")
     return g
 
@@ -261,10 +267,15 @@ is under 1e-11 of the sum."""
 def ln_cosh(d: np.ndarray) -> np.ndarray:
     """ln cosh d by the rule of :data:`SERIES_D` (``gto_ln_cosh`` in C); beyond it
     |d| + ln(1 + e^{-2|d|}) - ln 2, which cannot overflow."""
+    d = np.asarray(d, dtype=np.float64)
     d2 = d * d
-    out = d2 * (0.5 - d2 * (1.0 / 12.0 - d2 * (1.0 / 45.0)))
-    big = np.abs(d) >= SERIES_D
-    if big.any():  # a jump: the logs only where they are needed
+    out = np.multiply(d2, 1.0 / 45.0, out=np.empty_like(d))  # d2 (1/2 - d2 (1/12 - d2/45))
+    np.subtract(1.0 / 12.0, out, out=out)
+    out *= d2
+    np.subtract(0.5, out, out=out)
+    out *= d2
+    if d.size and (d.max() >= SERIES_D or d.min() <= -SERIES_D):  # a jump: logs only there
+        big = np.abs(d) >= SERIES_D
         a = np.abs(d[big])
         out[big] = a + np.log1p(np.exp(-2.0 * a)) - np.log(2.0)
     return out
@@ -280,20 +291,26 @@ def step(state: TendonOrganState, force_N: object, force_scale_N: object,
     g = _scales(force_scale_N, n)
     gain = step_plan.params.gain_pps
     r0 = state.r_pps
-    r1 = gain * np.log1p(f1 / g)
-    alpha = r0 + (2.0 * gain / 3.0) * ln_cosh((r1 - r0) * (0.5 / gain))
+    r1 = np.divide(f1, g)  # in place from here (the same operations as the C step)
+    np.log1p(r1, out=r1)
+    r1 *= gain
+    beta = r1 - r0
+    alpha = ln_cosh(beta * (0.5 / gain))
+    alpha *= 2.0 * gain / 3.0
+    alpha += r0
     if step_plan.phi.ndim == 3:  # one step per organ
         z = np.einsum("nij,jn->in", step_plan.phi, state.z)
         z += step_plan.g0.T * alpha
-        z += step_plan.g1.T * (r1 - r0)
+        z += step_plan.g1.T * beta
     else:
         z = step_plan.phi @ state.z
         z += step_plan.g0[:, None] * alpha
-        z += step_plan.g1[:, None] * (r1 - r0)
+        z += step_plan.g1[:, None] * beta
     state.z[...] = z
     state.force_N[...] = f1
     state.r_pps[...] = r1
-    return np.maximum(step_plan.c @ z, 0.0)
+    y = step_plan.c @ z
+    return np.maximum(y, 0.0, out=y)
 
 
 class TendonOrgans:

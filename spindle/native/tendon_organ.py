@@ -62,6 +62,8 @@ def library() -> ctypes.CDLL:
     lib.ps_gto_step.argtypes = [P(PsGto), P(PsGtoPlan), d, d, P(d)]
     lib.ps_gto_rate.argtypes = [P(PsGto), P(PsGtoPlan)]
     lib.ps_gto_rate.restype = d
+    lib.ps_gto_log1p.argtypes = [d]
+    lib.ps_gto_log1p.restype = d
     lib.ps_gto_batch_run.argtypes = [vp, ctypes.c_long, P(PsGtoPlan), ctypes.c_long, vp, vp,
                                      vp, P(ctypes.c_long)]
     lib.ps_gto_plan_fx_init.argtypes = [P(PsGtoPlanFx), P(PsGtoPlan)]

@@ -646,11 +646,16 @@ int ps_gto_step(ps_gto *s, const ps_gto_plan *q, ps_real force_N, ps_real force_
 /* Ib (pps) of a state: max(0, c z); 0 for a NULL argument. */
 ps_real ps_gto_rate(const ps_gto *s, const ps_gto_plan *q);
 
+/* ln(1 + x) for x >= 0, as the log stage takes it: the double build's own (inline in the
+ * step and the batch's SIMD lanes; max 0.79 ulp), the float build's log1pf. */
+ps_real ps_gto_log1p(ps_real x);
+
 /* `steps` steps of n tendon organs: force_N is steps x n (row-major: step k's forces at
  * force_N + k n), force_scale_N n, ib steps x n (NULL: not written). Every input is checked
  * before any state changes: on failure nothing is written, *failed (if not NULL) is the
  * flat index of the first bad force. PS_ERR_ARGUMENT (n < 0 or steps < 0), PS_ERR_NULL, and
- * the errors of ps_gto_step. */
+ * the errors of ps_gto_step. The results are ps_gto_step's bit for bit; the double build
+ * runs 8 organs at a time in SIMD lanes (AVX-512 or AVX2 where the CPU has them). */
 int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
                      const ps_real *force_N, const ps_real *force_scale_N, ps_real *ib,
                      long *failed);
