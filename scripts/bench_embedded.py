@@ -328,7 +328,7 @@ def _measure_build(build_dir: Path, defines: tuple[str, ...], inputs):
 
     elf = sysfw.build_system(build_dir, defines=defines)
     fw = sysfw.SystemFirmware(elf)
-    results = {name: sysfw.compare(fw, t, c) for name, (t, c) in inputs.items()}
+    results = {name: sysfw.compare(fw, samples) for name, samples in inputs.items()}
     seen, bad = objdump_violations(elf)
     flash, ram = sysfw.firmware_sizes(elf, fw.emu.stack_used(), build_dir, defines=defines)
     return results, sorted(fw.emu.violations) + bad, seen, flash, ram, fw.emu.stack_used()
@@ -343,8 +343,8 @@ def run_system(quick: bool, build_dir: Path, figure: Path | None = None) -> int:
 
     t0 = time.perf_counter()
     demo_s, fault_n = (1.5, 1500) if quick else (DEMO_CYCLES * 2 * 90 / 130, 10000)
-    t_f, c_f, faults = sysfw.fault_samples(fault_n, seed=1)
-    inputs = {"demo motion": sysfw.demo_samples(demo_s), "servo trace, jitter + faults": (t_f, c_f)}
+    faulty, faults = sysfw.fault_samples(fault_n, seed=1)
+    inputs = {"demo motion": sysfw.demo_samples(demo_s), "servo trace, jitter + faults": faulty}
     period = sysfw.SAMPLE_PERIOD_S
     print(f"\nwhole system (system.c, chain config max_bridge_s={DEVICE_CONFIG.max_bridge_s:g} s, "
           f"spindles fixed point on a {SPINDLE_STEP_S * 1e3:g} ms grid) vs the host double "

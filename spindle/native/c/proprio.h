@@ -692,6 +692,9 @@ int ps_gto_fx_init(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
 int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t inv_scale,
                    int32_t *ib);
 
+/* Ib (Q16 pps) of a state: max(0, c z), as the step writes it; 0 for a NULL argument. */
+int32_t ps_gto_rate_fx(const ps_gto_fx *s, const ps_gto_plan_fx *q);
+
 /* ---- end of tendon organ section ---- */
 
 /* ======================================================================================

@@ -346,7 +346,6 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
 {
     int code, i;
     int32_t f1, r0, r1, r_mid, alpha, beta, z[3];
-    int64_t y;
     if (s == NULL || q == NULL) return PS_ERR_NULL;
     code = fx_check(force, inv_scale);
     if (code != PS_OK) return code;
@@ -366,8 +365,15 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
     for (i = 0; i < 3; ++i) s->z[i] = z[i];
     s->force = f1;
     s->r = r1;
-    y = ((int64_t)q->c[0] * z[0] + (int64_t)q->c[1] * z[1] + (int64_t)q->c[2] * z[2]
-         + ((int64_t)1 << 29)) >> 30;
-    if (ib != NULL) *ib = y > 0 ? (int32_t)y : 0;
+    if (ib != NULL) *ib = ps_gto_rate_fx(s, q);
     return PS_OK;
+}
+
+int32_t ps_gto_rate_fx(const ps_gto_fx *s, const ps_gto_plan_fx *q)
+{
+    int64_t y;
+    if (s == NULL || q == NULL) return 0;
+    y = ((int64_t)q->c[0] * s->z[0] + (int64_t)q->c[1] * s->z[1] + (int64_t)q->c[2] * s->z[2]
+         + ((int64_t)1 << 29)) >> 30;
+    return y > 0 ? (int32_t)y : 0;
 }

@@ -23,11 +23,15 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from spindle.chain.config import ChainConfig
+from spindle.chain.config import MUSCLES, ChainConfig
 from spindle.chain.length_model import LengthFits, load_length_fits
 from spindle.native.chain import CArmChain, chain_config_struct
 from spindle.native.m0plus.build import _initializer
+from spindle.chain.sensor import LOAD_MAGNITUDE_MAX
 from spindle.params import HUMAN
+
+AFFERENTS = ("ia", "ii", "ib")
+"""The afferents of ``fw_stim_source``, by index (system.c's held rates)."""
 
 SPINDLE_STEP_S = 5e-3
 """The firmware's spindle step: 0.8 steps per sample at 500 Hz for the two muscles (grids
@@ -42,6 +46,14 @@ three spindle steps (the deadline; the host default bridges 50 ms, 25 sub-steps)
 
 DECAY_COARSE = 128
 """``FW_DECAY_COARSE`` of system.c: the tracking filter's decay tables cover 128 x 64 us."""
+GTO_PLANS = 40
+"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 256 us, ... 9.98 ms."""
+GTO_PLAN_STEP_US = 256
+"""``1 << FW_GTO_PLAN_SHIFT``: the table's step."""
+NOMINAL_INTERVAL_US = 2000
+"""The encoder's period (500 Hz): the interval with its own exact tendon-organ plan."""
+FORCE_PER_COUNT_BITS = 12
+"""``fw_arm_force_Q12``: force (Q8 N) per load count, in Q12."""
 
 
 def _q(value: float, bits: int) -> int:
@@ -99,7 +111,66 @@ def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -
     }
 
 
+def _plan_fields(plan) -> list[int]:
+    """phi (row-major), g0, g1 of a ``PsGtoPlanFx``: what changes with h."""
+    return [int(v) for row in plan.phi for v in row] + [int(v) for v in plan.g0] + \
+        [int(v) for v in plan.g1]
+
+
+def gto_config(config: ChainConfig, moment_arms=None) -> tuple[dict, list[list[int]]]:
+    """The fields of ``fw_gto_config`` (system.c) and ``fw_arm_force_Q12`` (per grid point,
+    per muscle), from the force-sense settings of ``config`` as ``ps_chain_config`` holds
+    them: the load's resolution and sign, the moment-arm table, G2 and the tendon organs'
+    fixed-point plans (``ps_gto_plan_fx_init``) at the nominal interval and on the table."""
+    from spindle.chain.force import load_moment_arm_fits
+    from spindle.native.tendon_organ import FX_FORCE, FX_INV_SCALE, fixed_plan
+
+    arms = moment_arms if moment_arms is not None else \
+        load_moment_arm_fits(config.moment_arm_fits_path)
+    max_bridge_us = config.max_bridge_s * 1e6
+    if max_bridge_us + 2 > (GTO_PLANS - 1) * GTO_PLAN_STEP_US:
+        raise ValueError(f"max_bridge_s={config.max_bridge_s!r} exceeds the firmware's "
+                         f"tendon-organ plans ({(GTO_PLANS - 1) * GTO_PLAN_STEP_US} us)")
+    n_plans = min(GTO_PLANS, math.ceil((max_bridge_us + 2) / GTO_PLAN_STEP_US) + 1)
+    nominal = fixed_plan(config.gto, NOMINAL_INTERVAL_US * 1e-6)
+    identity = [1 << 30 if i == j else 0 for i in range(3) for j in range(3)] + [0] * 6
+    plans = [identity] + [_plan_fields(fixed_plan(config.gto, k * GTO_PLAN_STEP_US * 1e-6))
+                          for k in range(1, n_plans)]
+    plans += [[0] * 15] * (GTO_PLANS - n_plans)
+    lo, hi = (math.degrees(a) for a in arms.valid_range_rad)
+    points = len(arms.table_m[0])
+    per_count = config.load.Nm_per_count * FX_FORCE * 2.0**FORCE_PER_COUNT_BITS
+    table = [[round(per_count / abs(arms.table_m[m][i])) for m in range(len(MUSCLES))]
+             for i in range(points)]
+    if max(max(row) for row in table) * LOAD_MAGNITUDE_MAX >= 2**31:
+        raise ValueError("a moment arm this short overflows the firmware's force product")
+    fields = {
+        "load_sign": int(config.calibration.sign),
+        "arm_lo_Q16": _q(lo, 16), "arm_scale_Q28": _q((points - 1) / (hi - lo), 28),
+        "arm_last": points - 1,
+        "inv_scale_Q24": [round(FX_INV_SCALE / float(g2)) for g2 in config.force_scale_N],
+        "nominal_us": NOMINAL_INTERVAL_US,
+        "plan_nominal": _struct_literal(nominal),
+        "n_plans": n_plans,
+        "plan_Q30": plans,
+    }
+    return fields, table
+
+
+class _Raw(str):
+    """A C initializer written as is."""
+
+
+def _struct_literal(plan) -> _Raw:
+    """A ``PsGtoPlanFx`` as a C initializer."""
+    phi = [[int(v) for v in row] for row in plan.phi]
+    rest = [[int(v) for v in getattr(plan, name)] for name in ("g0", "g1", "c")]
+    return _Raw(_literal([phi, *rest, int(plan.gain), int(plan.inv_a0)]))
+
+
 def _literal(value) -> str:
+    if isinstance(value, _Raw):
+        return str(value)
     if isinstance(value, float):
         return value.hex()
     if isinstance(value, list):
@@ -109,24 +180,23 @@ def _literal(value) -> str:
 
 def stim_channel_source(stim) -> str:
     """``fw_stim_source``, the channel map of a ``StimConfig`` for the FW_STIM stage: per
-    channel {muscle index, 0 for Ia / 1 for II} (the firmware has no tendon organs yet). The
+    channel {muscle index, 0 for Ia / 1 for II / 2 for Ib} (Ib needs the FW_GTO stage). The
     encoder's own constants are ``fw_stim_config.h`` (``spindle.native.m0plus.stim``)."""
-    from spindle.chain.config import MUSCLES
-
     sources = []
     for ch in stim.channels.channels:
-        if ch.muscle not in MUSCLES or ch.afferent not in ("ia", "ii"):
-            raise ValueError(f"channel {ch.label}: the firmware drives Ia and II of "
+        if ch.muscle not in MUSCLES or ch.afferent not in AFFERENTS:
+            raise ValueError(f"channel {ch.label}: the firmware drives {AFFERENTS} of "
                              f"{MUSCLES} only")
-        sources.append((MUSCLES.index(ch.muscle), ("ia", "ii").index(ch.afferent)))
+        sources.append((MUSCLES.index(ch.muscle), AFFERENTS.index(ch.afferent)))
     rows = ", ".join(f"{{{m}, {a}}}" for m, a in sources)
     return f"const int32_t fw_stim_source[PS_STIM_MAX_CHANNELS][2] = {{{rows}}};\n"
 
 
 def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits | None = None,
-                         spindle_step_s: float = SPINDLE_STEP_S, stim=None) -> str:
-    """fw_system_config.h for ``config``, ``fits``, the spindle step and (if not None) the
-    stimulator's ``StimConfig``."""
+                         spindle_step_s: float = SPINDLE_STEP_S, stim=None,
+                         tendon_organs: bool = True) -> str:
+    """fw_system_config.h for ``config``, ``fits``, the spindle step, (if not None) the
+    stimulator's ``StimConfig`` and (``tendon_organs``) the FW_GTO stage's constants."""
     from spindle.native import fixed
     from spindle.native.spindle import library
 
@@ -143,7 +213,17 @@ def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits |
             "(ps_plan_fx_init). */\n"
             f"const fw_config fw_cfg = {{\n    {body}\n}};\n\n"
             f"const ps_plan_fx fw_plan = {{\n    {plan_body}\n}};\n"
-            + ("" if stim is None else "\n" + stim_channel_source(stim)))
+            + ("" if stim is None else "\n" + stim_channel_source(stim))
+            + ("" if not tendon_organs else "\n#ifdef FW_GTO\n" + _gto_source(config)
+               + "#endif\n"))
+
+
+def _gto_source(config: ChainConfig) -> str:
+    fields, table = gto_config(config)
+    body = ",\n    ".join(f".{k} = {_literal(v)}" for k, v in fields.items())
+    rows = ",\n    ".join(_literal(row) for row in table)
+    return (f"const fw_gto_config fw_gto_cfg = {{\n    {body}\n}};\n"
+            f"const int32_t fw_arm_force_Q12[{len(table)}][PS_MUSCLES] = {{\n    {rows}\n}};\n")
 
 
 def device_config(**changes) -> ChainConfig:

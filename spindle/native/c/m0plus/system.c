@@ -6,10 +6,10 @@
  *   -> output record
  *
  * fw_sample() is what a 500 Hz timer interrupt would run: it reads the sample in fw_in (time,
- * counts and, for the tendon organs, the load) and runs the stages of fw_stages[] in order,
- * each a function of the sample context (the table is what the bench's per-stage breakdown
- * follows: a stage is everything from its entry to the next stage's). The tendon organs and
- * the stimulation encoder slot in as two more rows (FW_GTO, FW_STIM sections below).
+ * counts and, for the tendon organs, the servo's load word) and runs the stages of fw_stages[]
+ * in order, each a function of the sample context (the table is what the bench's per-stage
+ * breakdown follows: a stage is everything from its entry to the next stage's). The tendon
+ * organs and the stimulation encoder are two more rows (FW_GTO, FW_STIM sections below).
  *
  * Everything after the time rules is integer arithmetic (no FPU on the part; soft float costs
  * 30-100 instructions per operation): angles Q16 deg, lengths Q24 L0, velocities Q20 L0/s,
@@ -64,9 +64,32 @@ typedef struct fw_config {
     int32_t decay_coarse_Q30[FW_DECAY_COARSE], decay_fine_Q30[64];
 } fw_config;
 
+#ifdef FW_GTO
+/* The force sense's constants (generated with fw_cfg, from the same ps_chain_config): the load
+ * word's sign, the moment-arm grid (the host's table points) as force per load count of each
+ * muscle, 1/G2, and the tendon organs' fixed-point plans: one at the nominal interval and a
+ * table at h = k 256 us (k = 0: no time passes), linear between its points. */
+#define FW_GTO_PLANS 40          /* intervals up to (FW_GTO_PLANS - 1) * 256 us = 10 ms */
+#define FW_GTO_PLAN_SHIFT 8      /* the table's step, 256 us: its index is a shift */
+typedef struct fw_gto_config {
+    int32_t load_sign;           /* the torque's sign of a counter-clockwise load word */
+    int32_t arm_lo_Q16;          /* the moment-arm grid's first angle (deg, Q16) */
+    int32_t arm_scale_Q28;       /* grid points per degree */
+    int32_t arm_last;            /* the last grid point's index */
+    int32_t inv_scale_Q24[PS_MUSCLES]; /* 1 / G2 (1/N) */
+    int32_t nominal_us;          /* the interval of plan_nominal */
+    ps_gto_plan_fx plan_nominal;
+    int32_t n_plans;
+    int32_t plan_Q30[FW_GTO_PLANS][15]; /* phi (row-major), g0, g1 at h = k 256 us */
+} fw_gto_config;
+#endif
+
 #include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; with
                                 * FW_STIM the channel map fw_stim_source[channel] =
-                                * {muscle, 0: Ia / 1: II} */
+                                * {muscle, 0: Ia / 1: II / 2: Ib}; with FW_GTO fw_gto_cfg and
+                                * fw_arm_force_Q12[point][muscle], the force (N, Q8) per load
+                                * count at the grid's angles: Nm_per_count / |moment arm| */
+
 #ifdef FW_STIM
 /* const ps_stim_fx_config fw_stim_config (spindle.native.m0plus.stim) */
 #include "fw_stim_config.h"
@@ -75,10 +98,12 @@ typedef struct fw_config {
 /* ---- state ----------------------------------------------------------------------------- */
 
 /* chain.COUNTERS, in that order (only the rules a counts-only entry can reach increment
- * invalid_angle and invalid_length: never). */
+ * invalid_angle and invalid_length: never; invalid_load and missing_load only with FW_GTO,
+ * which reads the load word). */
 typedef struct fw_counters {
     uint32_t accepted, invalid_reading, invalid_angle, invalid_length, repeated_time,
-        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs;
+        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs,
+        invalid_load, missing_load;
 } fw_counters;
 
 #define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz) */
@@ -106,6 +131,11 @@ typedef struct fw_state {
     uint32_t pending_t_us[PS_MUSCLES][FW_PENDING];
     int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
     int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
+#ifdef FW_GTO
+    ps_gto_fx gto[PS_MUSCLES];
+    int32_t torque_counts;          /* the last accepted sample's signed load (counts) */
+#endif
+    int32_t ib_Q16[PS_MUSCLES];
 #ifdef FW_STIM
     int32_t held_Q16[PS_STIM_MAX_CHANNELS]; /* each channel's rate since the last sample */
 #endif
@@ -116,7 +146,8 @@ typedef struct fw_state {
 typedef struct fw_input {
     double t_s;
     float counts;
-    float load[PS_MUSCLES]; /* the load reading, for the tendon organs (FW_GTO) */
+    float load;          /* the servo's load word, for the tendon organs (FW_GTO) */
+    int32_t has_load;    /* 0: no load word came with the sample (missing_load) */
 } fw_input;
 
 /* What a sample leaves in the output ring. */
@@ -127,6 +158,7 @@ typedef struct fw_record {
     int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
     int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
     int32_t steps;    /* spindle steps taken in this sample */
+    int32_t ib_Q16[PS_MUSCLES]; /* the tendon organs (0 without FW_GTO) */
 } fw_record;
 
 #define FW_RING 8
@@ -142,6 +174,7 @@ static fw_state st;
 typedef struct fw_ctx {
     int64_t t_key;
     int32_t counts, filtered, angle_Q16, restart;
+    int32_t torque_counts; /* the sample's signed load by the load rules (FW_GTO) */
     uint32_t t_us;
     int32_t dt_us, dt_Q30, inv_dt_Q12;
     int32_t L_Q24[PS_MUSCLES], x1_Q24[PS_MUSCLES], v1_Q20[PS_MUSCLES], tmpl_Q24[PS_MUSCLES];
@@ -263,6 +296,31 @@ static void rebase_epoch(void)
     }
 }
 
+#ifdef FW_GTO
+/* The load rules of an accepted encoder sample (chain.c's sample_torque): a valid word's signed
+ * magnitude (bit 10: clockwise), the last accepted sample's held over an invalid word
+ * (invalid_load), 0 without a word (missing_load; not counted at the first sample, as the
+ * host's reset). */
+static void read_load(fw_ctx *c)
+{
+    int32_t word;
+    if (!fw_in.has_load) {
+        fw_count.missing_load += st.started ? 1u : 0u;
+        c->torque_counts = 0;
+        return;
+    }
+    word = valid_reading(fw_in.load, PS_LOAD_MAX_WORD);
+    if (word < 0) {
+        fw_count.invalid_load += 1;
+        c->torque_counts = st.started ? st.torque_counts : 0;
+        return;
+    }
+    c->torque_counts = (word & (PS_LOAD_MAGNITUDE_MAX + 1)) ? -(word & PS_LOAD_MAGNITUDE_MAX)
+                                                             : word;
+    c->torque_counts *= fw_gto_cfg.load_sign;
+}
+#endif
+
 /* ArmChain._time and the reading check: the bad-sample rules that reject a sample. */
 static int stage_reading(fw_ctx *c)
 {
@@ -293,6 +351,9 @@ static int stage_reading(fw_ctx *c)
         fw_counters zero = {0};
         fw_count = zero;
     }
+#ifdef FW_GTO
+    read_load(c);
+#endif
     if (st.started && t_key > st.t_key) {
         dt_key = order_key(t - st.t_s); /* the host's interval, to the bit */
     }
@@ -596,9 +657,81 @@ static int rest_spindles(fw_ctx *c)
 }
 
 #ifdef FW_GTO
-/* The tendon organs (Ib) from the load reading fw_in.load: branch gto's fixed-point step
- * (ps_gto_step_fx of tendon_organ.c) slots in here. */
-#error "FW_GTO: the tendon-organ stage needs tendon_organ.c (branch gto)"
+/* tendon_forces_N: the torque over the moment arm at the angle (the host's table, linear
+ * between its points, clamped to its ends), flexion torque to BRA, extension to TRImed. The
+ * table holds Nm_per_count / |r| (Q12 of Q8 N), so a force is one product per muscle. */
+static void tendon_forces(const fw_ctx *c, int32_t force_Q8[PS_MUSCLES])
+{
+    const int m = c->torque_counts > 0 ? 0 : 1;
+    int32_t position = mul_q(c->angle_Q16 - fw_gto_cfg.arm_lo_Q16, fw_gto_cfg.arm_scale_Q28, 28);
+    int32_t j = position >> 16, per_count;
+    int32_t magnitude = c->torque_counts < 0 ? -c->torque_counts : c->torque_counts;
+    if (position <= 0) {
+        per_count = fw_arm_force_Q12[0][m];
+    } else if (j >= fw_gto_cfg.arm_last) {
+        per_count = fw_arm_force_Q12[fw_gto_cfg.arm_last][m];
+    } else {
+        int32_t lo = fw_arm_force_Q12[j][m];
+        per_count = lo + mul_q(fw_arm_force_Q12[j + 1][m] - lo, position & 0xFFFF, 16);
+    }
+    force_Q8[0] = 0;
+    force_Q8[1] = 0;
+    force_Q8[m] = (magnitude * per_count + 2048) >> 12;
+}
+
+/* The plan for an interval of dt_us: the nominal one, else the table's, linear in h. */
+static const ps_gto_plan_fx *gto_plan(int32_t dt_us, ps_gto_plan_fx *scratch)
+{
+    int32_t k = dt_us >> FW_GTO_PLAN_SHIFT, w_Q30, i;
+    int32_t *out = &scratch->phi[0][0];
+    const int32_t *a, *b;
+    if (dt_us == fw_gto_cfg.nominal_us) {
+        return &fw_gto_cfg.plan_nominal;
+    }
+    if (k > fw_gto_cfg.n_plans - 2) {
+        k = fw_gto_cfg.n_plans - 2;
+    }
+    a = fw_gto_cfg.plan_Q30[k];
+    b = fw_gto_cfg.plan_Q30[k + 1];
+    w_Q30 = (dt_us - (k << FW_GTO_PLAN_SHIFT)) << (30 - FW_GTO_PLAN_SHIFT);
+    *scratch = fw_gto_cfg.plan_nominal; /* c, gain and 1/a0 do not depend on h */
+    for (i = 0; i < 15; ++i) { /* phi, g0, g1 are contiguous in ps_gto_plan_fx */
+        out[i] = a[i] + mul_q(b[i] - a[i], w_Q30, 30);
+    }
+    return scratch;
+}
+
+/* The tendon organs (Ib): at rest at a restart's force, else one step over the interval to
+ * the sample's force (the force a line over it), as chain.c's advance_tendon_organs; an organ
+ * at rest at zero force that stays there is not stepped (the step would give zeros). */
+static int stage_tendon(fw_ctx *c)
+{
+    int32_t force_Q8[PS_MUSCLES];
+    ps_gto_plan_fx scratch;
+    const ps_gto_plan_fx *plan = &fw_gto_cfg.plan_nominal;
+    int m, status = PS_OK;
+    tendon_forces(c, force_Q8);
+    if (!c->restart) {
+        plan = gto_plan(c->dt_us, &scratch);
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        ps_gto_fx *g = &st.gto[m];
+        if (c->restart) {
+            status = ps_gto_fx_init(g, plan, force_Q8[m], fw_gto_cfg.inv_scale_Q24[m]);
+            st.ib_Q16[m] = ps_gto_rate_fx(g, plan);
+        } else if (force_Q8[m] == 0 && g->r == 0 && g->z[0] == 0 && g->z[1] == 0
+                   && g->z[2] == 0) {
+            st.ib_Q16[m] = 0;
+        } else {
+            status = ps_gto_step_fx(g, plan, force_Q8[m], fw_gto_cfg.inv_scale_Q24[m],
+                                    &st.ib_Q16[m]);
+        }
+        if (status != PS_OK) {
+            c->status = status;
+        }
+    }
+    return FW_NEXT;
+}
 #endif
 
 #ifdef FW_STIM
@@ -652,12 +785,14 @@ static int stage_output(fw_ctx *c)
         r->ii_Q16[m] = st.ii_Q16[m];
         r->gs_Q8[m] = st.gs_Q8[m];
         r->gd_Q8[m] = st.gd_Q8[m];
+        r->ib_Q16[m] = st.ib_Q16[m];
     }
 #ifdef FW_STIM
     /* the channels' rates until the next sample */
     for (m = 0; m < fw_stim_config.n_channels; ++m) {
-        int32_t muscle = fw_stim_source[m][0];
-        st.held_Q16[m] = fw_stim_source[m][1] == 0 ? st.ia_Q16[muscle] : st.ii_Q16[muscle];
+        int32_t muscle = fw_stim_source[m][0], afferent = fw_stim_source[m][1];
+        st.held_Q16[m] = afferent == 0 ? st.ia_Q16[muscle]
+                         : afferent == 1 ? st.ii_Q16[muscle] : st.ib_Q16[muscle];
     }
 #endif
     if (st.started) {
@@ -669,6 +804,9 @@ static int stage_output(fw_ctx *c)
     }
     st.started = 1;
     st.angle_Q16 = c->angle_Q16;
+#ifdef FW_GTO
+    st.torque_counts = c->torque_counts;
+#endif
     if (c->restart) {
         st.epoch_s = fw_in.t_s;
     }
@@ -722,6 +860,11 @@ int fw_init(void)
     st.started = 0;
     st.t_s = 0.0;
     st.behind = 0;
+    st.ib_Q16[0] = 0;
+    st.ib_Q16[1] = 0;
+#ifdef FW_GTO
+    st.torque_counts = 0;
+#endif
     fw_out_head = 0;
     fw_overruns = 0;
 #ifdef FW_STIM
