@@ -234,10 +234,27 @@ int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
 #define FX_THIRD_Q30 357913941 /* 1/3 in Q30 */
 #define FX_LOG_BITS 24
 
+/* a b exactly, from 16-bit halves: a core without a long multiply (the Cortex-M0+) runs it
+ * in ~20 instructions, where the compiler's 64 x 64 helper took ~45. a = ah 2^16 + al (al
+ * unsigned), likewise b; every partial product fits in 32 bits. PS_FX_INLINE_MUL (gcc/clang,
+ * the system firmware's option, as for spindle.c's fx_mul): inlined at every use. */
+#if defined(PS_FX_INLINE_MUL) && defined(__GNUC__)
+__attribute__((always_inline)) static inline int64_t mul_wide(int32_t a, int32_t b)
+#else
+GTO_INLINE int64_t mul_wide(int32_t a, int32_t b)
+#endif
+{
+    int32_t ah = a >> 16, bh = b >> 16;
+    uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
+    int64_t mid = (int64_t)(ah * (int32_t)bl) + (int64_t)((int32_t)al * bh);
+    return (int64_t)((uint64_t)(int64_t)(ah * bh) << 32) + (int64_t)((uint64_t)mid << 16)
+           + (int64_t)(al * bl);
+}
+
 /* round(a b / 2^30) */
 static int32_t mul_q30(int32_t a, int32_t b)
 {
-    return (int32_t)(((int64_t)a * b + ((int64_t)1 << 29)) >> 30);
+    return (int32_t)((mul_wide(a, b) + ((int64_t)1 << 29)) >> 30);
 }
 
 static int to_q30(double x, int32_t *out)
@@ -290,36 +307,55 @@ int ps_gto_plan_fx_init(ps_gto_plan_fx *qf, const ps_gto_plan *q)
     return PS_OK;
 }
 
-/* ln(1 + x) in Q24 for x = F / G2 in Q16, 0 <= x <= PS_GTO_FX_MAX_RATIO: log2 of the
- * integer part from the top bit, of the mantissa by repeated squaring, times ln 2. */
+/* ln(1 + x) in Q24 for x = F / G2 in Q16, 0 <= x <= PS_GTO_FX_MAX_RATIO: u = 1 + x =
+ * 2^k m with m in [1, 2) from the top bit, m = t (1 + d) with t = 1 + i/64 the table point
+ * below m and 0 <= d < 1/64, ln u = k ln 2 + ln t + d - d^2/2 + d^3/3 (the first term left
+ * out, d^4/4 < 2^-26, is below a quarter of the result's last bit). Four products where
+ * 24 squarings of the mantissa took 24 long multiplies. */
+#define FX_LN_TABLE_BITS 6
+static const int32_t fx_ln_point_q30[1 << FX_LN_TABLE_BITS] = { /* ln(1 + i/64), Q30 */
+    0, 16647494, 33040817, 49187615, 65095192, 80770534, 96220323, 111450959, 126468572,
+    141279038, 155887996, 170300854, 184522808, 198558849, 212413774, 226092199, 239598564,
+    252937143, 266112055, 279127266, 291986604, 304693756, 317252283, 329665621, 341937090,
+    354069895, 366067135, 377931807, 389666807, 401274940, 412758919, 424121372, 435364845,
+    446491803, 457504636, 468405662, 479197128, 489881214, 500460037, 510935650, 521310048,
+    531585167, 541762891, 551845048, 561833416, 571729724, 581535654, 591252841, 600882877,
+    610427311, 619887653, 629265371, 638561895, 647778619, 656916903, 665978069, 674963409,
+    683874180, 692711611, 701476899, 710171213, 718795691, 727351448, 735839570};
+static const int32_t fx_inv_point_q30[1 << FX_LN_TABLE_BITS] = { /* 1 / (1 + i/64), Q30 */
+    1073741824, 1057222719, 1041204193, 1025663832, 1010580540, 995934445, 981706811,
+    967879954, 954437177, 941362695, 928641578, 916259690, 904203641, 892460737, 881018933,
+    869866794, 858993459, 848388602, 838042399, 827945503, 818089009, 808464432, 799063683,
+    789879043, 780903145, 772128952, 763549742, 755159085, 746950834, 738919105, 731058263,
+    723362913, 715827883, 708448214, 701219150, 694136129, 687194767, 680390859, 673720360,
+    667179386, 660764199, 654471207, 648296950, 642238100, 636291451, 630453915, 624722516,
+    619094385, 613566757, 608136962, 602802428, 597560667, 592409282, 587345955, 582368447,
+    577474594, 572662306, 567929560, 563274399, 558694933, 554189329, 549755814, 545392673,
+    541098242};
 static int32_t ln1p_q24(uint32_t x_q16)
 {
-    uint32_t u = x_q16 + 65536u; /* 1 + x in Q16, in [1, 32768) */
-    int32_t k = 0, log2_q24, i;
-    int64_t m;
-    while ((u >> (k + 17)) != 0u) ++k; /* u / 2^(k + 16) in [1, 2) */
-    m = ((int64_t)u << 14) >> k;      /* the mantissa in Q30 */
-    log2_q24 = k << FX_LOG_BITS;
-    for (i = FX_LOG_BITS - 1; i >= 0; --i) {
-        m = (m * m) >> 30;
-        if (m >= ((int64_t)2 << 30)) {
-            m >>= 1;
-            log2_q24 += (int32_t)1 << i;
-        }
-    }
-    return mul_q30(log2_q24, FX_LN2_Q30);
+    uint32_t u = x_q16 + 65536u; /* 1 + x in Q16, in [1, 32768] */
+    int32_t k = 0, i, m, d, d2, ln;
+    while (k < 15 && (u >> (k + 17)) != 0u) ++k; /* u / 2^(k + 16) in [1, 2) */
+    m = (int32_t)(k <= 14 ? u << (14 - k) : u >> (k - 14)); /* the mantissa in Q30 */
+    i = (m >> (30 - FX_LN_TABLE_BITS)) & ((1 << FX_LN_TABLE_BITS) - 1);
+    d = mul_q30(m - ((1 << 30) + (i << (30 - FX_LN_TABLE_BITS))), fx_inv_point_q30[i]);
+    d2 = mul_q30(d, d);
+    ln = fx_ln_point_q30[i] + d - (d2 >> 1) + mul_q30(mul_q30(d2, d), FX_THIRD_Q30);
+    return (int32_t)((mul_wide(k, FX_LN2_Q30) + ln + 32) >> 6);
 }
 
 static int32_t fx_log_stage(const ps_gto_plan_fx *q, int32_t force, int32_t inv_scale)
 {
-    int64_t x = ((int64_t)force * inv_scale) >> 16; /* Q8 * Q24 -> Q16 */
+    int64_t x = mul_wide(force, inv_scale) >> 16; /* Q8 * Q24 -> Q16 */
     if (x > ((int64_t)PS_GTO_FX_MAX_RATIO << 16)) x = (int64_t)PS_GTO_FX_MAX_RATIO << 16;
-    return (int32_t)(((int64_t)q->gain * ln1p_q24((uint32_t)x) + ((int64_t)1 << 23)) >> 24);
+    return (int32_t)((mul_wide(q->gain, ln1p_q24((uint32_t)x)) + ((int64_t)1 << 23)) >> 24);
 }
 
 static int fx_check(int32_t force, int32_t inv_scale)
 {
-    if ((double)force > PS_GTO_MAX_FORCE_N * PS_GTO_FX_FORCE_ONE) return PS_ERR_FORCE_RANGE;
+    /* (double)force > PS_GTO_MAX_FORCE_N * PS_GTO_FX_FORCE_ONE without soft float */
+    if (force > (int32_t)(PS_GTO_MAX_FORCE_N * PS_GTO_FX_FORCE_ONE)) return PS_ERR_FORCE_RANGE;
     if (inv_scale <= 0) return PS_ERR_CONFIG;
     return PS_OK;
 }
@@ -334,7 +370,7 @@ int ps_gto_fx_init(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
     f = force > 0 ? force : 0;
     r = fx_log_stage(q, f, inv_scale);
     s->z[0] = r;
-    s->z[1] = (int32_t)(((int64_t)r * q->inv_a0 + ((int64_t)1 << 23)) >> 24);
+    s->z[1] = (int32_t)((mul_wide(r, q->inv_a0) + ((int64_t)1 << 23)) >> 24);
     s->z[2] = 0;
     s->force = f;
     s->r = r;
@@ -357,9 +393,9 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
     alpha = r0 + mul_q30(2 * r_mid - r0 - r1, FX_THIRD_Q30);
     beta = r1 - r0;
     for (i = 0; i < 3; ++i) {
-        int64_t acc = (int64_t)q->phi[i][0] * s->z[0] + (int64_t)q->phi[i][1] * s->z[1]
-                      + (int64_t)q->phi[i][2] * s->z[2] + (int64_t)q->g0[i] * alpha
-                      + (int64_t)q->g1[i] * beta;
+        int64_t acc = mul_wide(q->phi[i][0], s->z[0]) + mul_wide(q->phi[i][1], s->z[1])
+                      + mul_wide(q->phi[i][2], s->z[2]) + mul_wide(q->g0[i], alpha)
+                      + mul_wide(q->g1[i], beta);
         z[i] = (int32_t)((acc + ((int64_t)1 << 29)) >> 30);
     }
     for (i = 0; i < 3; ++i) s->z[i] = z[i];
@@ -373,7 +409,7 @@ int32_t ps_gto_rate_fx(const ps_gto_fx *s, const ps_gto_plan_fx *q)
 {
     int64_t y;
     if (s == NULL || q == NULL) return 0;
-    y = ((int64_t)q->c[0] * s->z[0] + (int64_t)q->c[1] * s->z[1] + (int64_t)q->c[2] * s->z[2]
+    y = (mul_wide(q->c[0], s->z[0]) + mul_wide(q->c[1], s->z[1]) + mul_wide(q->c[2], s->z[2])
          + ((int64_t)1 << 29)) >> 30;
     return y > 0 ? (int32_t)y : 0;
 }
