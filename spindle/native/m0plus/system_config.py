@@ -75,18 +75,15 @@ def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -
     step_us = round(spindle_step_s * 1e6)
     period_s = 1.0 / c.predictor_rate_hz
     span = c.gamma_static_max_pps - c.gamma_static_min_pps
-    coeffs = [[_q(c.coefficients[m][k], 28) for k in range(16)] for m in range(2)]
     return {
         "gap_s": float(c.gap_s), "max_bridge_s": float(c.max_bridge_s),
+        "gap_Q32": round(c.gap_s * 2.0**32), "max_bridge_Q32": round(c.max_bridge_s * 2.0**32),
         "resync_after_samples": int(c.resync_after_samples),
         "max_count": int(c.max_count), "median_window": int(c.median_window),
         "zero_Q16": _q(c.zero_count, 16),
         "deg_per_count_Q30": _q(c.count_sign * c.deg_per_count, 30),
         "angle_min_Q16": _q(lo_deg, 16), "angle_max_Q16": _q(hi_deg, 16),
-        "fit_mid_Q16": _q((lo_deg + hi_deg) / 2, 16),
-        "fit_scale_Q30": _q(2.0 / (hi_deg - lo_deg), 30),
-        "n_coefficients": [int(n) for n in c.n_coefficients],
-        "coefficients_Q28": coeffs,
+        "length_scale_Q28": _q(1.0 / c.deg_per_count, 28),
         "max_speed_deg_Q32_us": _q(c.max_speed_deg_s * 1e-6, 32),
         "max_speed_L0_Q40_us": _q(c.max_speed_L0_s * 1e-6, 40),
         "omega_Q16": _q(c.lowpass_rad_s, 16),
@@ -109,6 +106,24 @@ def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -
                              for i in range(DECAY_COARSE)],
         "decay_fine_Q30": [_q(math.exp(-c.lowpass_rad_s * 1e-6 * j), 30) for j in range(64)],
     }
+
+
+def length_table(config: ChainConfig, fits: LengthFits) -> list[list[int]]:
+    """``fw_length_Q24``: the length fits (Q24 L0; the Chebyshev series in double, as
+    ``ps_chain_config`` holds them) at every encoder count of the fitted range from its low
+    end, one point past the high end (the last interval's upper point)."""
+    import numpy as np
+    from numpy.polynomial import chebyshev
+
+    c = chain_config_struct(config, fits, "double")
+    lo, hi = c.fit_lo_rad, c.fit_hi_rad
+    step = math.radians(c.deg_per_count)
+    angles = lo + step * np.arange(math.floor((hi - lo) / step) + 2)
+    x = (2 * angles - (lo + hi)) / (hi - lo)
+    lengths = [chebyshev.chebval(x, list(c.coefficients[m])[:c.n_coefficients[m]])
+               for m in range(len(MUSCLES))]
+    return [[_q(float(lengths[m][i]), 24) for m in range(len(MUSCLES))]
+            for i in range(len(angles))]
 
 
 def _plan_fields(plan) -> list[int]:
@@ -213,6 +228,7 @@ def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits |
             "(ps_plan_fx_init). */\n"
             f"const fw_config fw_cfg = {{\n    {body}\n}};\n\n"
             f"const ps_plan_fx fw_plan = {{\n    {plan_body}\n}};\n"
+            + _table_source("fw_length_Q24", length_table(config, fits))
             + ("" if stim is None else "\n" + stim_channel_source(stim))
             + ("" if not tendon_organs else "\n#ifdef FW_GTO\n" + _gto_source(config)
                + "#endif\n"))
@@ -221,9 +237,14 @@ def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits |
 def _gto_source(config: ChainConfig) -> str:
     fields, table = gto_config(config)
     body = ",\n    ".join(f".{k} = {_literal(v)}" for k, v in fields.items())
-    rows = ",\n    ".join(_literal(row) for row in table)
     return (f"const fw_gto_config fw_gto_cfg = {{\n    {body}\n}};\n"
-            f"const int32_t fw_arm_force_Q12[{len(table)}][PS_MUSCLES] = {{\n    {rows}\n}};\n")
+            + _table_source("fw_arm_force_Q12", table))
+
+
+def _table_source(name: str, table: list[list[int]]) -> str:
+    """A per-point, per-muscle table as a C definition."""
+    rows = ",\n    ".join(_literal(row) for row in table)
+    return f"const int32_t {name}[{len(table)}][PS_MUSCLES] = {{\n    {rows}\n}};\n"
 
 
 def device_config(**changes) -> ChainConfig:

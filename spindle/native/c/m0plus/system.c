@@ -39,15 +39,14 @@
 
 typedef struct fw_config {
     double gap_s, max_bridge_s;  /* the chain's interval rules (s) */
+    int64_t gap_Q32, max_bridge_Q32; /* the same in Q32 s, rounded */
     int32_t resync_after_samples;
     int32_t max_count;           /* valid readings: integers 0..max_count */
     int32_t median_window;
     int32_t zero_Q16;            /* zero_count (counts, Q16) */
     int32_t deg_per_count_Q30;   /* count_sign * deg_per_count (deg, Q30) */
     int32_t angle_min_Q16, angle_max_Q16;       /* the fitted range (deg, Q16) */
-    int32_t fit_mid_Q16, fit_scale_Q30;         /* x = (angle - mid) * scale, scale in 1/deg */
-    int32_t n_coefficients[PS_MUSCLES];
-    int32_t coefficients_Q28[PS_MUSCLES][PS_FIT_MAX_COEFFS];
+    int32_t length_scale_Q28;                   /* fw_length_Q24's points per degree */
     int32_t max_speed_deg_Q32_us;               /* max_speed_deg_s: deg per us, Q32 */
     int32_t max_speed_L0_Q40_us;                /* max_speed_L0_s: L0 per us, Q40 */
     int32_t omega_Q16;                          /* tracking low-pass (rad/s) */
@@ -88,7 +87,9 @@ typedef struct fw_gto_config {
                                 * FW_STIM the channel map fw_stim_source[channel] =
                                 * {muscle, 0: Ia / 1: II / 2: Ib}; with FW_GTO fw_gto_cfg and
                                 * fw_arm_force_Q12[point][muscle], the force (N, Q8) per load
-                                * count at the grid's angles: Nm_per_count / |moment arm| */
+                                * count at the grid's angles: Nm_per_count / |moment arm|;
+                                * fw_length_Q24[point][muscle], the length fits at every count
+                                * of the fitted range (Q24 L0) */
 
 #ifdef FW_STIM
 /* const ps_stim_fx_config fw_stim_config (spindle.native.m0plus.stim) */
@@ -114,6 +115,8 @@ typedef struct fw_state {
     int32_t median_next;
     double t_s, epoch_s;          /* last accepted time; times below count from the epoch */
     int64_t t_key;                /* order_key(t_s) */
+    int64_t t_Q32, epoch_Q32;     /* t_s and epoch_s by to_Q32 (-1: out of its range) */
+    int32_t interval_us, interval_Q30, inv_interval_Q12; /* the last interval's constants */
     uint32_t t_us;                /* last accepted time since the epoch */
     int32_t behind;
     int32_t angle_Q16;
@@ -172,7 +175,7 @@ static fw_state st;
 
 /* The working values of one sample, passed from stage to stage. */
 typedef struct fw_ctx {
-    int64_t t_key;
+    int64_t t_key, t_Q32;
     int32_t counts, filtered, angle_Q16, restart;
     int32_t torque_counts; /* the sample's signed load by the load rules (FW_GTO) */
     uint32_t t_us;
@@ -251,6 +254,45 @@ static int is_finite_time(double x)
     return ((uint32_t)(v.u >> 52) & 0x7FFu) != 0x7FFu;
 }
 
+/* x * 2^32 floored, for 0 <= x < 2^31 (s), from the double's bits; -1 outside (the time
+ * rules then take the double path). */
+static int64_t to_Q32(double x)
+{
+    union { double d; uint64_t u; } v;
+    int32_t e;
+    uint64_t mantissa;
+    v.d = x;
+    if (v.u == 0) {
+        return 0;
+    }
+    e = (int32_t)(v.u >> 52) - 1023; /* the sign bit makes e large: refused */
+    if (e >= 31) {
+        return -1;
+    }
+    mantissa = (v.u & 0xFFFFFFFFFFFFFull) | (1ull << 52); /* x = mantissa 2^(e - 52) */
+    if (e >= 20) {
+        return (int64_t)(mantissa << (e - 20));
+    }
+    return e > -44 ? (int64_t)(mantissa >> (20 - e)) : 0;
+}
+
+/* The host's rule fl(t - t_s) > limit_s for a later t: decided on the Q32 times (interval_Q32
+ * is exact to +-1, so 2 units from the limit on either side decide it: the double difference
+ * of times this close to a limit is exact to ~1e-18 s), else by the double subtraction (times
+ * within 0.5 ns of the limit, or outside to_Q32's range: interval_Q32 < 0). */
+static int interval_exceeds(int64_t interval_Q32, int64_t limit_Q32, double t, double limit_s)
+{
+    if (interval_Q32 >= 0) {
+        if (interval_Q32 > limit_Q32 + 2) {
+            return 1;
+        }
+        if (interval_Q32 < limit_Q32 - 2) {
+            return 0;
+        }
+    }
+    return order_key(t - st.t_s) > order_key(limit_s);
+}
+
 /* is_valid_reading on the float's bits: an integer in 0..max_count (-0 reads 0), else -1. */
 static int32_t valid_reading(float x, int32_t max_count)
 {
@@ -284,6 +326,7 @@ static void rebase_epoch(void)
     const uint32_t shift = st.t_us;
     int m, k;
     st.epoch_s = st.t_s;
+    st.epoch_Q32 = st.t_Q32;
     st.t_us = 0;
     for (k = 0; k < FW_SEGMENTS; ++k) {
         st.seg_t_us[k] -= shift;
@@ -321,11 +364,33 @@ static void read_load(fw_ctx *c)
 }
 #endif
 
+/* The time t of a sample within max_bridge_s of the last accepted one, in us since the epoch
+ * (rounded, below 2^31): from the Q32 times, else (a time outside to_Q32's range) the
+ * doubles'. The epoch moves on once it is FW_EPOCH_S old. */
+static uint32_t time_us(const fw_ctx *c, double t)
+{
+    double half_us;
+    if (c->t_Q32 >= 0 && st.epoch_Q32 >= 0) {
+        int64_t since = c->t_Q32 - st.epoch_Q32;
+        if (since >= ((int64_t)FW_EPOCH_S << 32)) {
+            rebase_epoch();
+            since = c->t_Q32 - st.epoch_Q32;
+        }
+        return (uint32_t)((since * 1000000 + ((int64_t)1 << 31)) >> 32);
+    }
+    half_us = (t - st.epoch_s) * 2e6;
+    if (order_key(half_us) >= order_key(2e6 * FW_EPOCH_S)) {
+        rebase_epoch();
+        half_us = (t - st.epoch_s) * 2e6;
+    }
+    return ((uint32_t)half_us + 1u) >> 1;
+}
+
 /* ArmChain._time and the reading check: the bad-sample rules that reject a sample. */
 static int stage_reading(fw_ctx *c)
 {
     const double t = fw_in.t_s;
-    int64_t t_key, dt_key = 0;
+    int64_t t_key;
     if (!is_finite_time(t)) {
         fw_count.bad_time += 1;
         return FW_DONE;
@@ -354,30 +419,33 @@ static int stage_reading(fw_ctx *c)
 #ifdef FW_GTO
     read_load(c);
 #endif
-    if (st.started && t_key > st.t_key) {
-        dt_key = order_key(t - st.t_s); /* the host's interval, to the bit */
-    }
+    c->t_key = t_key;
+    c->t_Q32 = to_Q32(t);
     /* before the first valid sample there is no interval: it starts the arm at rest, as the
      * host's reset does (no gap, restart or accepted sample counted) */
-    c->restart = !st.started || t_key < st.t_key || dt_key > order_key(fw_cfg.max_bridge_s);
-    if (st.started && dt_key > order_key(fw_cfg.gap_s)) {
-        fw_count.gaps += 1;
+    c->restart = !st.started || t_key < st.t_key;
+    if (!c->restart && t_key > st.t_key) {
+        int64_t interval_Q32 = c->t_Q32 >= 0 && st.t_Q32 >= 0 ? c->t_Q32 - st.t_Q32 : -1;
+        if (interval_exceeds(interval_Q32, fw_cfg.gap_Q32, t, fw_cfg.gap_s)) {
+            fw_count.gaps += 1;
+        }
+        c->restart = interval_exceeds(interval_Q32, fw_cfg.max_bridge_Q32, t,
+                                      fw_cfg.max_bridge_s);
     }
-    c->t_key = t_key;
     if (c->restart) {
         c->t_us = 0;
         c->dt_us = 0;
     } else {
-        double half_us = (t - st.epoch_s) * 2e6;
-        if (order_key(half_us) >= order_key(2e6 * FW_EPOCH_S)) { /* the epoch moves on */
-            rebase_epoch();
-            half_us = (t - st.epoch_s) * 2e6;
-        }
-        c->t_us = ((uint32_t)half_us + 1u) >> 1; /* rounded to the us, below 2^31 */
+        c->t_us = time_us(c, t);
         c->dt_us = (int32_t)(c->t_us - st.t_us);
     }
-    c->dt_Q30 = us_to_Q30(c->dt_us);
-    c->inv_dt_Q12 = c->dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)c->dt_us) : 0;
+    if (c->dt_us != st.interval_us) { /* the nominal interval repeats: no division */
+        st.interval_us = c->dt_us;
+        st.interval_Q30 = us_to_Q30(c->dt_us);
+        st.inv_interval_Q12 = c->dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)c->dt_us) : 0;
+    }
+    c->dt_Q30 = st.interval_Q30;
+    c->inv_dt_Q12 = st.inv_interval_Q12;
     return FW_NEXT;
 }
 
@@ -427,21 +495,18 @@ static int stage_angle(fw_ctx *c)
     return FW_NEXT;
 }
 
-/* The length fits: Chebyshev series in the scaled angle (Clenshaw), Q28. */
+/* The length fits at the angle: linear between the points of fw_length_Q24, the fits (double,
+ * on the host) at every encoder count of the fitted range from its low end (a sample that is
+ * not slew-limited lies on a point; between points the error is below 4e-7 L0, the fits'
+ * curvature times step^2 / 8). */
 static int stage_lengths(fw_ctx *c)
 {
-    int32_t x = mul_q(c->angle_Q16 - fw_cfg.fit_mid_Q16, fw_cfg.fit_scale_Q30, 18); /* Q28 */
-    int m, k;
+    int32_t position = mul_q(c->angle_Q16 - fw_cfg.angle_min_Q16, fw_cfg.length_scale_Q28, 28);
+    int32_t j = position >> 16, fraction = position & 0xFFFF;
+    int m;
     for (m = 0; m < PS_MUSCLES; ++m) {
-        const int32_t *a = fw_cfg.coefficients_Q28[m];
-        int n = fw_cfg.n_coefficients[m];
-        int32_t b1 = 0, b2 = 0, x2 = 2 * x;
-        for (k = n - 1; k >= 1; --k) {
-            int32_t b0 = a[k] + mul_q(x2, b1, 28) - b2;
-            b2 = b1;
-            b1 = b0;
-        }
-        c->L_Q24[m] = (a[0] + mul_q(x, b1, 28) - b2 + 8) >> 4;
+        int32_t lo = fw_length_Q24[j][m];
+        c->L_Q24[m] = fraction == 0 ? lo : lo + mul_q(fw_length_Q24[j + 1][m] - lo, fraction, 16);
     }
     return FW_NEXT;
 }
@@ -809,9 +874,11 @@ static int stage_output(fw_ctx *c)
 #endif
     if (c->restart) {
         st.epoch_s = fw_in.t_s;
+        st.epoch_Q32 = c->t_Q32;
     }
     st.t_s = fw_in.t_s;
     st.t_key = c->t_key;
+    st.t_Q32 = c->t_Q32;
     st.t_us = c->t_us;
     st.behind = 0;
     r->t_us = c->t_us;
@@ -860,6 +927,7 @@ int fw_init(void)
     st.started = 0;
     st.t_s = 0.0;
     st.behind = 0;
+    st.interval_us = -1; /* no interval's constants yet */
     st.ib_Q16[0] = 0;
     st.ib_Q16[1] = 0;
 #ifdef FW_GTO
