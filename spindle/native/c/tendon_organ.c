@@ -234,27 +234,50 @@ int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
 #define FX_THIRD_Q30 357913941 /* 1/3 in Q30 */
 #define FX_LOG_BITS 24
 
-/* a b exactly, from 16-bit halves: a core without a long multiply (the Cortex-M0+) runs it
- * in ~20 instructions, where the compiler's 64 x 64 helper took ~45. a = ah 2^16 + al (al
- * unsigned), likewise b; every partial product fits in 32 bits. PS_FX_INLINE_MUL (gcc/clang,
- * the system firmware's option, as for spindle.c's fx_mul): inlined at every use. */
+/* Exact 64-bit sums of 32 x 32 products as (hi 2^32 + lo), each product from 16-bit halves:
+ * a core without a long multiply (the Cortex-M0+) runs a product in ~20 instructions, where
+ * the compiler's 64 x 64 helper and int64 additions took ~45 and a call (the results are the
+ * same bits). a = ah 2^16 + al (al unsigned), likewise b; every partial product fits in 32
+ * bits. PS_FX_INLINE_MUL (gcc/clang, the system firmware's option, as for spindle.c's fx_mul):
+ * inlined at every use. */
 #if defined(PS_FX_INLINE_MUL) && defined(__GNUC__)
-__attribute__((always_inline)) static inline int64_t mul_wide(int32_t a, int32_t b)
+#define FX_WIDE_INLINE __attribute__((always_inline)) static inline
 #else
-GTO_INLINE int64_t mul_wide(int32_t a, int32_t b)
+#define FX_WIDE_INLINE GTO_INLINE
 #endif
+typedef struct fx_wide {
+    int32_t hi;
+    uint32_t lo;
+} fx_wide;
+
+/* acc += a b */
+FX_WIDE_INLINE void fx_mac(fx_wide *acc, int32_t a, int32_t b)
 {
     int32_t ah = a >> 16, bh = b >> 16;
     uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
-    int64_t mid = (int64_t)(ah * (int32_t)bl) + (int64_t)((int32_t)al * bh);
-    return (int64_t)((uint64_t)(int64_t)(ah * bh) << 32) + (int64_t)((uint64_t)mid << 16)
-           + (int64_t)(al * bl);
+    int32_t hl = ah * (int32_t)bl, lh = (int32_t)al * bh;
+    uint32_t ll = al * bl;
+    uint32_t mid = ((uint32_t)hl & 0xFFFFu) + ((uint32_t)lh & 0xFFFFu) + (ll >> 16);
+    int32_t hi = ah * bh + (hl >> 16) + (lh >> 16) + (int32_t)(mid >> 16);
+    uint32_t lo = (mid << 16) | (ll & 0xFFFFu);
+    acc->lo += lo;
+    acc->hi += hi + (acc->lo < lo ? 1 : 0);
+}
+
+/* round(acc / 2^shift) (half up) for 0 < shift < 32 and a result within int32 */
+FX_WIDE_INLINE int32_t fx_round(fx_wide acc, int shift)
+{
+    uint32_t lo = acc.lo + (1u << (shift - 1));
+    int32_t hi = acc.hi + (lo < acc.lo ? 1 : 0);
+    return (int32_t)(((uint32_t)hi << (32 - shift)) | (lo >> shift));
 }
 
 /* round(a b / 2^30) */
 static int32_t mul_q30(int32_t a, int32_t b)
 {
-    return (int32_t)((mul_wide(a, b) + ((int64_t)1 << 29)) >> 30);
+    fx_wide acc = {0, 0};
+    fx_mac(&acc, a, b);
+    return fx_round(acc, 30);
 }
 
 static int to_q30(double x, int32_t *out)
@@ -342,14 +365,21 @@ static int32_t ln1p_q24(uint32_t x_q16)
     d = mul_q30(m - ((1 << 30) + (i << (30 - FX_LN_TABLE_BITS))), fx_inv_point_q30[i]);
     d2 = mul_q30(d, d);
     ln = fx_ln_point_q30[i] + d - (d2 >> 1) + mul_q30(mul_q30(d2, d), FX_THIRD_Q30);
-    return (int32_t)((mul_wide(k, FX_LN2_Q30) + ln + 32) >> 6);
+    /* round((k ln2 + ln) / 64) without the 64-bit sum: ln 2 = 64 a + b in Q30 */
+    return k * (FX_LN2_Q30 >> 6) + ((k * (FX_LN2_Q30 & 63) + ln + 32) >> 6);
 }
 
 static int32_t fx_log_stage(const ps_gto_plan_fx *q, int32_t force, int32_t inv_scale)
 {
-    int64_t x = mul_wide(force, inv_scale) >> 16; /* Q8 * Q24 -> Q16 */
-    if (x > ((int64_t)PS_GTO_FX_MAX_RATIO << 16)) x = (int64_t)PS_GTO_FX_MAX_RATIO << 16;
-    return (int32_t)((mul_wide(q->gain, ln1p_q24((uint32_t)x)) + ((int64_t)1 << 23)) >> 24);
+    fx_wide acc = {0, 0}, rate = {0, 0};
+    uint32_t x; /* F / G2: Q8 * Q24 -> Q16, floored, saturated at PS_GTO_FX_MAX_RATIO */
+    fx_mac(&acc, force, inv_scale); /* >= 0: force >= 0 and inv_scale > 0 */
+    if (acc.hi > PS_GTO_FX_MAX_RATIO || (acc.hi == PS_GTO_FX_MAX_RATIO && acc.lo >= 65536u))
+        x = (uint32_t)PS_GTO_FX_MAX_RATIO << 16;
+    else
+        x = ((uint32_t)acc.hi << 16) | (acc.lo >> 16);
+    fx_mac(&rate, q->gain, ln1p_q24(x));
+    return fx_round(rate, 24);
 }
 
 static int fx_check(int32_t force, int32_t inv_scale)
@@ -370,7 +400,11 @@ int ps_gto_fx_init(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
     f = force > 0 ? force : 0;
     r = fx_log_stage(q, f, inv_scale);
     s->z[0] = r;
-    s->z[1] = (int32_t)((mul_wide(r, q->inv_a0) + ((int64_t)1 << 23)) >> 24);
+    {
+        fx_wide acc = {0, 0};
+        fx_mac(&acc, r, q->inv_a0);
+        s->z[1] = fx_round(acc, 24);
+    }
     s->z[2] = 0;
     s->force = f;
     s->r = r;
@@ -393,10 +427,13 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
     alpha = r0 + mul_q30(2 * r_mid - r0 - r1, FX_THIRD_Q30);
     beta = r1 - r0;
     for (i = 0; i < 3; ++i) {
-        int64_t acc = mul_wide(q->phi[i][0], s->z[0]) + mul_wide(q->phi[i][1], s->z[1])
-                      + mul_wide(q->phi[i][2], s->z[2]) + mul_wide(q->g0[i], alpha)
-                      + mul_wide(q->g1[i], beta);
-        z[i] = (int32_t)((acc + ((int64_t)1 << 29)) >> 30);
+        fx_wide acc = {0, 0};
+        fx_mac(&acc, q->phi[i][0], s->z[0]);
+        fx_mac(&acc, q->phi[i][1], s->z[1]);
+        fx_mac(&acc, q->phi[i][2], s->z[2]);
+        fx_mac(&acc, q->g0[i], alpha);
+        fx_mac(&acc, q->g1[i], beta);
+        z[i] = fx_round(acc, 30);
     }
     for (i = 0; i < 3; ++i) s->z[i] = z[i];
     s->force = f1;
@@ -407,9 +444,13 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
 
 int32_t ps_gto_rate_fx(const ps_gto_fx *s, const ps_gto_plan_fx *q)
 {
-    int64_t y;
+    fx_wide acc = {0, 0};
+    int32_t y;
     if (s == NULL || q == NULL) return 0;
-    y = (mul_wide(q->c[0], s->z[0]) + mul_wide(q->c[1], s->z[1]) + mul_wide(q->c[2], s->z[2])
-         + ((int64_t)1 << 29)) >> 30;
-    return y > 0 ? (int32_t)y : 0;
+    fx_mac(&acc, q->c[0], s->z[0]);
+    fx_mac(&acc, q->c[1], s->z[1]);
+    fx_mac(&acc, q->c[2], s->z[2]);
+    if (acc.hi < 0) return 0; /* negative (the plan's bounds keep y within int32) */
+    y = fx_round(acc, 30);
+    return y > 0 ? y : 0;
 }
