@@ -107,11 +107,13 @@ typedef struct fw_counters {
         invalid_load, missing_load;
 } fw_counters;
 
-#define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz) */
+#define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz); a power
+                        * of 2 (the ring's index is a mask) */
 #define FW_PENDING 8  /* queued spindle grid points per muscle */
 
 typedef struct fw_state {
-    int32_t median[PS_MEDIAN_MAX_WINDOW];
+    int32_t median[PS_MEDIAN_MAX_WINDOW];  /* the window in arrival order (a ring) */
+    int32_t sorted[PS_MEDIAN_MAX_WINDOW];  /* the same values in order */
     int32_t median_next;
     double t_s, epoch_s;          /* last accepted time; times below count from the epoch */
     int64_t t_key;                /* order_key(t_s) */
@@ -449,29 +451,37 @@ static int stage_reading(fw_ctx *c)
     return FW_NEXT;
 }
 
-/* MedianFilter: the window's middle value (a restart refills the window instead). */
+/* MedianFilter: the window's middle value (a restart refills the window instead). The window
+ * is also kept sorted: the oldest value's place goes to the new one, moved into order (a few
+ * compares where sorting the window took ~250 instructions). */
 static int stage_median(fw_ctx *c)
 {
-    int32_t sorted[PS_MEDIAN_MAX_WINDOW];
-    int i, j, n = fw_cfg.median_window;
+    const int n = fw_cfg.median_window;
+    const int32_t v = c->counts;
+    int32_t old;
+    int i;
     if (c->restart) {
         for (i = 0; i < n; ++i) {
-            st.median[i] = c->counts;
+            st.median[i] = v;
+            st.sorted[i] = v;
         }
         st.median_next = 0;
-        c->filtered = c->counts;
+        c->filtered = v;
         return FW_NEXT;
     }
-    st.median[st.median_next] = c->counts;
+    old = st.median[st.median_next];
+    st.median[st.median_next] = v;
     st.median_next = st.median_next + 1 == n ? 0 : st.median_next + 1;
-    for (i = 0; i < n; ++i) {
-        int32_t v = st.median[i];
-        for (j = i; j > 0 && sorted[j - 1] > v; --j) {
-            sorted[j] = sorted[j - 1];
-        }
-        sorted[j] = v;
+    for (i = 0; st.sorted[i] != old; ++i) {
     }
-    c->filtered = sorted[n / 2];
+    for (; i > 0 && st.sorted[i - 1] > v; --i) {
+        st.sorted[i] = st.sorted[i - 1];
+    }
+    for (; i < n - 1 && st.sorted[i + 1] < v; ++i) {
+        st.sorted[i] = st.sorted[i + 1];
+    }
+    st.sorted[i] = v;
+    c->filtered = st.sorted[n / 2];
     return FW_NEXT;
 }
 
@@ -555,13 +565,16 @@ static int stage_tracking(fw_ctx *c)
     return FW_NEXT;
 }
 
-static int seg_index(int i) { return (st.seg_first + i) % FW_SEGMENTS; }
+static int seg_index(int i) { return (st.seg_first + i) & (FW_SEGMENTS - 1); }
 
-/* The template of segment s at time t (us). */
-static int32_t seg_template(int s, int m, uint32_t t_us)
+/* The templates of segment s at time t (us), both muscles (one interval conversion). */
+static void seg_templates(int s, uint32_t t_us, int32_t out_Q24[PS_MUSCLES])
 {
-    int32_t elapsed = (int32_t)(t_us - st.seg_t_us[s]);
-    return st.seg_p_Q24[s][m] + mul_q(st.seg_u_Q20[s][m], us_to_Q30(elapsed), 26);
+    int32_t elapsed_Q30 = us_to_Q30((int32_t)(t_us - st.seg_t_us[s]));
+    int m;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        out_Q24[m] = st.seg_p_Q24[s][m] + mul_q(st.seg_u_Q20[s][m], elapsed_Q30, 26);
+    }
 }
 
 /* MotionPredictor (the down-sampled PI template) and Fusimotor: gamma_s = h(x), gamma_d =
@@ -588,7 +601,7 @@ static int stage_fusimotor(fw_ctx *c)
             break;
         }
         if (st.seg_count == fw_cfg.predictor_keep) {
-            st.seg_first = (st.seg_first + 1) % FW_SEGMENTS;
+            st.seg_first = seg_index(1);
             st.seg_count -= 1;
             newest = seg_index(st.seg_count - 1);
         }
@@ -604,16 +617,14 @@ static int stage_fusimotor(fw_ctx *c)
         }
         st.seg_count += 1;
     }
+    seg_templates(seg_index(st.seg_count - 1), c->t_us, c->tmpl_Q24);
     for (m = 0; m < PS_MUSCLES; ++m) {
-        c->tmpl_Q24[m] = seg_template(seg_index(st.seg_count - 1), m, c->t_us);
         delayed[m] = st.seg_p_Q24[st.seg_first][m];
     }
     for (i = st.seg_count - 1; i >= 0; --i) {
         int s = seg_index(i);
         if ((int32_t)(st.seg_t_us[s] - t_d) <= 0) {
-            for (m = 0; m < PS_MUSCLES; ++m) {
-                delayed[m] = seg_template(s, m, t_d);
-            }
+            seg_templates(s, t_d, delayed);
             break;
         }
     }
