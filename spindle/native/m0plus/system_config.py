@@ -102,6 +102,7 @@ def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -
                         for lo, hi in zip(ranges.length_min_L0, ranges.length_max_L0,
                                           strict=True)],
         "spindle_step_us": step_us,
+        "spindle_reach_Q24": _round_q_product(_q(c.max_speed_L0_s * 1e-6, 40), step_us, 16),
         "decay_coarse_Q30": [_q(math.exp(-c.lowpass_rad_s * 64e-6 * i), 30)
                              for i in range(DECAY_COARSE)],
         "decay_fine_Q30": [_q(math.exp(-c.lowpass_rad_s * 1e-6 * j), 30) for j in range(64)],
@@ -181,6 +182,11 @@ def _struct_literal(plan) -> _Raw:
     phi = [[int(v) for v in row] for row in plan.phi]
     rest = [[int(v) for v in getattr(plan, name)] for name in ("g0", "g1", "c")]
     return _Raw(_literal([phi, *rest, int(plan.gain), int(plan.inv_a0)]))
+
+
+def _round_q_product(a: int, b: int, shift: int) -> int:
+    """system.c's mul_q: round(a b / 2^shift), half up (the firmware's own rounding)."""
+    return (a * b + (1 << (shift - 1))) >> shift
 
 
 def _literal(value) -> str:

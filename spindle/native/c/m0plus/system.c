@@ -59,6 +59,7 @@ typedef struct fw_config {
     int32_t length_max_Q24[PS_MUSCLES];         /* h(x): gs = min + gain (Lmax - template) */
     int32_t gs_gain_Q8[PS_MUSCLES];             /* span / (Lmax - Lmin) (pps/L0) */
     int32_t spindle_step_us;                    /* the plan's h */
+    int32_t spindle_reach_Q24;                  /* the length's slew limit over one step */
     /* e^(-omega dt) of the tracking filter for dt = 64 i + j us (Q30): coarse i, fine j */
     int32_t decay_coarse_Q30[FW_DECAY_COARSE], decay_fine_Q30[64];
 } fw_config;
@@ -107,6 +108,15 @@ typedef struct fw_counters {
         invalid_load, missing_load;
 } fw_counters;
 
+/* What the stages derive from an interval, kept while it repeats (the nominal one does). */
+typedef struct fw_interval {
+    int32_t us;                   /* -1: none yet */
+    int32_t Q30, inv_Q12;         /* in s (Q30); 1 / interval (1/s, Q12: 0 for 0 us) */
+    int32_t inv_us_Q30;           /* 1 / us (Q30; 0 for 0 us) */
+    int32_t decay_Q30;            /* the tracking low-pass's e^(-omega dt) */
+    int32_t angle_limit_Q16, length_limit_Q24; /* the slew limits over it */
+} fw_interval;
+
 #define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz); a power
                         * of 2 (the ring's index is a mask) */
 #define FW_PENDING 8  /* queued spindle grid points per muscle */
@@ -118,7 +128,7 @@ typedef struct fw_state {
     double t_s, epoch_s;          /* last accepted time; times below count from the epoch */
     int64_t t_key;                /* order_key(t_s) */
     int64_t t_Q32, epoch_Q32;     /* t_s and epoch_s by to_Q32 (-1: out of its range) */
-    int32_t interval_us, interval_Q30, inv_interval_Q12; /* the last interval's constants */
+    fw_interval interval;         /* the last interval's constants */
     uint32_t t_us;                /* last accepted time since the epoch */
     int32_t behind;
     int32_t angle_Q16;
@@ -181,7 +191,8 @@ typedef struct fw_ctx {
     int32_t counts, filtered, angle_Q16, restart;
     int32_t torque_counts; /* the sample's signed load by the load rules (FW_GTO) */
     uint32_t t_us;
-    int32_t dt_us, dt_Q30, inv_dt_Q12;
+    int32_t dt_us;
+    const fw_interval *dt; /* its constants */
     int32_t L_Q24[PS_MUSCLES], x1_Q24[PS_MUSCLES], v1_Q20[PS_MUSCLES], tmpl_Q24[PS_MUSCLES];
     int32_t status, steps;
 } fw_ctx;
@@ -366,6 +377,24 @@ static void read_load(fw_ctx *c)
 }
 #endif
 
+/* The constants of an interval of dt_us. The decay from the tables (one product) within
+ * them, else the series (a longer max_bridge_s). */
+static void interval_constants(fw_interval *out, int32_t dt_us)
+{
+    out->us = dt_us;
+    out->Q30 = us_to_Q30(dt_us);
+    out->inv_Q12 = dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)dt_us) : 0;
+    out->inv_us_Q30 = dt_us > 0 ? (int32_t)((1u << 30) / (uint32_t)dt_us) : 0;
+    if (dt_us < 64 * FW_DECAY_COARSE) {
+        out->decay_Q30 = mul_q(fw_cfg.decay_coarse_Q30[dt_us >> 6],
+                               fw_cfg.decay_fine_Q30[dt_us & 63], 30);
+    } else {
+        out->decay_Q30 = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, out->Q30, 18));
+    }
+    out->angle_limit_Q16 = mul_q(fw_cfg.max_speed_deg_Q32_us, dt_us, 16);
+    out->length_limit_Q24 = mul_q(fw_cfg.max_speed_L0_Q40_us, dt_us, 16);
+}
+
 /* The time t of a sample within max_bridge_s of the last accepted one, in us since the epoch
  * (rounded, below 2^31): from the Q32 times, else (a time outside to_Q32's range) the
  * doubles'. The epoch moves on once it is FW_EPOCH_S old. */
@@ -441,13 +470,10 @@ static int stage_reading(fw_ctx *c)
         c->t_us = time_us(c, t);
         c->dt_us = (int32_t)(c->t_us - st.t_us);
     }
-    if (c->dt_us != st.interval_us) { /* the nominal interval repeats: no division */
-        st.interval_us = c->dt_us;
-        st.interval_Q30 = us_to_Q30(c->dt_us);
-        st.inv_interval_Q12 = c->dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)c->dt_us) : 0;
+    if (c->dt_us != st.interval.us) { /* the nominal interval repeats: no division */
+        interval_constants(&st.interval, c->dt_us);
     }
-    c->dt_Q30 = st.interval_Q30;
-    c->inv_dt_Q12 = st.inv_interval_Q12;
+    c->dt = &st.interval;
     return FW_NEXT;
 }
 
@@ -490,7 +516,7 @@ static int stage_angle(fw_ctx *c)
 {
     int32_t angle = mul_q(c->filtered * 65536 - fw_cfg.zero_Q16, fw_cfg.deg_per_count_Q30, 30);
     if (!c->restart) {
-        int32_t limit = mul_q(fw_cfg.max_speed_deg_Q32_us, c->dt_us, 16);
+        int32_t limit = c->dt->angle_limit_Q16;
         int32_t change = angle - st.angle_Q16;
         if (change > limit || change < -limit) {
             fw_count.slew_limited += 1;
@@ -525,11 +551,11 @@ static int stage_lengths(fw_ctx *c)
  * form: the input linear over the interval). */
 static int stage_tracking(fw_ctx *c)
 {
-    int32_t limit, decay, m, limited = 0;
+    const fw_interval *dt = c->dt;
+    int32_t limit = dt->length_limit_Q24, m, limited = 0;
     if (c->restart) {
         return FW_NEXT;
     }
-    limit = mul_q(fw_cfg.max_speed_L0_Q40_us, c->dt_us, 16);
     for (m = 0; m < PS_MUSCLES; ++m) {
         int32_t change = c->L_Q24[m] - st.u_Q24[m];
         limited |= change > limit || change < -limit;
@@ -540,27 +566,20 @@ static int stage_tracking(fw_ctx *c)
             c->L_Q24[m] = st.u_Q24[m] + clamp_i32(c->L_Q24[m] - st.u_Q24[m], -limit, limit);
         }
     }
-    /* from the tables (one product) within them, else the series (a longer max_bridge_s) */
-    if (c->dt_us < 64 * FW_DECAY_COARSE) {
-        decay = mul_q(fw_cfg.decay_coarse_Q30[c->dt_us >> 6],
-                      fw_cfg.decay_fine_Q30[c->dt_us & 63], 30);
-    } else {
-        decay = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, c->dt_Q30, 18));
-    }
     for (m = 0; m < PS_MUSCLES; ++m) {
-        int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m];
-        int32_t slope = mul_q(u1 - u0, c->inv_dt_Q12, 16);                 /* Q20 */
-        int32_t offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);      /* Q24 */
-        int32_t A = st.x_Q24[m] - u0 + offset;                             /* Q24 */
-        int32_t B = st.v_Q20[m] - slope + mul_q(fw_cfg.omega_Q16, A, 20);  /* Q20 */
-        int32_t AB = A + mul_q(B, c->dt_Q30, 26);                          /* Q24 */
-        if (c->dt_us == 0) { /* an interval below 1 us: nothing moves */
+        int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m], slope, offset, A, B, AB;
+        if (dt->us == 0) { /* an interval below 1 us: nothing moves */
             c->x1_Q24[m] = st.x_Q24[m];
             c->v1_Q20[m] = st.v_Q20[m];
             continue;
         }
-        c->x1_Q24[m] = u1 - offset + mul_q(AB, decay, 30);
-        c->v1_Q20[m] = slope + mul_q(B - mul_q(fw_cfg.omega_Q16, AB, 20), decay, 30);
+        slope = mul_q(u1 - u0, dt->inv_Q12, 16);                     /* Q20 */
+        offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);        /* Q24 */
+        A = st.x_Q24[m] - u0 + offset;                               /* Q24 */
+        B = st.v_Q20[m] - slope + mul_q(fw_cfg.omega_Q16, A, 20);    /* Q20 */
+        AB = A + mul_q(B, dt->Q30, 26);                              /* Q24 */
+        c->x1_Q24[m] = u1 - offset + mul_q(AB, dt->decay_Q30, 30);
+        c->v1_Q20[m] = slope + mul_q(B - mul_q(fw_cfg.omega_Q16, AB, 20), dt->decay_Q30, 30);
     }
     return FW_NEXT;
 }
@@ -640,12 +659,12 @@ static int stage_fusimotor(fw_ctx *c)
 /* The length at grid time tau of the Hermite curve through the interval's ends. */
 static int32_t hermite_Q24(const fw_ctx *c, int m, uint32_t tau_us)
 {
-    int32_t s = (int32_t)((((uint32_t)(tau_us - st.t_us)) << 15) / (uint32_t)c->dt_us) << 9;
+    int32_t s = mul_q((int32_t)(tau_us - st.t_us), c->dt->inv_us_Q30, 6); /* Q24, no division */
     int32_t s2 = mul_q(s, s, 24), s3 = mul_q(s2, s, 24);
     int32_t w1 = 3 * s2 - 2 * s3, w2 = s3 - 2 * s2 + s, w3 = s3 - s2;
     int32_t x0 = st.x_Q24[m], x1 = c->x1_Q24[m];
     int32_t slopes = mul_q(w2, st.v_Q20[m], 24) + mul_q(w3, c->v1_Q20[m], 24); /* Q20 */
-    return x0 + mul_q(w1, x1 - x0, 24) + mul_q(slopes, c->dt_Q30, 26);
+    return x0 + mul_q(w1, x1 - x0, 24) + mul_q(slopes, c->dt->Q30, 26);
 }
 
 #ifndef FW_MAX_STEPS
@@ -681,7 +700,7 @@ static int step_oldest(fw_ctx *c)
  * once, counted in fw_overruns). */
 static int stage_spindles(fw_ctx *c)
 {
-    const int32_t reach = mul_q(fw_cfg.max_speed_L0_Q40_us, fw_cfg.spindle_step_us, 16);
+    const int32_t reach = fw_cfg.spindle_reach_Q24;
     int m, k;
     if (c->restart) {
         return rest_spindles(c);
@@ -938,7 +957,7 @@ int fw_init(void)
     st.started = 0;
     st.t_s = 0.0;
     st.behind = 0;
-    st.interval_us = -1; /* no interval's constants yet */
+    st.interval.us = -1; /* no interval's constants yet */
     st.ib_Q16[0] = 0;
     st.ib_Q16[1] = 0;
 #ifdef FW_GTO
