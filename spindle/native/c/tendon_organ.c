@@ -273,7 +273,7 @@ FX_WIDE_INLINE int32_t fx_round(fx_wide acc, int shift)
 }
 
 /* round(a b / 2^30) */
-static int32_t mul_q30(int32_t a, int32_t b)
+FX_WIDE_INLINE int32_t mul_q30(int32_t a, int32_t b)
 {
     fx_wide acc = {0, 0};
     fx_mac(&acc, a, b);
@@ -428,9 +428,9 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
     beta = r1 - r0;
     for (i = 0; i < 3; ++i) {
         fx_wide acc = {0, 0};
-        fx_mac(&acc, q->phi[i][0], s->z[0]);
-        fx_mac(&acc, q->phi[i][1], s->z[1]);
-        fx_mac(&acc, q->phi[i][2], s->z[2]);
+        int j;
+        for (j = 0; j < 3; ++j) /* the low-pass's row has zeros: a product skipped is ~30 */
+            if (q->phi[i][j] != 0) fx_mac(&acc, q->phi[i][j], s->z[j]);
         fx_mac(&acc, q->g0[i], alpha);
         fx_mac(&acc, q->g1[i], beta);
         z[i] = fx_round(acc, 30);

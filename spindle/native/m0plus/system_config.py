@@ -46,14 +46,14 @@ three spindle steps (the deadline; the host default bridges 50 ms, 25 sub-steps)
 
 DECAY_COARSE = 128
 """``FW_DECAY_COARSE`` of system.c: the tracking filter's decay tables cover 128 x 64 us."""
-GTO_PLANS = 40
-"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 256 us, ... 9.98 ms."""
+GTO_PLANS = 26
+"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 256 us, ... 6.4 ms."""
 GTO_PLAN_STEP_US = 256
 """``1 << FW_GTO_PLAN_SHIFT``: the table's step."""
 NOMINAL_INTERVAL_US = 2000
 """The encoder's period (500 Hz): the interval with its own exact tendon-organ plan."""
 FORCE_PER_COUNT_BITS = 12
-"""``fw_arm_force_Q12``: force (Q8 N) per load count, in Q12."""
+"""``fw_arm_force``: force (Q8 N) per load count, in Q12 (stored >> ``arm_shift`` as uint16)."""
 
 
 def _q(value: float, bits: int) -> int:
@@ -134,8 +134,8 @@ def _plan_fields(plan) -> list[int]:
 
 
 def gto_config(config: ChainConfig, moment_arms=None) -> tuple[dict, list[list[int]]]:
-    """The fields of ``fw_gto_config`` (system.c) and ``fw_arm_force_Q12`` (per grid point,
-    per muscle), from the force-sense settings of ``config`` as ``ps_chain_config`` holds
+    """The fields of ``fw_gto_config`` (system.c) and ``fw_arm_force`` (per grid point, per
+    muscle, Q12 >> ``arm_shift``), from the force-sense settings of ``config`` as ``ps_chain_config`` holds
     them: the load's resolution and sign, the moment-arm table, G2 and the tendon organs'
     fixed-point plans (``ps_gto_plan_fx_init``) at the nominal interval and on the table."""
     from spindle.chain.force import load_moment_arm_fits
@@ -158,12 +158,15 @@ def gto_config(config: ChainConfig, moment_arms=None) -> tuple[dict, list[list[i
     per_count = config.load.Nm_per_count * FX_FORCE * 2.0**FORCE_PER_COUNT_BITS
     table = [[round(per_count / abs(arms.table_m[m][i])) for m in range(len(MUSCLES))]
              for i in range(points)]
-    if max(max(row) for row in table) * LOAD_MAGNITUDE_MAX >= 2**31:
+    largest = max(max(row) for row in table)
+    if largest * LOAD_MAGNITUDE_MAX >= 2**31:
         raise ValueError("a moment arm this short overflows the firmware's force product")
+    shift = max(0, largest.bit_length() - 16)  # into uint16
+    table = [[round(v / 2**shift) for v in row] for row in table]
     fields = {
         "load_sign": int(config.calibration.sign),
         "arm_lo_Q16": _q(lo, 16), "arm_scale_Q28": _q((points - 1) / (hi - lo), 28),
-        "arm_last": points - 1,
+        "arm_last": points - 1, "arm_shift": shift,
         "inv_scale_Q24": [round(FX_INV_SCALE / float(g2)) for g2 in config.force_scale_N],
         "nominal_us": NOMINAL_INTERVAL_US,
         "plan_nominal": _struct_literal(nominal),
@@ -244,13 +247,13 @@ def _gto_source(config: ChainConfig) -> str:
     fields, table = gto_config(config)
     body = ",\n    ".join(f".{k} = {_literal(v)}" for k, v in fields.items())
     return (f"const fw_gto_config fw_gto_cfg = {{\n    {body}\n}};\n"
-            + _table_source("fw_arm_force_Q12", table))
+            + _table_source("fw_arm_force", table, "uint16_t"))
 
 
-def _table_source(name: str, table: list[list[int]]) -> str:
+def _table_source(name: str, table: list[list[int]], ctype: str = "int32_t") -> str:
     """A per-point, per-muscle table as a C definition."""
     rows = ",\n    ".join(_literal(row) for row in table)
-    return f"const int32_t {name}[{len(table)}][PS_MUSCLES] = {{\n    {rows}\n}};\n"
+    return f"const {ctype} {name}[{len(table)}][PS_MUSCLES] = {{\n    {rows}\n}};\n"
 
 
 def device_config(**changes) -> ChainConfig:

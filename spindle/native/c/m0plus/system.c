@@ -69,13 +69,14 @@ typedef struct fw_config {
  * word's sign, the moment-arm grid (the host's table points) as force per load count of each
  * muscle, 1/G2, and the tendon organs' fixed-point plans: one at the nominal interval and a
  * table at h = k 256 us (k = 0: no time passes), linear between its points. */
-#define FW_GTO_PLANS 40          /* intervals up to (FW_GTO_PLANS - 1) * 256 us = 10 ms */
+#define FW_GTO_PLANS 26          /* intervals up to (FW_GTO_PLANS - 1) * 256 us = 6.4 ms */
 #define FW_GTO_PLAN_SHIFT 8      /* the table's step, 256 us: its index is a shift */
 typedef struct fw_gto_config {
     int32_t load_sign;           /* the torque's sign of a counter-clockwise load word */
     int32_t arm_lo_Q16;          /* the moment-arm grid's first angle (deg, Q16) */
     int32_t arm_scale_Q28;       /* grid points per degree */
     int32_t arm_last;            /* the last grid point's index */
+    int32_t arm_shift;           /* fw_arm_force's values are the Q12 ones >> arm_shift */
     int32_t inv_scale_Q24[PS_MUSCLES]; /* 1 / G2 (1/N) */
     int32_t nominal_us;          /* the interval of plan_nominal */
     ps_gto_plan_fx plan_nominal;
@@ -87,8 +88,9 @@ typedef struct fw_gto_config {
 #include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; with
                                 * FW_STIM the channel map fw_stim_source[channel] =
                                 * {muscle, 0: Ia / 1: II / 2: Ib}; with FW_GTO fw_gto_cfg and
-                                * fw_arm_force_Q12[point][muscle], the force (N, Q8) per load
-                                * count at the grid's angles: Nm_per_count / |moment arm|;
+                                * fw_arm_force[point][muscle], the force (N, Q8) per load
+                                * count at the grid's angles, Nm_per_count / |moment arm|, in
+                                * Q(12 - arm_shift), uint16 (half the flash of int32);
                                 * fw_length_Q24[point][muscle], the length fits at every count
                                 * of the fitted range (Q24 L0) */
 
@@ -754,7 +756,7 @@ static int rest_spindles(fw_ctx *c)
 #ifdef FW_GTO
 /* tendon_forces_N: the torque over the moment arm at the angle (the host's table, linear
  * between its points, clamped to its ends), flexion torque to BRA, extension to TRImed. The
- * table holds Nm_per_count / |r| (Q12 of Q8 N), so a force is one product per muscle. */
+ * table holds Nm_per_count / |r| (Q8 N per count), so a force is one product per muscle. */
 static void tendon_forces(const fw_ctx *c, int32_t force_Q8[PS_MUSCLES])
 {
     const int m = c->torque_counts > 0 ? 0 : 1;
@@ -762,12 +764,13 @@ static void tendon_forces(const fw_ctx *c, int32_t force_Q8[PS_MUSCLES])
     int32_t j = position >> 16, per_count;
     int32_t magnitude = c->torque_counts < 0 ? -c->torque_counts : c->torque_counts;
     if (position <= 0) {
-        per_count = fw_arm_force_Q12[0][m];
+        per_count = fw_arm_force[0][m] << fw_gto_cfg.arm_shift;
     } else if (j >= fw_gto_cfg.arm_last) {
-        per_count = fw_arm_force_Q12[fw_gto_cfg.arm_last][m];
+        per_count = fw_arm_force[fw_gto_cfg.arm_last][m] << fw_gto_cfg.arm_shift;
     } else {
-        int32_t lo = fw_arm_force_Q12[j][m];
-        per_count = lo + mul_q(fw_arm_force_Q12[j + 1][m] - lo, position & 0xFFFF, 16);
+        int32_t lo = fw_arm_force[j][m] << fw_gto_cfg.arm_shift;
+        int32_t hi = fw_arm_force[j + 1][m] << fw_gto_cfg.arm_shift;
+        per_count = lo + mul_q(hi - lo, position & 0xFFFF, 16); /* Q12 */
     }
     force_Q8[0] = 0;
     force_Q8[1] = 0;
