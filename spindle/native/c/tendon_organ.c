@@ -373,6 +373,7 @@ static int32_t fx_log_stage(const ps_gto_plan_fx *q, int32_t force, int32_t inv_
 {
     fx_wide acc = {0, 0}, rate = {0, 0};
     uint32_t x; /* F / G2: Q8 * Q24 -> Q16, floored, saturated at PS_GTO_FX_MAX_RATIO */
+    if (force == 0) return 0; /* ln 1 (the slack tendon of the unloaded muscle) */
     fx_mac(&acc, force, inv_scale); /* >= 0: force >= 0 and inv_scale > 0 */
     if (acc.hi > PS_GTO_FX_MAX_RATIO || (acc.hi == PS_GTO_FX_MAX_RATIO && acc.lo >= 65536u))
         x = (uint32_t)PS_GTO_FX_MAX_RATIO << 16;
@@ -431,8 +432,8 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
         int j;
         for (j = 0; j < 3; ++j) /* the low-pass's row has zeros: a product skipped is ~30 */
             if (q->phi[i][j] != 0) fx_mac(&acc, q->phi[i][j], s->z[j]);
-        fx_mac(&acc, q->g0[i], alpha);
-        fx_mac(&acc, q->g1[i], beta);
+        if (alpha != 0) fx_mac(&acc, q->g0[i], alpha); /* 0 while the force stays 0 */
+        if (beta != 0) fx_mac(&acc, q->g1[i], beta);
         z[i] = fx_round(acc, 30);
     }
     for (i = 0; i < 3; ++i) s->z[i] = z[i];

@@ -178,7 +178,7 @@ typedef struct fw_record {
     int32_t ib_Q16[PS_MUSCLES]; /* the tendon organs (0 without FW_GTO) */
 } fw_record;
 
-#define FW_RING 8
+#define FW_RING 4 /* records: read out after every sample */
 
 fw_input fw_in;
 fw_counters fw_count;
