@@ -1,15 +1,19 @@
 """The whole-system firmware's configuration as C source: a ChainConfig in fixed point.
 
 ``system.c`` (``spindle/native/c/m0plus/``) compiles ``fw_system_config.h``: ``const
-fw_config fw_cfg`` (the chain's settings, fits and fusimotor constants in the Q formats of
-system.c) and ``const ps_plan_fx fw_plan`` (the spindle plan at the firmware's spindle step,
-made on the host by ``ps_plan_fx_init``). Every number comes from the same resolved
-``ps_chain_config`` the host C chain runs (``spindle.native.chain.chain_config_struct``) and
-from the ranges ``ps_chain_init`` derives (fitted angle range, each muscle's length range), so
-the firmware and the host chain it is compared with share one configuration.
+fw_config fw_cfg`` (the chain's settings and fusimotor constants in the Q formats of
+system.c), ``fw_length_Q24`` (the length fits at every encoder count of the fitted range)
+and ``const ps_plan_fx fw_plan`` (the spindle plan at the firmware's spindle step, made on the
+host by ``ps_plan_fx_init``); for the tendon organs (``FW_GTO``) ``fw_gto_cfg`` (the load's
+sign, 1/G2, the fixed-point plans of ``ps_gto_plan_fx_init`` at the nominal interval and on a
+256 us table) and ``fw_arm_force`` (force per load count over the moment-arm table). Every
+number comes from the same resolved ``ps_chain_config`` the host C chain runs
+(``spindle.native.chain.chain_config_struct``) and from the ranges ``ps_chain_init`` derives
+(fitted angle range, each muscle's length range), so the firmware and the host chain it is
+compared with share one configuration.
 
 With a stimulator configuration (a ``spindle.stimulation.StimConfig``) it also holds the
-channel map ``fw_stim_source[channel] = {muscle index, 0 for Ia / 1 for II}`` of the
+channel map ``fw_stim_source[channel] = {muscle index, 0 for Ia / 1 for II / 2 for Ib}`` of the
 firmware's ``FW_STIM`` stage; the encoder's constants are ``fw_stim_config.h``
 (``spindle.native.m0plus.stim.stim_config_header``, from ``ps_stim_fx_config_init``).
 
@@ -25,9 +29,9 @@ from dataclasses import replace
 
 from spindle.chain.config import MUSCLES, ChainConfig
 from spindle.chain.length_model import LengthFits, load_length_fits
+from spindle.chain.sensor import LOAD_MAGNITUDE_MAX
 from spindle.native.chain import CArmChain, chain_config_struct
 from spindle.native.m0plus.build import _initializer
-from spindle.chain.sensor import LOAD_MAGNITUDE_MAX
 from spindle.params import HUMAN
 
 AFFERENTS = ("ia", "ii", "ib")
@@ -135,9 +139,10 @@ def _plan_fields(plan) -> list[int]:
 
 def gto_config(config: ChainConfig, moment_arms=None) -> tuple[dict, list[list[int]]]:
     """The fields of ``fw_gto_config`` (system.c) and ``fw_arm_force`` (per grid point, per
-    muscle, Q12 >> ``arm_shift``), from the force-sense settings of ``config`` as ``ps_chain_config`` holds
-    them: the load's resolution and sign, the moment-arm table, G2 and the tendon organs'
-    fixed-point plans (``ps_gto_plan_fx_init``) at the nominal interval and on the table."""
+    muscle, Q12 >> ``arm_shift``), from the force-sense settings of ``config`` as
+    ``ps_chain_config`` holds them (``_fill_force_sense``): the load's resolution and sign,
+    the moment-arm table, G2 and the tendon organs' fixed-point plans
+    (``ps_gto_plan_fx_init``) at the nominal interval and on the table."""
     from spindle.chain.force import load_moment_arm_fits
     from spindle.native.tendon_organ import FX_FORCE, FX_INV_SCALE, fixed_plan
 
