@@ -234,12 +234,11 @@ int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
 #define FX_THIRD_Q30 357913941 /* 1/3 in Q30 */
 #define FX_LOG_BITS 24
 
-/* Exact 64-bit sums of 32 x 32 products as (hi 2^32 + lo), each product from 16-bit halves:
- * a core without a long multiply (the Cortex-M0+) runs a product in ~20 instructions, where
- * the compiler's 64 x 64 helper and int64 additions took ~45 and a call (the results are the
- * same bits). a = ah 2^16 + al (al unsigned), likewise b; every partial product fits in 32
- * bits. PS_FX_INLINE_MUL (gcc/clang, the system firmware's option, as for spindle.c's fx_mul):
- * inlined at every use. */
+/* Exact 64-bit sums of 32 x 32 products as (hi 2^32 + lo), each product from 16-bit halves
+ * (ps_fx_mul_wide): the compiler's 64 x 64 helper and int64 additions took ~45 instructions
+ * and a call per product on the Cortex-M0+ (the results are the same bits). PS_FX_INLINE_MUL
+ * (gcc/clang, the system firmware's option, as for spindle.c's fx_mul): inlined at every
+ * use. */
 #if defined(PS_FX_INLINE_MUL) && defined(__GNUC__)
 #define FX_WIDE_INLINE __attribute__((always_inline)) static inline
 #else
@@ -253,13 +252,9 @@ typedef struct fx_wide {
 /* acc += a b */
 FX_WIDE_INLINE void fx_mac(fx_wide *acc, int32_t a, int32_t b)
 {
-    int32_t ah = a >> 16, bh = b >> 16;
-    uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
-    int32_t hl = ah * (int32_t)bl, lh = (int32_t)al * bh;
-    uint32_t ll = al * bl;
-    uint32_t mid = ((uint32_t)hl & 0xFFFFu) + ((uint32_t)lh & 0xFFFFu) + (ll >> 16);
-    int32_t hi = ah * bh + (hl >> 16) + (lh >> 16) + (int32_t)(mid >> 16);
-    uint32_t lo = (mid << 16) | (ll & 0xFFFFu);
+    int32_t hi;
+    uint32_t lo;
+    ps_fx_mul_wide(a, b, &hi, &lo);
     acc->lo += lo;
     acc->hi += hi + (acc->lo < lo ? 1 : 0);
 }

@@ -204,20 +204,15 @@ enum { FW_NEXT = 0, FW_DONE = 1 }; /* a stage's return: go on, or the sample is 
 /* ---- arithmetic ------------------------------------------------------------------------ */
 
 /* round(a b / 2^shift) for 0 < shift < 32 and a result within int32: the 64-bit product
- * from 16-bit halves (the M0+ multiplies 32x32->32; libgcc's __muldi3 took ~40 instructions
- * and a call per product), floored after adding 2^(shift-1), exactly as (a b + 2^(shift-1))
- * >> shift in int64. a = ah 2^16 + al (al unsigned), likewise b, so every partial product
- * fits in 32 bits. */
+ * from 16-bit halves (ps_fx_mul_wide: the M0+ multiplies 32x32->32; libgcc's __muldi3 took
+ * ~40 instructions and a call per product), floored after adding 2^(shift-1), exactly as
+ * (a b + 2^(shift-1)) >> shift in int64. */
 __attribute__((always_inline)) static inline int32_t mul_q(int32_t a, int32_t b, int shift)
 {
-    int32_t ah = a >> 16, bh = b >> 16;
-    uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
-    int32_t hl = ah * (int32_t)bl, lh = (int32_t)al * bh;
-    uint32_t ll = al * bl;
-    uint32_t mid = ((uint32_t)hl & 0xFFFFu) + ((uint32_t)lh & 0xFFFFu) + (ll >> 16);
-    int32_t hi = ah * bh + (hl >> 16) + (lh >> 16) + (int32_t)(mid >> 16);
-    uint32_t lo = (mid << 16) | (ll & 0xFFFFu);
-    uint32_t rounded = lo + (1u << (shift - 1));
+    int32_t hi;
+    uint32_t lo, rounded;
+    ps_fx_mul_wide(a, b, &hi, &lo);
+    rounded = lo + (1u << (shift - 1));
     hi += rounded < lo; /* the carry */
     return (int32_t)(((uint32_t)hi << (32 - shift)) | (rounded >> shift));
 }
