@@ -244,19 +244,14 @@ int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
 #else
 #define FX_WIDE_INLINE GTO_INLINE
 #endif
-typedef struct fx_wide {
-    int32_t hi;
-    uint32_t lo;
-} fx_wide;
+typedef ps_fx_wide fx_wide;
 
 /* acc += a b */
 FX_WIDE_INLINE void fx_mac(fx_wide *acc, int32_t a, int32_t b)
 {
-    int32_t hi;
-    uint32_t lo;
-    ps_fx_mul_wide(a, b, &hi, &lo);
-    acc->lo += lo;
-    acc->hi += hi + (acc->lo < lo ? 1 : 0);
+    ps_fx_wide p = ps_fx_mul_wide(a, b);
+    acc->lo += p.lo;
+    acc->hi += p.hi + (acc->lo < p.lo ? 1 : 0);
 }
 
 /* round(acc / 2^shift) (half up) for 0 < shift < 32 and a result within int32 */

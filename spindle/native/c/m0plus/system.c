@@ -209,12 +209,10 @@ enum { FW_NEXT = 0, FW_DONE = 1 }; /* a stage's return: go on, or the sample is 
  * (a b + 2^(shift-1)) >> shift in int64. */
 __attribute__((always_inline)) static inline int32_t mul_q(int32_t a, int32_t b, int shift)
 {
-    int32_t hi;
-    uint32_t lo, rounded;
-    ps_fx_mul_wide(a, b, &hi, &lo);
-    rounded = lo + (1u << (shift - 1));
-    hi += rounded < lo; /* the carry */
-    return (int32_t)(((uint32_t)hi << (32 - shift)) | (rounded >> shift));
+    ps_fx_wide p = ps_fx_mul_wide(a, b);
+    uint32_t rounded = p.lo + (1u << (shift - 1));
+    p.hi += rounded < p.lo; /* the carry */
+    return (int32_t)(((uint32_t)p.hi << (32 - shift)) | (rounded >> shift));
 }
 
 static int32_t clamp_i32(int32_t x, int32_t lo, int32_t hi)
