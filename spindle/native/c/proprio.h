@@ -672,7 +672,8 @@ int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
 /* a b exactly, as hi 2^32 + lo, from 16-bit halves: a core without a long multiply (the
  * Cortex-M0+) runs it inline in ~20 instructions, where the compiler's 64 x 64 helper took
  * ~45 and a call. a = ah 2^16 + al (al unsigned), likewise b; every partial product fits in
- * 32 bits. The fixed-point tendon organ's sums and the system firmware's products use it. */
+ * 32 bits. The fixed-point tendon organ's sums, the fixed-point stimulation encoder's phase
+ * products and the system firmware's products use it. */
 typedef struct ps_fx_wide {
     int32_t hi;
     uint32_t lo;

@@ -565,6 +565,13 @@ static void channel_drive_fx(const ps_stim_fx_config *q, int k, int32_t previous
     *out = d;
 }
 
+/* a b for int32 a, b (ps_fx_mul_wide: no 64 x 64 multiply helper on the device) */
+static int64_t wide_product(int32_t a, int32_t b)
+{
+    ps_fx_wide p = ps_fx_mul_wide(a, b);
+    return (int64_t)(((uint64_t)(uint32_t)p.hi << 32) | p.lo);
+}
+
 typedef struct clock_fx {
     int64_t phase, threshold, resume_us;
     uint64_t draws;
@@ -588,7 +595,8 @@ static long channel_crossings_fx(const ps_stim_fx_config *q, int k, clock_fx *cl
         /* no crossing before t1 (ceil(need / rate) >= t1 - tau) is need > rate (t1 - tau - 1):
          * the common case of a sample's interval, without the 64-bit division (~200
          * instructions on a core without a divider) */
-        short_of_end = rate * (t1 - tau - 1);
+        short_of_end = rate <= INT32_MAX ? wide_product((int32_t)rate, (int32_t)(t1 - tau - 1))
+                                         : rate * (t1 - tau - 1);
         if (need > short_of_end) {
             cl->phase += short_of_end + rate;
             break;
@@ -652,7 +660,7 @@ static void clock_of(const ps_stim_fx_state *s, int k, clock_fx *cl)
  * 1/max_rate apart (deterministic) or the dead time apart (stochastic). */
 static long fx_max_events(const ps_stim_fx_config *q, int32_t dt_us)
 {
-    int64_t span = (int64_t)dt_us * q->max_rate_q16, per;
+    int64_t span = wide_product(dt_us, q->max_rate_q16), per;
     if (q->mode == PS_STIM_MODE_STOCHASTIC)
         per = (int64_t)dt_us / (q->dead_us > 0 ? q->dead_us : 1);
     else /* below one pulse's phase (a sample's interval): 0 without the 64-bit division */
