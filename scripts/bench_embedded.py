@@ -44,8 +44,9 @@ last line, which stays the Fig. 3 figure.
 The whole system (spindle/native/c/m0plus/system.c, spindle.native.m0plus.system): one
 fw_sample call per encoder sample, as the 500 Hz timer interrupt would make it, running the
 whole chain (time and reading rules, median, f(x), fitted lengths, tracking low-pass,
-predictor and fusimotor drive, the fixed-point BRA and TRImed spindles on a 5 ms grid) in
-integer arithmetic, the configuration generated on the host (system_config). Measured on the
+predictor and fusimotor drive, the fixed-point BRA and TRImed spindles on a 5 ms grid, the
+tendon organs from the servo's load word, the stimulation encoder) in integer arithmetic, the
+configuration generated on the host (system_config). Measured on the
 demo motion (the triangle above, read by an ideal encoder at 500 Hz) and on a recorded servo
 trace with the encoder's jitter, noise and invalid readings and injected faults
 (proprio_env.experiments.fault_injection, counts entries): instructions and Cortex-M0+ cycles
@@ -53,10 +54,12 @@ per sample
 (spindle.native.m0plus.cycles: ARM DDI 0484C instruction timings, flash wait states of the
 EFM32ZG), mean and worst, per stage; flash, RAM, stack; the lowest EFM32ZG clock meeting every
 sample's 2 ms deadline with a 25 % margin and its power (EFM32ZG datasheet, 114 uA/MHz at
-3 V); Ia and II against the host double chain (CArmChain) on the same samples, RMS, and the
-bad-sample counters of both. Its line is the last:
+3 V); Ia, II and Ib against the host double chain (CArmChain) on the same samples and load
+words, RMS, the bad-sample counters of both (the load reading's included) and the pulse
+counts against the host double encoder. Its line is the last:
     system_mips=... system_peak_cycles_per_sample=... clock_mhz=... power_mw=...
-    flash_bytes=... ram_bytes=... rms_vs_host_pps=...
+    flash_bytes=... ram_bytes=... rms_vs_host_pps=... ib_rms_vs_host_pps=...
+    max_pulse_count_diff=...
 
 Usage:
     PYTHONPATH=. python scripts/bench_embedded.py            # all levers, 9 runs (10-16 min)
@@ -328,7 +331,7 @@ def _measure_build(build_dir: Path, defines: tuple[str, ...], inputs):
 
     elf = sysfw.build_system(build_dir, defines=defines)
     fw = sysfw.SystemFirmware(elf)
-    results = {name: sysfw.compare(fw, t, c) for name, (t, c) in inputs.items()}
+    results = {name: sysfw.compare(fw, samples) for name, samples in inputs.items()}
     seen, bad = objdump_violations(elf)
     flash, ram = sysfw.firmware_sizes(elf, fw.emu.stack_used(), build_dir, defines=defines)
     return results, sorted(fw.emu.violations) + bad, seen, flash, ram, fw.emu.stack_used()
@@ -343,8 +346,8 @@ def run_system(quick: bool, build_dir: Path, figure: Path | None = None) -> int:
 
     t0 = time.perf_counter()
     demo_s, fault_n = (1.5, 1500) if quick else (DEMO_CYCLES * 2 * 90 / 130, 10000)
-    t_f, c_f, faults = sysfw.fault_samples(fault_n, seed=1)
-    inputs = {"demo motion": sysfw.demo_samples(demo_s), "servo trace, jitter + faults": (t_f, c_f)}
+    faulty, faults = sysfw.fault_samples(fault_n, seed=1)
+    inputs = {"demo motion": sysfw.demo_samples(demo_s), "servo trace, jitter + faults": faulty}
     period = sysfw.SAMPLE_PERIOD_S
     print(f"\nwhole system (system.c, chain config max_bridge_s={DEVICE_CONFIG.max_bridge_s:g} s, "
           f"spindles fixed point on a {SPINDLE_STEP_S * 1e3:g} ms grid) vs the host double "
@@ -382,9 +385,13 @@ def run_system(quick: bool, build_dir: Path, figure: Path | None = None) -> int:
     if violations:
         print("  ARMv7-M-only instructions:", *violations[:10], sep="\n    ")
         return 1
+    ib_rms = max((v for c in results.values() for k, v in c.rms_pps.items()
+                  if k.endswith(" Ib")), default=float("nan"))
+    pulse_diff = max(c.pulse_count_diff for c in results.values())
     print(f"system_mips={mips:.4f} system_peak_cycles_per_sample={peak} "
           f"clock_mhz={clock:.1f} power_mw={power:.3f} flash_bytes={flash} "
-          f"ram_bytes={ram} rms_vs_host_pps={rms:.4f}")
+          f"ram_bytes={ram} rms_vs_host_pps={rms:.4f} ib_rms_vs_host_pps={ib_rms:.4f} "
+          f"max_pulse_count_diff={pulse_diff}")
     ok = all(c.counters_equal and c.pulse_count_diff <= 1 for c in results.values())
     return 0 if ok else 1
 

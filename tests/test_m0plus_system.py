@@ -1,9 +1,9 @@
 """The whole-system Cortex-M0+ firmware (spindle/native/c/m0plus/system.c) in the emulator
 against the host double C chain (CArmChain, the numpy chain's twin to 1e-13 pps) and the
 host double stimulation encoder (CStimulator, the numpy encoder's twin) on the same encoder
-samples: rates within the issue's 1.5 pps RMS, pulse counts per channel per second within
-one, bad-sample counters equal, ARMv6-M only. Skipped without arm-none-eabi-gcc or
-unicorn."""
+samples and load words: Ia, II and Ib within the issue's 1.5 pps RMS, pulse counts per
+channel per second within one, bad-sample counters (the load reading's included) equal,
+ARMv6-M only. Skipped without arm-none-eabi-gcc or unicorn."""
 
 from __future__ import annotations
 
@@ -30,8 +30,9 @@ def firmware(tmp_path_factory):
 
 
 def test_demo_motion_rates_match_the_host_double_chain(firmware):
-    t, counts = sysfw.demo_samples(0.8)
-    c = sysfw.compare(firmware, t, counts)
+    samples = sysfw.demo_samples(0.8)
+    t = samples.t_s
+    c = sysfw.compare(firmware, samples)
     # measured: worst RMS 0.56 pps (TRImed Ia) over 0.8 s; 0.66 (BRA Ia) over 1.5 s
     assert c.worst_rms_pps <= RMS_LIMIT_PPS, c.rms_pps
     assert c.counters_equal, (c.run.counters, c.host_counters)
@@ -44,14 +45,21 @@ def test_demo_motion_rates_match_the_host_double_chain(firmware):
     # the rates move (measured ranges 9.2 and 35.9 pps of Ia): the comparison is not of two
     # rest outputs
     assert np.ptp(c.run.ia_pps, axis=0).min() > 5.0
+    # the tendon organs: measured 0.0006 pps RMS (BRA Ib, 0-15.2 pps over the 0.8 s; the
+    # servo torque is a flexion one there, TRImed's Ib is 0 in both)
+    assert c.rms_pps["BRA Ib"] <= 0.002 and c.rms_pps["TRImed Ib"] <= 0.002, c.rms_pps
+    assert np.ptp(c.run.ib_pps[:, 0]) > 10.0
     assert not firmware.emu.violations
 
 
 def test_faulty_trace_counts_every_bad_sample_as_the_host(firmware):
-    t, counts, faults = sysfw.fault_samples(700, seed=1)
-    assert faults  # the seeded stream injects some
-    c = sysfw.compare(firmware, t, counts)
+    samples, faults = sysfw.fault_samples(700, seed=1)
+    assert "load_invalid" in faults  # the seeded stream injects some
+    c = sysfw.compare(firmware, samples)
     assert c.counters_equal, (c.run.counters, c.host_counters)
+    assert c.run.counters["invalid_load"] > 0  # measured 20
+    # measured 0.0005 pps RMS (BRA Ib)
+    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.002, c.rms_pps
     rejected = sum(c.run.counters[k] for k in ("invalid_reading", "bad_time",
                                                 "repeated_time", "time_backwards"))
     assert rejected > 0  # measured 6 (3 invalid readings, 3 bad times)
@@ -70,11 +78,58 @@ def test_epoch_rebase_changes_nothing(tmp_path, firmware):
     # the firmware's clock is uint32 us since an epoch that moves to the last sample once it
     # is FW_EPOCH_S (1000 s) old; built with 1 s, a 1.1 s run crosses one move and must give
     # the same numbers
-    t, counts = sysfw.demo_samples(1.1)
+    samples = sysfw.demo_samples(1.1)
     rebased = sysfw.SystemFirmware(sysfw.build_system(
-        tmp_path, defines=(*sysfw.DEFINES, "FW_EPOCH_S=1"))).run(t, counts)
-    plain = firmware.run(t, counts)
+        tmp_path, defines=(*sysfw.DEFINES, "FW_EPOCH_S=1"))).run(samples)
+    plain = firmware.run(samples)
     np.testing.assert_array_equal(rebased.ia_pps, plain.ia_pps)
     np.testing.assert_array_equal(rebased.ii_pps, plain.ii_pps)
+    np.testing.assert_array_equal(rebased.ib_pps, plain.ib_pps)
     np.testing.assert_array_equal(rebased.pulses, plain.pulses)
     assert rebased.counters == plain.counters
+
+
+def _after(t: float, interval_s: float, above: bool) -> float:
+    """The time after t whose double difference from t is the closest to interval_s above it
+    (above=True: the rule "longer than" holds) or at or below it (False): 2e-16 s from the
+    limit, where the firmware's Q32 times cannot tell."""
+    x = t + interval_s
+    while x - t > interval_s:
+        x = float(np.nextafter(x, -np.inf))
+    while x - t <= interval_s:
+        below, x = x, float(np.nextafter(x, np.inf))
+    return x if above else below
+
+
+def test_time_and_load_rules_at_their_limits_as_the_host(firmware):
+    # intervals one double away from the bridge (6 ms) and the gap (14 ms) rule: the
+    # firmware's integer times are too coarse there and must fall back to the host's double
+    # rule; and load words valid, invalid (held: invalid_load) and missing (missing_load)
+    cfg = sysfw.DEVICE_CONFIG
+    t = [1.0]
+    for interval, above in ((cfg.max_bridge_s, False), (cfg.max_bridge_s, True),
+                            (cfg.max_bridge_s, False), (cfg.gap_s, False), (cfg.gap_s, True)):
+        t += [t[-1] + 0.002 * k for k in range(1, 4)]
+        t.append(_after(t[-1], interval, above))
+    t += [t[-1] + 0.002 * k for k in range(1, 40)]
+    n = len(t)
+    counts = np.full(n, 600.0)
+    load = np.full(n, 300.0)  # a flexion torque: BRA's force
+    load[5:9] = [np.nan, 2048.0, 3.5, -1.0]
+    load[30:] = 300.0 + 1024.0  # the same magnitude clockwise: TRImed's force
+    has_load = np.ones(n, dtype=bool)
+    has_load[12:15] = False
+    samples = sysfw.Samples(np.array(t), counts, load, has_load)
+    host, host_counters = sysfw.host_chain(samples)
+    # the crafted intervals do what they are meant to on the host: the two at 6 ms are
+    # bridged, the one just above restarts, both at 14 ms restart and only the one just above
+    # is a gap
+    assert host_counters["restarts"] == 3 and host_counters["gaps"] == 1
+    assert host_counters["invalid_load"] == 4 and host_counters["missing_load"] == 3
+    c = sysfw.compare(firmware, samples)
+    assert c.counters_equal, (c.run.counters, c.host_counters)
+    np.testing.assert_array_equal(c.run.accepted != 0, host["accepted"])
+    # Ib: both muscles' organs loaded in turn (TRImed's Ib rises by 11.7 pps); measured
+    # 0.0003 pps RMS
+    assert np.ptp(c.run.ib_pps[:, 1]) > 5.0
+    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.002, c.rms_pps

@@ -566,10 +566,40 @@ int ps_gto_batch_run(ps_gto *s, long n, const ps_gto_plan *q, long steps,
 #define FX_THIRD_Q30 357913941 /* 1/3 in Q30 */
 #define FX_LOG_BITS 24
 
-/* round(a b / 2^30) */
-static int32_t mul_q30(int32_t a, int32_t b)
+/* Exact 64-bit sums of 32 x 32 products as (hi 2^32 + lo), each product from 16-bit halves
+ * (ps_fx_mul_wide): the compiler's 64 x 64 helper and int64 additions took ~45 instructions
+ * and a call per product on the Cortex-M0+ (the results are the same bits). PS_FX_INLINE_MUL
+ * (gcc/clang, the system firmware's option, as for spindle.c's fx_mul): inlined at every
+ * use. */
+#if defined(PS_FX_INLINE_MUL) && defined(__GNUC__)
+#define FX_WIDE_INLINE __attribute__((always_inline)) static inline
+#else
+#define FX_WIDE_INLINE GTO_INLINE
+#endif
+typedef ps_fx_wide fx_wide;
+
+/* acc += a b */
+FX_WIDE_INLINE void fx_mac(fx_wide *acc, int32_t a, int32_t b)
 {
-    return (int32_t)(((int64_t)a * b + ((int64_t)1 << 29)) >> 30);
+    ps_fx_wide p = ps_fx_mul_wide(a, b);
+    acc->lo += p.lo;
+    acc->hi += p.hi + (acc->lo < p.lo ? 1 : 0);
+}
+
+/* round(acc / 2^shift) (half up) for 0 < shift < 32 and a result within int32 */
+FX_WIDE_INLINE int32_t fx_round(fx_wide acc, int shift)
+{
+    uint32_t lo = acc.lo + (1u << (shift - 1));
+    int32_t hi = acc.hi + (lo < acc.lo ? 1 : 0);
+    return (int32_t)(((uint32_t)hi << (32 - shift)) | (lo >> shift));
+}
+
+/* round(a b / 2^30) */
+FX_WIDE_INLINE int32_t mul_q30(int32_t a, int32_t b)
+{
+    fx_wide acc = {0, 0};
+    fx_mac(&acc, a, b);
+    return fx_round(acc, 30);
 }
 
 static int to_q30(double x, int32_t *out)
@@ -622,36 +652,63 @@ int ps_gto_plan_fx_init(ps_gto_plan_fx *qf, const ps_gto_plan *q)
     return PS_OK;
 }
 
-/* ln(1 + x) in Q24 for x = F / G2 in Q16, 0 <= x <= PS_GTO_FX_MAX_RATIO: log2 of the
- * integer part from the top bit, of the mantissa by repeated squaring, times ln 2. */
+/* ln(1 + x) in Q24 for x = F / G2 in Q16, 0 <= x <= PS_GTO_FX_MAX_RATIO: u = 1 + x =
+ * 2^k m with m in [1, 2) from the top bit, m = t (1 + d) with t = 1 + i/64 the table point
+ * below m and 0 <= d < 1/64, ln u = k ln 2 + ln t + d - d^2/2 + d^3/3 (the first term left
+ * out, d^4/4 < 2^-26, is below a quarter of the result's last bit). Four products where
+ * 24 squarings of the mantissa took 24 long multiplies. */
+#define FX_LN_TABLE_BITS 6
+static const int32_t fx_ln_point_q30[1 << FX_LN_TABLE_BITS] = { /* ln(1 + i/64), Q30 */
+    0, 16647494, 33040817, 49187615, 65095192, 80770534, 96220323, 111450959, 126468572,
+    141279038, 155887996, 170300854, 184522808, 198558849, 212413774, 226092199, 239598564,
+    252937143, 266112055, 279127266, 291986604, 304693756, 317252283, 329665621, 341937090,
+    354069895, 366067135, 377931807, 389666807, 401274940, 412758919, 424121372, 435364845,
+    446491803, 457504636, 468405662, 479197128, 489881214, 500460037, 510935650, 521310048,
+    531585167, 541762891, 551845048, 561833416, 571729724, 581535654, 591252841, 600882877,
+    610427311, 619887653, 629265371, 638561895, 647778619, 656916903, 665978069, 674963409,
+    683874180, 692711611, 701476899, 710171213, 718795691, 727351448, 735839570};
+static const int32_t fx_inv_point_q30[1 << FX_LN_TABLE_BITS] = { /* 1 / (1 + i/64), Q30 */
+    1073741824, 1057222719, 1041204193, 1025663832, 1010580540, 995934445, 981706811,
+    967879954, 954437177, 941362695, 928641578, 916259690, 904203641, 892460737, 881018933,
+    869866794, 858993459, 848388602, 838042399, 827945503, 818089009, 808464432, 799063683,
+    789879043, 780903145, 772128952, 763549742, 755159085, 746950834, 738919105, 731058263,
+    723362913, 715827883, 708448214, 701219150, 694136129, 687194767, 680390859, 673720360,
+    667179386, 660764199, 654471207, 648296950, 642238100, 636291451, 630453915, 624722516,
+    619094385, 613566757, 608136962, 602802428, 597560667, 592409282, 587345955, 582368447,
+    577474594, 572662306, 567929560, 563274399, 558694933, 554189329, 549755814, 545392673,
+    541098242};
 static int32_t ln1p_q24(uint32_t x_q16)
 {
-    uint32_t u = x_q16 + 65536u; /* 1 + x in Q16, in [1, 32768) */
-    int32_t k = 0, log2_q24, i;
-    int64_t m;
-    while ((u >> (k + 17)) != 0u) ++k; /* u / 2^(k + 16) in [1, 2) */
-    m = ((int64_t)u << 14) >> k;      /* the mantissa in Q30 */
-    log2_q24 = k << FX_LOG_BITS;
-    for (i = FX_LOG_BITS - 1; i >= 0; --i) {
-        m = (m * m) >> 30;
-        if (m >= ((int64_t)2 << 30)) {
-            m >>= 1;
-            log2_q24 += (int32_t)1 << i;
-        }
-    }
-    return mul_q30(log2_q24, FX_LN2_Q30);
+    uint32_t u = x_q16 + 65536u; /* 1 + x in Q16, in [1, 32768] */
+    int32_t k = 0, i, m, d, d2, ln;
+    while (k < 15 && (u >> (k + 17)) != 0u) ++k; /* u / 2^(k + 16) in [1, 2) */
+    m = (int32_t)(k <= 14 ? u << (14 - k) : u >> (k - 14)); /* the mantissa in Q30 */
+    i = (m >> (30 - FX_LN_TABLE_BITS)) & ((1 << FX_LN_TABLE_BITS) - 1);
+    d = mul_q30(m - ((1 << 30) + (i << (30 - FX_LN_TABLE_BITS))), fx_inv_point_q30[i]);
+    d2 = mul_q30(d, d);
+    ln = fx_ln_point_q30[i] + d - (d2 >> 1) + mul_q30(mul_q30(d2, d), FX_THIRD_Q30);
+    /* round((k ln2 + ln) / 64) without the 64-bit sum: ln 2 = 64 a + b in Q30 */
+    return k * (FX_LN2_Q30 >> 6) + ((k * (FX_LN2_Q30 & 63) + ln + 32) >> 6);
 }
 
 static int32_t fx_log_stage(const ps_gto_plan_fx *q, int32_t force, int32_t inv_scale)
 {
-    int64_t x = ((int64_t)force * inv_scale) >> 16; /* Q8 * Q24 -> Q16 */
-    if (x > ((int64_t)PS_GTO_FX_MAX_RATIO << 16)) x = (int64_t)PS_GTO_FX_MAX_RATIO << 16;
-    return (int32_t)(((int64_t)q->gain * ln1p_q24((uint32_t)x) + ((int64_t)1 << 23)) >> 24);
+    fx_wide acc = {0, 0}, rate = {0, 0};
+    uint32_t x; /* F / G2: Q8 * Q24 -> Q16, floored, saturated at PS_GTO_FX_MAX_RATIO */
+    if (force == 0) return 0; /* ln 1 (the slack tendon of the unloaded muscle) */
+    fx_mac(&acc, force, inv_scale); /* >= 0: force >= 0 and inv_scale > 0 */
+    if (acc.hi > PS_GTO_FX_MAX_RATIO || (acc.hi == PS_GTO_FX_MAX_RATIO && acc.lo >= 65536u))
+        x = (uint32_t)PS_GTO_FX_MAX_RATIO << 16;
+    else
+        x = ((uint32_t)acc.hi << 16) | (acc.lo >> 16);
+    fx_mac(&rate, q->gain, ln1p_q24(x));
+    return fx_round(rate, 24);
 }
 
 static int fx_check(int32_t force, int32_t inv_scale)
 {
-    if ((double)force > PS_GTO_MAX_FORCE_N * PS_GTO_FX_FORCE_ONE) return PS_ERR_FORCE_RANGE;
+    /* (double)force > PS_GTO_MAX_FORCE_N * PS_GTO_FX_FORCE_ONE without soft float */
+    if (force > (int32_t)(PS_GTO_MAX_FORCE_N * PS_GTO_FX_FORCE_ONE)) return PS_ERR_FORCE_RANGE;
     if (inv_scale <= 0) return PS_ERR_CONFIG;
     return PS_OK;
 }
@@ -666,7 +723,11 @@ int ps_gto_fx_init(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
     f = force > 0 ? force : 0;
     r = fx_log_stage(q, f, inv_scale);
     s->z[0] = r;
-    s->z[1] = (int32_t)(((int64_t)r * q->inv_a0 + ((int64_t)1 << 23)) >> 24);
+    {
+        fx_wide acc = {0, 0};
+        fx_mac(&acc, r, q->inv_a0);
+        s->z[1] = fx_round(acc, 24);
+    }
     s->z[2] = 0;
     s->force = f;
     s->r = r;
@@ -678,7 +739,6 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
 {
     int code, i;
     int32_t f1, r0, r1, r_mid, alpha, beta, z[3];
-    int64_t y;
     if (s == NULL || q == NULL) return PS_ERR_NULL;
     code = fx_check(force, inv_scale);
     if (code != PS_OK) return code;
@@ -690,16 +750,30 @@ int ps_gto_step_fx(ps_gto_fx *s, const ps_gto_plan_fx *q, int32_t force, int32_t
     alpha = r0 + mul_q30(2 * r_mid - r0 - r1, FX_THIRD_Q30);
     beta = r1 - r0;
     for (i = 0; i < 3; ++i) {
-        int64_t acc = (int64_t)q->phi[i][0] * s->z[0] + (int64_t)q->phi[i][1] * s->z[1]
-                      + (int64_t)q->phi[i][2] * s->z[2] + (int64_t)q->g0[i] * alpha
-                      + (int64_t)q->g1[i] * beta;
-        z[i] = (int32_t)((acc + ((int64_t)1 << 29)) >> 30);
+        fx_wide acc = {0, 0};
+        int j;
+        for (j = 0; j < 3; ++j) /* the low-pass's row has zeros: a product skipped is ~30 */
+            if (q->phi[i][j] != 0) fx_mac(&acc, q->phi[i][j], s->z[j]);
+        if (alpha != 0) fx_mac(&acc, q->g0[i], alpha); /* 0 while the force stays 0 */
+        if (beta != 0) fx_mac(&acc, q->g1[i], beta);
+        z[i] = fx_round(acc, 30);
     }
     for (i = 0; i < 3; ++i) s->z[i] = z[i];
     s->force = f1;
     s->r = r1;
-    y = ((int64_t)q->c[0] * z[0] + (int64_t)q->c[1] * z[1] + (int64_t)q->c[2] * z[2]
-         + ((int64_t)1 << 29)) >> 30;
-    if (ib != NULL) *ib = y > 0 ? (int32_t)y : 0;
+    if (ib != NULL) *ib = ps_gto_rate_fx(s, q);
     return PS_OK;
+}
+
+int32_t ps_gto_rate_fx(const ps_gto_fx *s, const ps_gto_plan_fx *q)
+{
+    fx_wide acc = {0, 0};
+    int32_t y;
+    if (s == NULL || q == NULL) return 0;
+    fx_mac(&acc, q->c[0], s->z[0]);
+    fx_mac(&acc, q->c[1], s->z[1]);
+    fx_mac(&acc, q->c[2], s->z[2]);
+    if (acc.hi < 0) return 0; /* negative (the plan's bounds keep y within int32) */
+    y = fx_round(acc, 30);
+    return y > 0 ? y : 0;
 }

@@ -37,10 +37,10 @@ from spindle.native.m0plus.system_config import (
     system_config_source,
 )
 
-FIRMWARE_COUNTERS = tuple(name for name in COUNTERS if name not in ("invalid_load",
-                                                                    "missing_load"))
-"""The firmware's counters (``fw_counters`` in ``system.c``): the chain's, but for the load
-reading's, which waits for the tendon-organ stage (``FW_GTO``)."""
+FIRMWARE_COUNTERS = COUNTERS
+"""The firmware's counters (``fw_counters`` in ``system.c``): the chain's, in order."""
+LOAD_COUNTERS = ("invalid_load", "missing_load")
+"""The load reading's counters: only a build with the tendon organs (``FW_GTO``) reads it."""
 
 STAGES = {"stage_reading": "reading and time rules", "stage_median": "median filter",
           "stage_angle": "f(x), angle slew and clamp", "stage_lengths": "fitted lengths",
@@ -51,13 +51,14 @@ STAGES = {"stage_reading": "reading and time rules", "stage_median": "median fil
 """system.c's stage functions and the names the breakdown gives them."""
 SAMPLE_PERIOD_S = 2e-3
 STACK_BYTES = 0x800  # reserved while measuring; re-linked to the high-water mark
-RECORD = struct.Struct("<3i8ii")  # fw_record: t_us, accepted, status, ia, ii, gs, gd, steps
-RING = 8
+RECORD = struct.Struct("<3i8ii2i")  # fw_record: t_us, accepted, status, ia, ii, gs, gd, steps, ib
+INPUT = struct.Struct("<dffi4x")  # fw_input: t_s, counts, load, has_load
+RING = 4  # FW_RING
 PULSE = struct.Struct("<q5i4x")  # ps_pulse_fx: time_us, channel, amplitude, phases
 PULSE_RING = 16
-DEFINES = ("PS_FX_INLINE_MUL", "FW_STIM")
+DEFINES = ("PS_FX_INLINE_MUL", "FW_GTO", "FW_STIM")
 """The system build's options: fx_mul inlined into the fixed-point step (same results), the
-stimulation encoder's stage."""
+tendon organs' stage (the load word), the stimulation encoder's stage."""
 
 
 def default_stim():
@@ -73,9 +74,11 @@ def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
                  defines: tuple[str, ...] = DEFINES, opt: str = "-Os") -> Path:
     """The system firmware's ELF for ``config`` at ``spindle_step_s``."""
     stim = default_stim() if "FW_STIM" in defines else None
-    source = system_config_source(config, spindle_step_s=spindle_step_s, stim=stim)
+    gto = "FW_GTO" in defines
+    source = system_config_source(config, spindle_step_s=spindle_step_s, stim=stim,
+                                  tendon_organs=gto)
     tag = key(source, stack_bytes, defines, opt, (FW_DIR / "system.c").read_bytes(),
-              (FW_DIR / "startup.c").read_bytes(), (C_DIR / "stimulation.c").read_bytes())
+              (C_DIR / "tendon_organ.c").read_bytes())
     header_dir = build_dir / f"system_{tag}"
     header_dir.mkdir(parents=True, exist_ok=True)
     (header_dir / "fw_system_config.h").write_text(source)
@@ -90,6 +93,8 @@ def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
             from spindle.native.m0plus.stim import stim_config_header
 
             extra = ["-I", str(stim_config_header(stim, build_dir)), str(C_DIR / "stimulation.c")]
+        if gto:
+            extra.append(str(C_DIR / "tendon_organ.c"))
         cmd = [tool("gcc"), *ARM_FLAGS, opt, *(f"-D{d}" for d in defines), "-I", str(C_DIR),
                "-I", str(header_dir), str(C_DIR / "spindle.c"), *extra, str(FW_DIR / "system.c"),
                str(FW_DIR / "startup.c"),
@@ -105,6 +110,7 @@ class Run:
 
     ia_pps: np.ndarray
     ii_pps: np.ndarray
+    ib_pps: np.ndarray    # 0 without the tendon organs (FW_GTO)
     gs_pps: np.ndarray
     gd_pps: np.ndarray
     accepted: np.ndarray  # 0 rejected, 1 accepted, 2 restarted at rest
@@ -132,23 +138,32 @@ class SystemFirmware:
         self.emu = M0Plus(elf, cycles=True, stages=STAGES)
         self.elf = elf
 
-    def run(self, t_s: np.ndarray, counts: np.ndarray) -> Run:
+    @property
+    def tendon_organs(self) -> bool:
+        """Whether the build has the tendon organs' stage (FW_GTO: it reads the load word)."""
+        return "stage_tendon" in self.emu.sym
+
+    def run(self, samples: Samples) -> Run:
         """fw_init, then one fw_sample per sample."""
         emu, uc, sym = self.emu, self.emu.uc, self.emu.sym
-        emu.call("fw_init")
+        status, _ = emu.call("fw_init")
+        if status != 0:
+            raise RuntimeError(f"fw_init: status {status}")
         emu.by_stage.clear()
+        t_s, counts = samples.t_s, samples.counts
         n = len(t_s)
         out = {name: np.zeros(n, dtype=np.int64) for name in
                ("accepted", "status", "steps", "instructions", "cycles", "fetches",
                 "flash_reads")}
-        rates = np.zeros((4, n, 2))
+        rates = np.zeros((5, n, 2))
         head_addr, ring_addr, in_addr = sym["fw_out_head"][0], sym["fw_out"][0], sym["fw_in"][0]
         last, peak, peak_stages = None, -1, {}
         stim = "fw_pulse_head" in sym
         pulses, seen = [], 0
         for j in range(n):
             stages_before = {k: list(v) for k, v in emu.by_stage.items()}
-            uc.mem_write(in_addr, struct.pack("<dfff", float(t_s[j]), float(counts[j]), 0, 0))
+            uc.mem_write(in_addr, INPUT.pack(float(t_s[j]), float(counts[j]),
+                                             float(samples.load[j]), int(samples.has_load[j])))
             before = (emu.cycles, emu.fetches, emu.flash_reads)
             status, instructions = emu.call("fw_sample")
             out["instructions"][j] = instructions
@@ -180,32 +195,51 @@ class SystemFirmware:
                 seen = head
             if last is not None:
                 fields = last[1]
-                rates[:, j] = np.array(fields[3:11]).reshape(4, 2) / (
-                    np.array([FX_RATE, FX_RATE, FX_DRIVE, FX_DRIVE])[:, None])
+                rates[:, j] = np.array(fields[3:11] + fields[12:14]).reshape(5, 2) / (
+                    np.array([FX_RATE, FX_RATE, FX_DRIVE, FX_DRIVE, FX_RATE])[:, None])
         raw = bytes(uc.mem_read(sym["fw_count"][0], 4 * len(FIRMWARE_COUNTERS)))
         counters = dict(zip(FIRMWARE_COUNTERS, struct.unpack(f"<{len(FIRMWARE_COUNTERS)}I", raw),
                             strict=True))
         overruns, = struct.unpack("<I", bytes(uc.mem_read(sym["fw_overruns"][0], 4)))
         lost = struct.unpack("<I", bytes(uc.mem_read(sym["fw_pulse_lost"][0], 4)))[0] if stim \
             else 0
-        return Run(rates[0], rates[1], rates[2], rates[3], counters=counters, overruns=overruns,
+        return Run(rates[0], rates[1], rates[4], rates[2], rates[3], counters=counters,
+                   overruns=overruns,
                    pulses=np.array(pulses, dtype=np.int64).reshape(-1, 2), pulses_lost=lost,
                    by_stage={k: list(v) for k, v in emu.by_stage.items()},
                    peak_by_stage=peak_stages, **out)
 
 
-def host_chain(t_s: np.ndarray, counts: np.ndarray,
-               config: ChainConfig = DEVICE_CONFIG) -> tuple[dict[str, np.ndarray], dict]:
+def host_chain(samples: Samples, config: ChainConfig = DEVICE_CONFIG,
+               with_load: bool = True) -> tuple[dict[str, np.ndarray], dict]:
     """The host's double C chain on the same samples: reset at rest at the first sample (as
-    the firmware's first sample), then every other pushed. (outputs (T, ...), counters)."""
+    the firmware's first sample, with its load word), then every other pushed, with its load
+    word if one came (``with_load``: else none at all, as a build without the tendon organs
+    reads). (outputs (T, ...), counters)."""
     chain = CArmChain(config, load_length_fits(config.fits_path))
-    rest = chain.reset(float(config.calibration.angle_deg(float(counts[0]))), float(t_s[0]))
-    out = chain.run_trace("push_counts", np.asarray(t_s[1:], dtype=float),
-                          np.asarray(counts[1:], dtype=float))
-    stacked = {}
-    for name in ("ia_pps", "ii_pps", "gamma_static_pps", "gamma_dynamic_pps", "accepted"):
-        stacked[name] = np.concatenate((np.asarray(getattr(rest, name))[None], out[name]))
-    return stacked, {name: chain.counters[name] for name in FIRMWARE_COUNTERS}
+    t, counts = np.asarray(samples.t_s, dtype=float), np.asarray(samples.counts, dtype=float)
+    has_load = np.asarray(samples.has_load, dtype=bool) & with_load
+    first_load = float(samples.load[0]) if has_load[0] else None
+    rest = chain.reset(float(config.calibration.angle_deg(float(counts[0]))), float(t[0]),
+                       load=first_load)
+    pieces = [{name: np.asarray(getattr(rest, name))[None] for name in HOST_FIELDS}]
+    start = 1
+    while start < len(t):  # runs of samples with and without load words
+        stop = start + 1
+        while stop < len(t) and has_load[stop] == has_load[start]:
+            stop += 1
+        out = chain.run_trace("push_counts", t[start:stop], counts[start:stop],
+                              load=samples.load[start:stop] if has_load[start] else None)
+        pieces.append({name: out[name] for name in HOST_FIELDS})
+        start = stop
+    stacked = {name: np.concatenate([p[name] for p in pieces]) for name in HOST_FIELDS}
+    names = FIRMWARE_COUNTERS if with_load else tuple(
+        k for k in FIRMWARE_COUNTERS if k not in LOAD_COUNTERS)
+    return stacked, {name: chain.counters[name] for name in names}
+
+
+HOST_FIELDS = ("ia_pps", "ii_pps", "ib_pps", "gamma_static_pps", "gamma_dynamic_pps",
+               "accepted")
 
 
 def host_pulses(t_s: np.ndarray, host: dict[str, np.ndarray], stim,
@@ -219,7 +253,7 @@ def host_pulses(t_s: np.ndarray, host: dict[str, np.ndarray], stim,
     from spindle.stimulation.channels import afferent_rates
 
     rates = stim.channels.gather(afferent_rates(MUSCLES, ia=host["ia_pps"],
-                                                ii=host["ii_pps"]))
+                                                ii=host["ii_pps"], ib=host["ib_pps"]))
     rows, dts, prev = [], [], 0
     for j in np.flatnonzero(host["accepted"])[1:]:
         dt = float(t_s[j]) - float(t_s[prev])
@@ -249,19 +283,40 @@ def pulse_count_difference(fw: np.ndarray, host: np.ndarray, n_channels: int,
     return int(np.max(np.abs(counts(fw) - counts(host))))
 
 
+@dataclasses.dataclass(frozen=True)
+class Samples:
+    """What the encoder port delivers, per sample (T,): the time, the counts, the servo's load
+    word (any value: the chain's rules judge it) and whether a load word came at all."""
+
+    t_s: np.ndarray
+    counts: np.ndarray
+    load: np.ndarray
+    has_load: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
 def demo_samples(duration_s: float, low_deg: float = 20.0, high_deg: float = 110.0,
-                 speed_deg_s: float = 130.0) -> tuple[np.ndarray, np.ndarray]:
+                 speed_deg_s: float = 130.0) -> Samples:
     """The seed paper's repeated rapid flexion-extension (a triangle at ``speed_deg_s``) read
-    by the encoder without noise, jitter or glitches at exactly 500 Hz: (t_s, counts)."""
+    by the encoder without noise, jitter or glitches at exactly 500 Hz, with the load words of
+    the fault trace's smooth servo torque (``fault_injection.servo_torque_Nm``, flexion and
+    extension within 1.1 N m) read without noise or invalid words."""
+    from proprio_env.body.encoder import LoadSensor
     from proprio_env.body.servo_motion import triangle_deg
-    from spindle.chain.sensor import AX12, Calibration
+    from proprio_env.experiments.fault_injection import servo_torque_Nm
+    from spindle.chain.sensor import AX12, AX12_LOAD, Calibration
 
     t = np.arange(round(duration_s / SAMPLE_PERIOD_S) + 1) * SAMPLE_PERIOD_S
     angle = triangle_deg(t, low_deg, high_deg, speed_deg_s)
     cal = Calibration(deg_per_count=AX12.deg_per_count)
     counts = np.clip(np.round(cal.zero_count + cal.sign * angle / cal.deg_per_count), 0,
                      AX12.max_count)
-    return t, counts
+    sensor = LoadSensor(dataclasses.replace(AX12_LOAD, noise_counts=0.0, invalid_rate=0.0),
+                        sign=cal.sign, rng=0)
+    load = sensor.read_block(np.array([servo_torque_Nm(float(x)) for x in t]))
+    return Samples(t, counts, load, np.ones(len(t), dtype=bool))
 
 
 def _as_float(x: object) -> float:
@@ -274,27 +329,34 @@ def _as_float(x: object) -> float:
 
 
 def fault_samples(n_samples: int, seed: int = 0,
-                  fault_probability: float = 0.2) -> tuple[np.ndarray, np.ndarray, list[str]]:
+                  fault_probability: float = 0.2) -> tuple[Samples, list[str]]:
     """A recorded servo trace with jitter, noise, invalid readings and injected faults
-    (proprio_env.experiments.fault_injection.fault_stream, its counts entries), starting at
-    its first valid sample: (t_s, counts as float32, the faults injected)."""
+    (proprio_env.experiments.fault_injection.fault_stream, its counts entries with their load
+    words, a segment pushed without load having none), starting at its first valid sample;
+    counts and load words as float32 (what the firmware's input holds): (samples, the faults
+    injected)."""
     from proprio_env.experiments.fault_injection import fault_stream
     from spindle.chain.sensor import AX12, is_valid_reading
 
     fits = load_length_fits(None)
-    t, x, faults = [], [], []
+    t, x, load, has_load, faults = [], [], [], [], []
     for seg in fault_stream(np.random.default_rng(seed), n_samples, fits, fault_probability):
         if seg.entry != "counts":
             continue
         t += [_as_float(v) for v in seg.t_s]
         x += [_as_float(v) for v in seg.values]
+        words = seg.loads if seg.loads is not None else [0.0] * len(seg.t_s)
+        load += [_as_float(v) for v in words]
+        has_load += [seg.loads is not None] * len(seg.t_s)
         if seg.fault:
             faults.append(seg.fault)
     t_arr = np.array(t)
     x_arr = np.array(x, dtype=np.float32).astype(float)
     first = next(i for i in range(len(t)) if math.isfinite(t_arr[i])
                  and is_valid_reading(x_arr[i], AX12.max_count))
-    return t_arr[first:], x_arr[first:], faults
+    return Samples(t_arr[first:], x_arr[first:],
+                   np.array(load, dtype=np.float32).astype(float)[first:],
+                   np.array(has_load[first:], dtype=bool)), faults
 
 
 @dataclasses.dataclass
@@ -315,15 +377,20 @@ class Compared:
         return max(self.rms_pps.values())
 
 
-def compare(fw: SystemFirmware, t_s: np.ndarray, counts: np.ndarray,
+def compare(fw: SystemFirmware, samples: Samples,
             config: ChainConfig = DEVICE_CONFIG) -> Compared:
-    """The firmware and the host double chain on the same samples."""
-    run = fw.run(t_s, counts)
-    host, host_counters = host_chain(t_s, counts, config)
+    """The firmware and the host double chain on the same samples (Ia, II and, with the
+    tendon organs, Ib)."""
+    run = fw.run(samples)
+    host, host_counters = host_chain(samples, config, with_load=fw.tendon_organs)
+    counters = {k: v for k, v in run.counters.items() if k in host_counters}
+    run = dataclasses.replace(run, counters=counters)
+    afferents = [("Ia", run.ia_pps, host["ia_pps"]), ("II", run.ii_pps, host["ii_pps"])]
+    if fw.tendon_organs:
+        afferents.append(("Ib", run.ib_pps, host["ib_pps"]))
     rms, worst = {}, 0.0
     for k, muscle in enumerate(MUSCLES):
-        for name, got, ref in (("Ia", run.ia_pps, host["ia_pps"]),
-                               ("II", run.ii_pps, host["ii_pps"])):
+        for name, got, ref in afferents:
             d = got[:, k] - ref[:, k]
             rms[f"{muscle} {name}"] = float(np.sqrt(np.mean(d**2)))
             worst = max(worst, float(np.max(np.abs(d))))
@@ -331,7 +398,7 @@ def compare(fw: SystemFirmware, t_s: np.ndarray, counts: np.ndarray,
     diff = 0
     if "fw_pulse_head" in fw.emu.sym:
         stim = default_stim()
-        host_events = host_pulses(t_s, host, stim, config)
+        host_events = host_pulses(samples.t_s, host, stim, config)
         diff = pulse_count_difference(run.pulses, host_events, stim.n_channels)
     return Compared(run, host_counters, rms, worst, host_events, diff)
 

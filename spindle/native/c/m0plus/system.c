@@ -6,10 +6,10 @@
  *   -> output record
  *
  * fw_sample() is what a 500 Hz timer interrupt would run: it reads the sample in fw_in (time,
- * counts and, for the tendon organs, the load) and runs the stages of fw_stages[] in order,
- * each a function of the sample context (the table is what the bench's per-stage breakdown
- * follows: a stage is everything from its entry to the next stage's). The tendon organs and
- * the stimulation encoder slot in as two more rows (FW_GTO, FW_STIM sections below).
+ * counts and, for the tendon organs, the servo's load word) and runs the stages of fw_stages[]
+ * in order, each a function of the sample context (the table is what the bench's per-stage
+ * breakdown follows: a stage is everything from its entry to the next stage's). The tendon
+ * organs and the stimulation encoder are two more rows (FW_GTO, FW_STIM sections below).
  *
  * Everything after the time rules is integer arithmetic (no FPU on the part; soft float costs
  * 30-100 instructions per operation): angles Q16 deg, lengths Q24 L0, velocities Q20 L0/s,
@@ -39,15 +39,14 @@
 
 typedef struct fw_config {
     double gap_s, max_bridge_s;  /* the chain's interval rules (s) */
+    int64_t gap_Q32, max_bridge_Q32; /* the same in Q32 s, rounded */
     int32_t resync_after_samples;
     int32_t max_count;           /* valid readings: integers 0..max_count */
     int32_t median_window;
     int32_t zero_Q16;            /* zero_count (counts, Q16) */
     int32_t deg_per_count_Q30;   /* count_sign * deg_per_count (deg, Q30) */
     int32_t angle_min_Q16, angle_max_Q16;       /* the fitted range (deg, Q16) */
-    int32_t fit_mid_Q16, fit_scale_Q30;         /* x = (angle - mid) * scale, scale in 1/deg */
-    int32_t n_coefficients[PS_MUSCLES];
-    int32_t coefficients_Q28[PS_MUSCLES][PS_FIT_MAX_COEFFS];
+    int32_t length_scale_Q28;                   /* fw_length_Q24's points per degree */
     int32_t max_speed_deg_Q32_us;               /* max_speed_deg_s: deg per us, Q32 */
     int32_t max_speed_L0_Q40_us;                /* max_speed_L0_s: L0 per us, Q40 */
     int32_t omega_Q16;                          /* tracking low-pass (rad/s) */
@@ -60,13 +59,41 @@ typedef struct fw_config {
     int32_t length_max_Q24[PS_MUSCLES];         /* h(x): gs = min + gain (Lmax - template) */
     int32_t gs_gain_Q8[PS_MUSCLES];             /* span / (Lmax - Lmin) (pps/L0) */
     int32_t spindle_step_us;                    /* the plan's h */
+    int32_t spindle_reach_Q24;                  /* the length's slew limit over one step */
     /* e^(-omega dt) of the tracking filter for dt = 64 i + j us (Q30): coarse i, fine j */
     int32_t decay_coarse_Q30[FW_DECAY_COARSE], decay_fine_Q30[64];
 } fw_config;
 
+#ifdef FW_GTO
+/* The force sense's constants (generated with fw_cfg, from the same ps_chain_config): the load
+ * word's sign, the moment-arm grid (the host's table points) as force per load count of each
+ * muscle, 1/G2, and the tendon organs' fixed-point plans: one at the nominal interval and a
+ * table at h = k 256 us (k = 0: no time passes), linear between its points. */
+#define FW_GTO_PLANS 26          /* intervals up to (FW_GTO_PLANS - 1) * 256 us = 6.4 ms */
+#define FW_GTO_PLAN_SHIFT 8      /* the table's step, 256 us: its index is a shift */
+typedef struct fw_gto_config {
+    int32_t load_sign;           /* the torque's sign of a counter-clockwise load word */
+    int32_t arm_lo_Q16;          /* the moment-arm grid's first angle (deg, Q16) */
+    int32_t arm_scale_Q28;       /* grid points per degree */
+    int32_t arm_last;            /* the last grid point's index */
+    int32_t arm_shift;           /* fw_arm_force's values are the Q12 ones >> arm_shift */
+    int32_t inv_scale_Q24[PS_MUSCLES]; /* 1 / G2 (1/N) */
+    int32_t nominal_us;          /* the interval of plan_nominal */
+    ps_gto_plan_fx plan_nominal;
+    int32_t n_plans;
+    int32_t plan_Q30[FW_GTO_PLANS][15]; /* phi (row-major), g0, g1 at h = k 256 us */
+} fw_gto_config;
+#endif
+
 #include "fw_system_config.h" /* const fw_config fw_cfg; const ps_plan_fx fw_plan; with
                                 * FW_STIM the channel map fw_stim_source[channel] =
-                                * {muscle, 0: Ia / 1: II} */
+                                * {muscle, 0: Ia / 1: II / 2: Ib}; with FW_GTO fw_gto_cfg and
+                                * fw_arm_force[point][muscle], the force (N, Q8) per load
+                                * count at the grid's angles, Nm_per_count / |moment arm|, in
+                                * Q(12 - arm_shift), uint16 (half the flash of int32);
+                                * fw_length_Q24[point][muscle], the length fits at every count
+                                * of the fitted range (Q24 L0) */
+
 #ifdef FW_STIM
 /* const ps_stim_fx_config fw_stim_config (spindle.native.m0plus.stim) */
 #include "fw_stim_config.h"
@@ -75,20 +102,35 @@ typedef struct fw_config {
 /* ---- state ----------------------------------------------------------------------------- */
 
 /* chain.COUNTERS, in that order (only the rules a counts-only entry can reach increment
- * invalid_angle and invalid_length: never). */
+ * invalid_angle and invalid_length: never; invalid_load and missing_load only with FW_GTO,
+ * which reads the load word). */
 typedef struct fw_counters {
     uint32_t accepted, invalid_reading, invalid_angle, invalid_length, repeated_time,
-        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs;
+        time_backwards, bad_time, gaps, slew_limited, angle_clamped, restarts, clock_resyncs,
+        invalid_load, missing_load;
 } fw_counters;
 
-#define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz) */
+/* What the stages derive from an interval, kept while it repeats (the nominal one does). */
+typedef struct fw_interval {
+    int32_t us;                   /* -1: none yet */
+    int32_t Q30, inv_Q12;         /* in s (Q30); 1 / interval (1/s, Q12: 0 for 0 us) */
+    int32_t inv_us_Q30;           /* 1 / us (Q30; 0 for 0 us) */
+    int32_t decay_Q30;            /* the tracking low-pass's e^(-omega dt) */
+    int32_t angle_limit_Q16, length_limit_Q24; /* the slew limits over it */
+} fw_interval;
+
+#define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz); a power
+                        * of 2 (the ring's index is a mask) */
 #define FW_PENDING 8  /* queued spindle grid points per muscle */
 
 typedef struct fw_state {
-    int32_t median[PS_MEDIAN_MAX_WINDOW];
+    int32_t median[PS_MEDIAN_MAX_WINDOW];  /* the window in arrival order (a ring) */
+    int32_t sorted[PS_MEDIAN_MAX_WINDOW];  /* the same values in order */
     int32_t median_next;
     double t_s, epoch_s;          /* last accepted time; times below count from the epoch */
     int64_t t_key;                /* order_key(t_s) */
+    int64_t t_Q32, epoch_Q32;     /* t_s and epoch_s by to_Q32 (-1: out of its range) */
+    fw_interval interval;         /* the last interval's constants */
     uint32_t t_us;                /* last accepted time since the epoch */
     int32_t behind;
     int32_t angle_Q16;
@@ -106,6 +148,11 @@ typedef struct fw_state {
     uint32_t pending_t_us[PS_MUSCLES][FW_PENDING];
     int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
     int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
+#ifdef FW_GTO
+    ps_gto_fx gto[PS_MUSCLES];
+    int32_t torque_counts;          /* the last accepted sample's signed load (counts) */
+#endif
+    int32_t ib_Q16[PS_MUSCLES];
 #ifdef FW_STIM
     int32_t held_Q16[PS_STIM_MAX_CHANNELS]; /* each channel's rate since the last sample */
 #endif
@@ -116,7 +163,8 @@ typedef struct fw_state {
 typedef struct fw_input {
     double t_s;
     float counts;
-    float load[PS_MUSCLES]; /* the load reading, for the tendon organs (FW_GTO) */
+    float load;          /* the servo's load word, for the tendon organs (FW_GTO) */
+    int32_t has_load;    /* 0: no load word came with the sample (missing_load) */
 } fw_input;
 
 /* What a sample leaves in the output ring. */
@@ -127,9 +175,10 @@ typedef struct fw_record {
     int32_t ia_Q16[PS_MUSCLES], ii_Q16[PS_MUSCLES];
     int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
     int32_t steps;    /* spindle steps taken in this sample */
+    int32_t ib_Q16[PS_MUSCLES]; /* the tendon organs (0 without FW_GTO) */
 } fw_record;
 
-#define FW_RING 8
+#define FW_RING 4 /* records: read out after every sample */
 
 fw_input fw_in;
 fw_counters fw_count;
@@ -140,10 +189,12 @@ static fw_state st;
 
 /* The working values of one sample, passed from stage to stage. */
 typedef struct fw_ctx {
-    int64_t t_key;
+    int64_t t_key, t_Q32;
     int32_t counts, filtered, angle_Q16, restart;
+    int32_t torque_counts; /* the sample's signed load by the load rules (FW_GTO) */
     uint32_t t_us;
-    int32_t dt_us, dt_Q30, inv_dt_Q12;
+    int32_t dt_us;
+    const fw_interval *dt; /* its constants */
     int32_t L_Q24[PS_MUSCLES], x1_Q24[PS_MUSCLES], v1_Q20[PS_MUSCLES], tmpl_Q24[PS_MUSCLES];
     int32_t status, steps;
 } fw_ctx;
@@ -153,22 +204,15 @@ enum { FW_NEXT = 0, FW_DONE = 1 }; /* a stage's return: go on, or the sample is 
 /* ---- arithmetic ------------------------------------------------------------------------ */
 
 /* round(a b / 2^shift) for 0 < shift < 32 and a result within int32: the 64-bit product
- * from 16-bit halves (the M0+ multiplies 32x32->32; libgcc's __muldi3 took ~40 instructions
- * and a call per product), floored after adding 2^(shift-1), exactly as (a b + 2^(shift-1))
- * >> shift in int64. a = ah 2^16 + al (al unsigned), likewise b, so every partial product
- * fits in 32 bits. */
+ * from 16-bit halves (ps_fx_mul_wide: the M0+ multiplies 32x32->32; libgcc's __muldi3 took
+ * ~40 instructions and a call per product), floored after adding 2^(shift-1), exactly as
+ * (a b + 2^(shift-1)) >> shift in int64. */
 __attribute__((always_inline)) static inline int32_t mul_q(int32_t a, int32_t b, int shift)
 {
-    int32_t ah = a >> 16, bh = b >> 16;
-    uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
-    int32_t hl = ah * (int32_t)bl, lh = (int32_t)al * bh;
-    uint32_t ll = al * bl;
-    uint32_t mid = ((uint32_t)hl & 0xFFFFu) + ((uint32_t)lh & 0xFFFFu) + (ll >> 16);
-    int32_t hi = ah * bh + (hl >> 16) + (lh >> 16) + (int32_t)(mid >> 16);
-    uint32_t lo = (mid << 16) | (ll & 0xFFFFu);
-    uint32_t rounded = lo + (1u << (shift - 1));
-    hi += rounded < lo; /* the carry */
-    return (int32_t)(((uint32_t)hi << (32 - shift)) | (rounded >> shift));
+    ps_fx_wide p = ps_fx_mul_wide(a, b);
+    uint32_t rounded = p.lo + (1u << (shift - 1));
+    p.hi += rounded < p.lo; /* the carry */
+    return (int32_t)(((uint32_t)p.hi << (32 - shift)) | (rounded >> shift));
 }
 
 static int32_t clamp_i32(int32_t x, int32_t lo, int32_t hi)
@@ -218,6 +262,45 @@ static int is_finite_time(double x)
     return ((uint32_t)(v.u >> 52) & 0x7FFu) != 0x7FFu;
 }
 
+/* x * 2^32 floored, for 0 <= x < 2^31 (s), from the double's bits; -1 outside (the time
+ * rules then take the double path). */
+static int64_t to_Q32(double x)
+{
+    union { double d; uint64_t u; } v;
+    int32_t e;
+    uint64_t mantissa;
+    v.d = x;
+    if (v.u == 0) {
+        return 0;
+    }
+    e = (int32_t)(v.u >> 52) - 1023; /* the sign bit makes e large: refused */
+    if (e >= 31) {
+        return -1;
+    }
+    mantissa = (v.u & 0xFFFFFFFFFFFFFull) | (1ull << 52); /* x = mantissa 2^(e - 52) */
+    if (e >= 20) {
+        return (int64_t)(mantissa << (e - 20));
+    }
+    return e > -44 ? (int64_t)(mantissa >> (20 - e)) : 0;
+}
+
+/* The host's rule fl(t - t_s) > limit_s for a later t: decided on the Q32 times (interval_Q32
+ * is exact to +-1, so 2 units from the limit on either side decide it: the double difference
+ * of times this close to a limit is exact to ~1e-18 s), else by the double subtraction (times
+ * within 0.5 ns of the limit, or outside to_Q32's range: interval_Q32 < 0). */
+static int interval_exceeds(int64_t interval_Q32, int64_t limit_Q32, double t, double limit_s)
+{
+    if (interval_Q32 >= 0) {
+        if (interval_Q32 > limit_Q32 + 2) {
+            return 1;
+        }
+        if (interval_Q32 < limit_Q32 - 2) {
+            return 0;
+        }
+    }
+    return order_key(t - st.t_s) > order_key(limit_s);
+}
+
 /* is_valid_reading on the float's bits: an integer in 0..max_count (-0 reads 0), else -1. */
 static int32_t valid_reading(float x, int32_t max_count)
 {
@@ -251,6 +334,7 @@ static void rebase_epoch(void)
     const uint32_t shift = st.t_us;
     int m, k;
     st.epoch_s = st.t_s;
+    st.epoch_Q32 = st.t_Q32;
     st.t_us = 0;
     for (k = 0; k < FW_SEGMENTS; ++k) {
         st.seg_t_us[k] -= shift;
@@ -263,11 +347,76 @@ static void rebase_epoch(void)
     }
 }
 
+#ifdef FW_GTO
+/* The load rules of an accepted encoder sample (chain.c's sample_torque): a valid word's signed
+ * magnitude (bit 10: clockwise), the last accepted sample's held over an invalid word
+ * (invalid_load), 0 without a word (missing_load; not counted at the first sample, as the
+ * host's reset). */
+static void read_load(fw_ctx *c)
+{
+    int32_t word;
+    if (!fw_in.has_load) {
+        fw_count.missing_load += st.started ? 1u : 0u;
+        c->torque_counts = 0;
+        return;
+    }
+    word = valid_reading(fw_in.load, PS_LOAD_MAX_WORD);
+    if (word < 0) {
+        fw_count.invalid_load += 1;
+        c->torque_counts = st.started ? st.torque_counts : 0;
+        return;
+    }
+    c->torque_counts = (word & (PS_LOAD_MAGNITUDE_MAX + 1)) ? -(word & PS_LOAD_MAGNITUDE_MAX)
+                                                             : word;
+    c->torque_counts *= fw_gto_cfg.load_sign;
+}
+#endif
+
+/* The constants of an interval of dt_us. The decay from the tables (one product) within
+ * them, else the series (a longer max_bridge_s). */
+static void interval_constants(fw_interval *out, int32_t dt_us)
+{
+    out->us = dt_us;
+    out->Q30 = us_to_Q30(dt_us);
+    out->inv_Q12 = dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)dt_us) : 0;
+    out->inv_us_Q30 = dt_us > 0 ? (int32_t)((1u << 30) / (uint32_t)dt_us) : 0;
+    if (dt_us < 64 * FW_DECAY_COARSE) {
+        out->decay_Q30 = mul_q(fw_cfg.decay_coarse_Q30[dt_us >> 6],
+                               fw_cfg.decay_fine_Q30[dt_us & 63], 30);
+    } else {
+        out->decay_Q30 = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, out->Q30, 18));
+    }
+    out->angle_limit_Q16 = mul_q(fw_cfg.max_speed_deg_Q32_us, dt_us, 16);
+    out->length_limit_Q24 = mul_q(fw_cfg.max_speed_L0_Q40_us, dt_us, 16);
+}
+
+/* The time t of a sample within max_bridge_s of the last accepted one, in us since the epoch
+ * (rounded, below 2^31): from the Q32 times, else (a time outside to_Q32's range) the
+ * doubles'. The epoch moves on once it is FW_EPOCH_S old. */
+static uint32_t time_us(const fw_ctx *c, double t)
+{
+    double half_us;
+    if (c->t_Q32 >= 0 && st.epoch_Q32 >= 0) {
+        int64_t since = c->t_Q32 - st.epoch_Q32;
+        if (since >= ((int64_t)FW_EPOCH_S << 32)) {
+            rebase_epoch();
+            since = c->t_Q32 - st.epoch_Q32;
+        }
+        return (uint32_t)((since * 1000000 + ((int64_t)1 << 31)) >> 32);
+    }
+    half_us = (t - st.epoch_s) * 2e6;
+    if (order_key(half_us) >= order_key(2e6 * FW_EPOCH_S)) {
+        rebase_epoch();
+        half_us = (t - st.epoch_s) * 2e6;
+    }
+    return ((uint32_t)half_us + 1u) >> 1;
+}
+
 /* ArmChain._time and the reading check: the bad-sample rules that reject a sample. */
 static int stage_reading(fw_ctx *c)
 {
     const double t = fw_in.t_s;
-    int64_t t_key, dt_key = 0;
+    int64_t t_key;
     if (!is_finite_time(t)) {
         fw_count.bad_time += 1;
         return FW_DONE;
@@ -293,56 +442,67 @@ static int stage_reading(fw_ctx *c)
         fw_counters zero = {0};
         fw_count = zero;
     }
-    if (st.started && t_key > st.t_key) {
-        dt_key = order_key(t - st.t_s); /* the host's interval, to the bit */
-    }
+#ifdef FW_GTO
+    read_load(c);
+#endif
+    c->t_key = t_key;
+    c->t_Q32 = to_Q32(t);
     /* before the first valid sample there is no interval: it starts the arm at rest, as the
      * host's reset does (no gap, restart or accepted sample counted) */
-    c->restart = !st.started || t_key < st.t_key || dt_key > order_key(fw_cfg.max_bridge_s);
-    if (st.started && dt_key > order_key(fw_cfg.gap_s)) {
-        fw_count.gaps += 1;
+    c->restart = !st.started || t_key < st.t_key;
+    if (!c->restart && t_key > st.t_key) {
+        int64_t interval_Q32 = c->t_Q32 >= 0 && st.t_Q32 >= 0 ? c->t_Q32 - st.t_Q32 : -1;
+        if (interval_exceeds(interval_Q32, fw_cfg.gap_Q32, t, fw_cfg.gap_s)) {
+            fw_count.gaps += 1;
+        }
+        c->restart = interval_exceeds(interval_Q32, fw_cfg.max_bridge_Q32, t,
+                                      fw_cfg.max_bridge_s);
     }
-    c->t_key = t_key;
     if (c->restart) {
         c->t_us = 0;
         c->dt_us = 0;
     } else {
-        double half_us = (t - st.epoch_s) * 2e6;
-        if (order_key(half_us) >= order_key(2e6 * FW_EPOCH_S)) { /* the epoch moves on */
-            rebase_epoch();
-            half_us = (t - st.epoch_s) * 2e6;
-        }
-        c->t_us = ((uint32_t)half_us + 1u) >> 1; /* rounded to the us, below 2^31 */
+        c->t_us = time_us(c, t);
         c->dt_us = (int32_t)(c->t_us - st.t_us);
     }
-    c->dt_Q30 = us_to_Q30(c->dt_us);
-    c->inv_dt_Q12 = c->dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)c->dt_us) : 0;
+    if (c->dt_us != st.interval.us) { /* the nominal interval repeats: no division */
+        interval_constants(&st.interval, c->dt_us);
+    }
+    c->dt = &st.interval;
     return FW_NEXT;
 }
 
-/* MedianFilter: the window's middle value (a restart refills the window instead). */
+/* MedianFilter: the window's middle value (a restart refills the window instead). The window
+ * is also kept sorted: the oldest value's place goes to the new one, moved into order (a few
+ * compares where sorting the window took ~250 instructions). */
 static int stage_median(fw_ctx *c)
 {
-    int32_t sorted[PS_MEDIAN_MAX_WINDOW];
-    int i, j, n = fw_cfg.median_window;
+    const int n = fw_cfg.median_window;
+    const int32_t v = c->counts;
+    int32_t old;
+    int i;
     if (c->restart) {
         for (i = 0; i < n; ++i) {
-            st.median[i] = c->counts;
+            st.median[i] = v;
+            st.sorted[i] = v;
         }
         st.median_next = 0;
-        c->filtered = c->counts;
+        c->filtered = v;
         return FW_NEXT;
     }
-    st.median[st.median_next] = c->counts;
+    old = st.median[st.median_next];
+    st.median[st.median_next] = v;
     st.median_next = st.median_next + 1 == n ? 0 : st.median_next + 1;
-    for (i = 0; i < n; ++i) {
-        int32_t v = st.median[i];
-        for (j = i; j > 0 && sorted[j - 1] > v; --j) {
-            sorted[j] = sorted[j - 1];
-        }
-        sorted[j] = v;
+    for (i = 0; st.sorted[i] != old; ++i) {
     }
-    c->filtered = sorted[n / 2];
+    for (; i > 0 && st.sorted[i - 1] > v; --i) {
+        st.sorted[i] = st.sorted[i - 1];
+    }
+    for (; i < n - 1 && st.sorted[i + 1] < v; ++i) {
+        st.sorted[i] = st.sorted[i + 1];
+    }
+    st.sorted[i] = v;
+    c->filtered = st.sorted[n / 2];
     return FW_NEXT;
 }
 
@@ -351,7 +511,7 @@ static int stage_angle(fw_ctx *c)
 {
     int32_t angle = mul_q(c->filtered * 65536 - fw_cfg.zero_Q16, fw_cfg.deg_per_count_Q30, 30);
     if (!c->restart) {
-        int32_t limit = mul_q(fw_cfg.max_speed_deg_Q32_us, c->dt_us, 16);
+        int32_t limit = c->dt->angle_limit_Q16;
         int32_t change = angle - st.angle_Q16;
         if (change > limit || change < -limit) {
             fw_count.slew_limited += 1;
@@ -366,21 +526,18 @@ static int stage_angle(fw_ctx *c)
     return FW_NEXT;
 }
 
-/* The length fits: Chebyshev series in the scaled angle (Clenshaw), Q28. */
+/* The length fits at the angle: linear between the points of fw_length_Q24, the fits (double,
+ * on the host) at every encoder count of the fitted range from its low end (a sample that is
+ * not slew-limited lies on a point; between points the error is below 4e-7 L0, the fits'
+ * curvature times step^2 / 8). */
 static int stage_lengths(fw_ctx *c)
 {
-    int32_t x = mul_q(c->angle_Q16 - fw_cfg.fit_mid_Q16, fw_cfg.fit_scale_Q30, 18); /* Q28 */
-    int m, k;
+    int32_t position = mul_q(c->angle_Q16 - fw_cfg.angle_min_Q16, fw_cfg.length_scale_Q28, 28);
+    int32_t j = position >> 16, fraction = position & 0xFFFF;
+    int m;
     for (m = 0; m < PS_MUSCLES; ++m) {
-        const int32_t *a = fw_cfg.coefficients_Q28[m];
-        int n = fw_cfg.n_coefficients[m];
-        int32_t b1 = 0, b2 = 0, x2 = 2 * x;
-        for (k = n - 1; k >= 1; --k) {
-            int32_t b0 = a[k] + mul_q(x2, b1, 28) - b2;
-            b2 = b1;
-            b1 = b0;
-        }
-        c->L_Q24[m] = (a[0] + mul_q(x, b1, 28) - b2 + 8) >> 4;
+        int32_t lo = fw_length_Q24[j][m];
+        c->L_Q24[m] = fraction == 0 ? lo : lo + mul_q(fw_length_Q24[j + 1][m] - lo, fraction, 16);
     }
     return FW_NEXT;
 }
@@ -389,11 +546,11 @@ static int stage_lengths(fw_ctx *c)
  * form: the input linear over the interval). */
 static int stage_tracking(fw_ctx *c)
 {
-    int32_t limit, decay, m, limited = 0;
+    const fw_interval *dt = c->dt;
+    int32_t limit = dt->length_limit_Q24, m, limited = 0;
     if (c->restart) {
         return FW_NEXT;
     }
-    limit = mul_q(fw_cfg.max_speed_L0_Q40_us, c->dt_us, 16);
     for (m = 0; m < PS_MUSCLES; ++m) {
         int32_t change = c->L_Q24[m] - st.u_Q24[m];
         limited |= change > limit || change < -limit;
@@ -404,38 +561,34 @@ static int stage_tracking(fw_ctx *c)
             c->L_Q24[m] = st.u_Q24[m] + clamp_i32(c->L_Q24[m] - st.u_Q24[m], -limit, limit);
         }
     }
-    /* from the tables (one product) within them, else the series (a longer max_bridge_s) */
-    if (c->dt_us < 64 * FW_DECAY_COARSE) {
-        decay = mul_q(fw_cfg.decay_coarse_Q30[c->dt_us >> 6],
-                      fw_cfg.decay_fine_Q30[c->dt_us & 63], 30);
-    } else {
-        decay = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, c->dt_Q30, 18));
-    }
     for (m = 0; m < PS_MUSCLES; ++m) {
-        int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m];
-        int32_t slope = mul_q(u1 - u0, c->inv_dt_Q12, 16);                 /* Q20 */
-        int32_t offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);      /* Q24 */
-        int32_t A = st.x_Q24[m] - u0 + offset;                             /* Q24 */
-        int32_t B = st.v_Q20[m] - slope + mul_q(fw_cfg.omega_Q16, A, 20);  /* Q20 */
-        int32_t AB = A + mul_q(B, c->dt_Q30, 26);                          /* Q24 */
-        if (c->dt_us == 0) { /* an interval below 1 us: nothing moves */
+        int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m], slope, offset, A, B, AB;
+        if (dt->us == 0) { /* an interval below 1 us: nothing moves */
             c->x1_Q24[m] = st.x_Q24[m];
             c->v1_Q20[m] = st.v_Q20[m];
             continue;
         }
-        c->x1_Q24[m] = u1 - offset + mul_q(AB, decay, 30);
-        c->v1_Q20[m] = slope + mul_q(B - mul_q(fw_cfg.omega_Q16, AB, 20), decay, 30);
+        slope = mul_q(u1 - u0, dt->inv_Q12, 16);                     /* Q20 */
+        offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);        /* Q24 */
+        A = st.x_Q24[m] - u0 + offset;                               /* Q24 */
+        B = st.v_Q20[m] - slope + mul_q(fw_cfg.omega_Q16, A, 20);    /* Q20 */
+        AB = A + mul_q(B, dt->Q30, 26);                              /* Q24 */
+        c->x1_Q24[m] = u1 - offset + mul_q(AB, dt->decay_Q30, 30);
+        c->v1_Q20[m] = slope + mul_q(B - mul_q(fw_cfg.omega_Q16, AB, 20), dt->decay_Q30, 30);
     }
     return FW_NEXT;
 }
 
-static int seg_index(int i) { return (st.seg_first + i) % FW_SEGMENTS; }
+static int seg_index(int i) { return (st.seg_first + i) & (FW_SEGMENTS - 1); }
 
-/* The template of segment s at time t (us). */
-static int32_t seg_template(int s, int m, uint32_t t_us)
+/* The templates of segment s at time t (us), both muscles (one interval conversion). */
+static void seg_templates(int s, uint32_t t_us, int32_t out_Q24[PS_MUSCLES])
 {
-    int32_t elapsed = (int32_t)(t_us - st.seg_t_us[s]);
-    return st.seg_p_Q24[s][m] + mul_q(st.seg_u_Q20[s][m], us_to_Q30(elapsed), 26);
+    int32_t elapsed_Q30 = us_to_Q30((int32_t)(t_us - st.seg_t_us[s]));
+    int m;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        out_Q24[m] = st.seg_p_Q24[s][m] + mul_q(st.seg_u_Q20[s][m], elapsed_Q30, 26);
+    }
 }
 
 /* MotionPredictor (the down-sampled PI template) and Fusimotor: gamma_s = h(x), gamma_d =
@@ -462,7 +615,7 @@ static int stage_fusimotor(fw_ctx *c)
             break;
         }
         if (st.seg_count == fw_cfg.predictor_keep) {
-            st.seg_first = (st.seg_first + 1) % FW_SEGMENTS;
+            st.seg_first = seg_index(1);
             st.seg_count -= 1;
             newest = seg_index(st.seg_count - 1);
         }
@@ -478,16 +631,14 @@ static int stage_fusimotor(fw_ctx *c)
         }
         st.seg_count += 1;
     }
+    seg_templates(seg_index(st.seg_count - 1), c->t_us, c->tmpl_Q24);
     for (m = 0; m < PS_MUSCLES; ++m) {
-        c->tmpl_Q24[m] = seg_template(seg_index(st.seg_count - 1), m, c->t_us);
         delayed[m] = st.seg_p_Q24[st.seg_first][m];
     }
     for (i = st.seg_count - 1; i >= 0; --i) {
         int s = seg_index(i);
         if ((int32_t)(st.seg_t_us[s] - t_d) <= 0) {
-            for (m = 0; m < PS_MUSCLES; ++m) {
-                delayed[m] = seg_template(s, m, t_d);
-            }
+            seg_templates(s, t_d, delayed);
             break;
         }
     }
@@ -503,12 +654,12 @@ static int stage_fusimotor(fw_ctx *c)
 /* The length at grid time tau of the Hermite curve through the interval's ends. */
 static int32_t hermite_Q24(const fw_ctx *c, int m, uint32_t tau_us)
 {
-    int32_t s = (int32_t)((((uint32_t)(tau_us - st.t_us)) << 15) / (uint32_t)c->dt_us) << 9;
+    int32_t s = mul_q((int32_t)(tau_us - st.t_us), c->dt->inv_us_Q30, 6); /* Q24, no division */
     int32_t s2 = mul_q(s, s, 24), s3 = mul_q(s2, s, 24);
     int32_t w1 = 3 * s2 - 2 * s3, w2 = s3 - 2 * s2 + s, w3 = s3 - s2;
     int32_t x0 = st.x_Q24[m], x1 = c->x1_Q24[m];
     int32_t slopes = mul_q(w2, st.v_Q20[m], 24) + mul_q(w3, c->v1_Q20[m], 24); /* Q20 */
-    return x0 + mul_q(w1, x1 - x0, 24) + mul_q(slopes, c->dt_Q30, 26);
+    return x0 + mul_q(w1, x1 - x0, 24) + mul_q(slopes, c->dt->Q30, 26);
 }
 
 #ifndef FW_MAX_STEPS
@@ -544,7 +695,7 @@ static int step_oldest(fw_ctx *c)
  * once, counted in fw_overruns). */
 static int stage_spindles(fw_ctx *c)
 {
-    const int32_t reach = mul_q(fw_cfg.max_speed_L0_Q40_us, fw_cfg.spindle_step_us, 16);
+    const int32_t reach = fw_cfg.spindle_reach_Q24;
     int m, k;
     if (c->restart) {
         return rest_spindles(c);
@@ -596,9 +747,82 @@ static int rest_spindles(fw_ctx *c)
 }
 
 #ifdef FW_GTO
-/* The tendon organs (Ib) from the load reading fw_in.load: branch gto's fixed-point step
- * (ps_gto_step_fx of tendon_organ.c) slots in here. */
-#error "FW_GTO: the tendon-organ stage needs tendon_organ.c (branch gto)"
+/* tendon_forces_N: the torque over the moment arm at the angle (the host's table, linear
+ * between its points, clamped to its ends), flexion torque to BRA, extension to TRImed. The
+ * table holds Nm_per_count / |r| (Q8 N per count), so a force is one product per muscle. */
+static void tendon_forces(const fw_ctx *c, int32_t force_Q8[PS_MUSCLES])
+{
+    const int m = c->torque_counts > 0 ? 0 : 1;
+    int32_t position = mul_q(c->angle_Q16 - fw_gto_cfg.arm_lo_Q16, fw_gto_cfg.arm_scale_Q28, 28);
+    int32_t j = position >> 16, per_count;
+    int32_t magnitude = c->torque_counts < 0 ? -c->torque_counts : c->torque_counts;
+    if (position <= 0) {
+        per_count = fw_arm_force[0][m] << fw_gto_cfg.arm_shift;
+    } else if (j >= fw_gto_cfg.arm_last) {
+        per_count = fw_arm_force[fw_gto_cfg.arm_last][m] << fw_gto_cfg.arm_shift;
+    } else {
+        int32_t lo = fw_arm_force[j][m] << fw_gto_cfg.arm_shift;
+        int32_t hi = fw_arm_force[j + 1][m] << fw_gto_cfg.arm_shift;
+        per_count = lo + mul_q(hi - lo, position & 0xFFFF, 16); /* Q12 */
+    }
+    force_Q8[0] = 0;
+    force_Q8[1] = 0;
+    force_Q8[m] = (magnitude * per_count + 2048) >> 12;
+}
+
+/* The plan for an interval of dt_us: the nominal one, else the table's, linear in h. */
+static const ps_gto_plan_fx *gto_plan(int32_t dt_us, ps_gto_plan_fx *scratch)
+{
+    int32_t k = dt_us >> FW_GTO_PLAN_SHIFT, w_Q30, i;
+    int32_t *out = &scratch->phi[0][0];
+    const int32_t *a, *b;
+    if (dt_us == fw_gto_cfg.nominal_us) {
+        return &fw_gto_cfg.plan_nominal;
+    }
+    if (k > fw_gto_cfg.n_plans - 2) {
+        k = fw_gto_cfg.n_plans - 2;
+    }
+    a = fw_gto_cfg.plan_Q30[k];
+    b = fw_gto_cfg.plan_Q30[k + 1];
+    w_Q30 = (dt_us - (k << FW_GTO_PLAN_SHIFT)) << (30 - FW_GTO_PLAN_SHIFT);
+    *scratch = fw_gto_cfg.plan_nominal; /* c, gain and 1/a0 do not depend on h */
+    for (i = 0; i < 15; ++i) { /* phi, g0, g1 are contiguous in ps_gto_plan_fx */
+        out[i] = a[i] + mul_q(b[i] - a[i], w_Q30, 30);
+    }
+    return scratch;
+}
+
+/* The tendon organs (Ib): at rest at a restart's force, else one step over the interval to
+ * the sample's force (the force a line over it), as chain.c's advance_tendon_organs; an organ
+ * at rest at zero force that stays there is not stepped (the step would give zeros). */
+static int stage_tendon(fw_ctx *c)
+{
+    int32_t force_Q8[PS_MUSCLES];
+    ps_gto_plan_fx scratch;
+    const ps_gto_plan_fx *plan = &fw_gto_cfg.plan_nominal;
+    int m, status = PS_OK;
+    tendon_forces(c, force_Q8);
+    if (!c->restart) {
+        plan = gto_plan(c->dt_us, &scratch);
+    }
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        ps_gto_fx *g = &st.gto[m];
+        if (c->restart) {
+            status = ps_gto_fx_init(g, plan, force_Q8[m], fw_gto_cfg.inv_scale_Q24[m]);
+            st.ib_Q16[m] = ps_gto_rate_fx(g, plan);
+        } else if (force_Q8[m] == 0 && g->r == 0 && g->z[0] == 0 && g->z[1] == 0
+                   && g->z[2] == 0) {
+            st.ib_Q16[m] = 0;
+        } else {
+            status = ps_gto_step_fx(g, plan, force_Q8[m], fw_gto_cfg.inv_scale_Q24[m],
+                                    &st.ib_Q16[m]);
+        }
+        if (status != PS_OK) {
+            c->status = status;
+        }
+    }
+    return FW_NEXT;
+}
 #endif
 
 #ifdef FW_STIM
@@ -652,12 +876,14 @@ static int stage_output(fw_ctx *c)
         r->ii_Q16[m] = st.ii_Q16[m];
         r->gs_Q8[m] = st.gs_Q8[m];
         r->gd_Q8[m] = st.gd_Q8[m];
+        r->ib_Q16[m] = st.ib_Q16[m];
     }
 #ifdef FW_STIM
     /* the channels' rates until the next sample */
     for (m = 0; m < fw_stim_config.n_channels; ++m) {
-        int32_t muscle = fw_stim_source[m][0];
-        st.held_Q16[m] = fw_stim_source[m][1] == 0 ? st.ia_Q16[muscle] : st.ii_Q16[muscle];
+        int32_t muscle = fw_stim_source[m][0], afferent = fw_stim_source[m][1];
+        st.held_Q16[m] = afferent == 0 ? st.ia_Q16[muscle]
+                         : afferent == 1 ? st.ii_Q16[muscle] : st.ib_Q16[muscle];
     }
 #endif
     if (st.started) {
@@ -669,11 +895,16 @@ static int stage_output(fw_ctx *c)
     }
     st.started = 1;
     st.angle_Q16 = c->angle_Q16;
+#ifdef FW_GTO
+    st.torque_counts = c->torque_counts;
+#endif
     if (c->restart) {
         st.epoch_s = fw_in.t_s;
+        st.epoch_Q32 = c->t_Q32;
     }
     st.t_s = fw_in.t_s;
     st.t_key = c->t_key;
+    st.t_Q32 = c->t_Q32;
     st.t_us = c->t_us;
     st.behind = 0;
     r->t_us = c->t_us;
@@ -722,6 +953,12 @@ int fw_init(void)
     st.started = 0;
     st.t_s = 0.0;
     st.behind = 0;
+    st.interval.us = -1; /* no interval's constants yet */
+    st.ib_Q16[0] = 0;
+    st.ib_Q16[1] = 0;
+#ifdef FW_GTO
+    st.torque_counts = 0;
+#endif
     fw_out_head = 0;
     fw_overruns = 0;
 #ifdef FW_STIM
