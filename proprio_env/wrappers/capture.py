@@ -185,8 +185,10 @@ class PhysicsHook:
             n = min(n_frames, _CHUNK_FRAMES)
             # each step's start time as mj_step advances it (time += timestep, a left fold:
             # the same doubles), not read back per step: reading data.time cost as much as
-            # 2 % of the legs' physics
-            times = np.add.accumulate(np.r_[float(data.time), np.full(n - 1, timestep)])
+            # 2 % of the legs' physics (and folded in place: np.r_ was 4 us a legs env step)
+            times = np.full(n, timestep)
+            times[0] = float(data.time)
+            np.add.accumulate(times, out=times)
             for k in range(n):
                 step(model, data)
                 lengths[k] = length_now
@@ -258,7 +260,7 @@ class FrameRecorder:
 
     def installed(self) -> bool:
         """Whether this recorder still gets the env's physics steps."""
-        return self.hook.installed() and any(r is self for r in self.hook.recorders)
+        return self.hook.installed() and self in self.hook.recorders  # (no __eq__: identity)
 
     def append(self, times: np.ndarray, lengths: np.ndarray, velocities: np.ndarray,
                forces: np.ndarray) -> None:
@@ -508,17 +510,17 @@ def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list
     count = chosen[0][0].size
     if count == 0 or any(r[0].size != count for r in chosen):
         return None
-    t = np.stack([r[0] for r in chosen], axis=1)
-    length = np.stack([r[1] for r in chosen], axis=1)[..., muscles.ids]
-    velocity = np.stack([r[2] for r in chosen], axis=1)[..., muscles.ids]
-    force = np.stack([r[3] for r in chosen], axis=1)[..., muscles.ids]
+    # np.array of the rows, then the muscles' columns of its (F, r, nu) view: half the time
+    # of np.stack (4 stacks were 12 us of a legs env step)
+    t = np.array([r[0] for r in chosen]).T
+    length, velocity, force = (np.array([r[k] for r in chosen]).transpose(1, 0, 2)
+                               [..., muscles.ids] for k in (1, 2, 3))
     return (t, muscles.length_L0(length), muscles.velocity_L0_s(velocity),
             muscles.tension_N(force))
 
 
 def _stacked(states: list) -> tuple[np.ndarray, ...]:
-    return (np.array([x[0] for x in states]), *(np.stack([x[k] for x in states])
-                                                for k in (1, 2, 3)))
+    return tuple(np.array([x[k] for x in states]) for k in range(4))
 
 
 def _step_end(taps: list, records: list, rows: np.ndarray) -> tuple[np.ndarray, ...]:
