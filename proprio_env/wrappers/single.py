@@ -257,7 +257,8 @@ class SpindleAfferents(gym.Wrapper):
             t, L, V, F, self._source = step_knots([self.tap], records, self.bank.t_s,
                                                   self.bank.length_L0,
                                                   self.bank.velocity_L0_s, moving,
-                                                  self.forces.force_N)
+                                                  self.forces.force_N,
+                                                  self.forces.every_knot)
             self.bank.advance(t, L, V)
             self.forces.advance(F, moving)
             self._measured[0] = L[-1, 0]
