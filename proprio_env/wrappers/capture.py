@@ -512,12 +512,18 @@ def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list,
     count = chosen[0][0].size
     if count == 0 or any(r[0].size != count for r in chosen):
         return None
-    # np.array of the rows, then the muscles' columns of its (F, r, nu) view: half the time
-    # of np.stack (4 stacks were 12 us of a legs env step)
-    t = np.array([r[0] for r in chosen]).T
-    length, velocity, force = (np.array([r[k] if k < 3 or every_force else r[k][-1:]
-                                         for r in chosen]).transpose(1, 0, 2)[..., muscles.ids]
-                               for k in (1, 2, 3))
+    cols = muscles.columns
+    if len(chosen) == 1:  # one env: views of its records, no copy (9 of 28 us on the legs)
+        r = chosen[0]
+        t, length, velocity = r[0][:, None], r[1][:, None, cols], r[2][:, None, cols]
+        force = (r[3] if every_force else r[3][-1:])[:, None, cols]
+    else:
+        # np.array of the rows, then the muscles' columns of its (F, r, nu) view: half the
+        # time of np.stack (4 stacks were 12 us of a legs env step)
+        t = np.array([r[0] for r in chosen]).T
+        length, velocity, force = (np.array([r[k] if k < 3 or every_force else r[k][-1:]
+                                             for r in chosen]).transpose(1, 0, 2)[..., cols]
+                                   for k in (1, 2, 3))
     return (t, muscles.length_L0(length), muscles.velocity_L0_s(velocity),
             muscles.tension_N(force))
 

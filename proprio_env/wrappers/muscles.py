@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import mujoco
 import numpy as np
@@ -53,6 +54,16 @@ class MuscleSet:
     @property
     def n(self) -> int:
         return len(self.names)
+
+    @cached_property
+    def columns(self) -> slice | np.ndarray:
+        """The muscles' columns of a per-actuator array: a slice where the ids run
+        consecutively (every muscle of myo-sim's models: a view, not a gather's copy), else
+        :attr:`ids`."""
+        first = int(self.ids[0])
+        if np.array_equal(self.ids, np.arange(first, first + self.ids.size)):
+            return slice(first, first + self.ids.size)
+        return self.ids
 
     def length_L0(self, actuator_length_m: np.ndarray) -> np.ndarray:
         """MuJoCo's normalised length of actuator lengths (m), (..., M)."""

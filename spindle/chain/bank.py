@@ -36,6 +36,7 @@ by reciprocals where numpy divides). Only the trapezoidal family (theta > 0) run
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -363,7 +364,7 @@ class SpindleBank:
         last one); ValueError unless it is finite, > 0 and the same in every moving row."""
         some = moving is self._all_rows or moving.any()
         dt = float(first[0] if moving is self._all_rows or not some else first[moving][0])
-        if not (np.isfinite(dt) and dt > 0):
+        if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"knot interval {dt!r} s must be finite and > 0")
         # (plus the resolution of the rows' clocks: an env's clock set far forward); one row
         # cannot differ from itself
