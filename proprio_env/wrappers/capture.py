@@ -582,11 +582,11 @@ def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray
     stacked = gather_records(records, rows, taps[0].muscles,
                              [tap.record_forces for tap in taps], every_force)
     if stacked is not None:
-        t_rec = stacked[0]
-        first = t_rec[0] - t_prev[rows]
+        t_rec, t_last = stacked[0], t_prev[rows]
+        first = t_rec[0] - t_last
         # a clock far from 0 (set forward by hand, a long run) resolves its physics steps
         # only to a few of its units in the last place
-        tol = TIME_TOL_S + 4 * np.spacing(np.abs(t_prev[rows]))
+        tol = TIME_TOL_S + 4 * np.spacing(np.abs(t_last))
         drop = int((np.abs(first) <= tol).all())
         follows = drop or bool((np.abs(first - timestep_s) <= tol).all())
         if follows and t_rec.shape[0] - drop + (not lag) >= 1:
