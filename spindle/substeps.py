@@ -121,9 +121,14 @@ def slew_limited(L: np.ndarray, last: np.ndarray, limit, axis: int = 0
     ``limit`` (a float, or an array broadcasting against ``L``) from the one before it along
     ``axis`` (the first from ``last``, ``L`` without that axis). Returns the limited lengths
     and where the limit acted. A length within the limit is kept as it is (bit for bit)."""
-    steps = np.diff(L, axis=axis, prepend=np.expand_dims(last, axis))
+    # one check, not one per step: the largest step (slices and one subtract, not np.diff
+    # with prepend: 9 of 27 us on a legs env step); a NaN step is not over the limit
+    before = (slice(None),) * axis
+    ahead = np.concatenate((np.asarray(last)[(*before, None)], L), axis=axis)  # (expand_dims: 2 us)
+    later, earlier = (*before, slice(1, None)), (*before, slice(None, -1))
     with np.errstate(invalid="ignore"):
-        if not bool(np.any(np.abs(steps) > limit)):  # one check, not one per step
+        steps = np.abs(ahead[later] - ahead[earlier])
+        if not bool((steps > limit).any()):
             return L, np.zeros(L.shape, dtype=bool)
     L = np.moveaxis(L, axis, 0)
     limit = np.moveaxis(np.broadcast_to(limit, np.moveaxis(L, 0, axis).shape), axis, 0)

@@ -185,8 +185,10 @@ class PhysicsHook:
             n = min(n_frames, _CHUNK_FRAMES)
             # each step's start time as mj_step advances it (time += timestep, a left fold:
             # the same doubles), not read back per step: reading data.time cost as much as
-            # 2 % of the legs' physics
-            times = np.add.accumulate(np.r_[float(data.time), np.full(n - 1, timestep)])
+            # 2 % of the legs' physics (and folded in place: np.r_ was 4 us a legs env step)
+            times = np.full(n, timestep)
+            times[0] = float(data.time)
+            np.add.accumulate(times, out=times)
             for k in range(n):
                 step(model, data)
                 lengths[k] = length_now
@@ -258,7 +260,7 @@ class FrameRecorder:
 
     def installed(self) -> bool:
         """Whether this recorder still gets the env's physics steps."""
-        return self.hook.installed() and any(r is self for r in self.hook.recorders)
+        return self.hook.installed() and self in self.hook.recorders  # (no __eq__: identity)
 
     def append(self, times: np.ndarray, lengths: np.ndarray, velocities: np.ndarray,
                forces: np.ndarray) -> None:
@@ -496,29 +498,38 @@ TIME_TOL_S = 1e-9
 """Times closer than this are the same physics step (sums of ``mj_step``'s dt)."""
 
 
-def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list
+def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list,
+                   every_force: bool = True
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The raw records (:meth:`EnvTap.records`) and their forces
     (:attr:`EnvTap.record_forces`) of ``rows`` as normalised arrays: times (F, r), lengths
-    L0, velocities L0/s and tendon forces N (F, r, M); None unless every row has the same
-    number F >= 1. One stack and one normalisation for all rows."""
+    L0, velocities L0/s and tendon forces N (F, r, M) (``every_force`` False: the last
+    record's only, (1, r, M)); None unless every row has the same number F >= 1. One stack
+    and one normalisation for all rows."""
     chosen = [(*records[i], forces[i]) if records[i] is not None else None for i in rows]
     if not chosen or any(r is None or r[3] is None for r in chosen):
         return None
     count = chosen[0][0].size
     if count == 0 or any(r[0].size != count for r in chosen):
         return None
-    t = np.stack([r[0] for r in chosen], axis=1)
-    length = np.stack([r[1] for r in chosen], axis=1)[..., muscles.ids]
-    velocity = np.stack([r[2] for r in chosen], axis=1)[..., muscles.ids]
-    force = np.stack([r[3] for r in chosen], axis=1)[..., muscles.ids]
+    cols = muscles.columns
+    if len(chosen) == 1:  # one env: views of its records, no copy (9 of 28 us on the legs)
+        r = chosen[0]
+        t, length, velocity = r[0][:, None], r[1][:, None, cols], r[2][:, None, cols]
+        force = (r[3] if every_force else r[3][-1:])[:, None, cols]
+    else:
+        # np.array of the rows, then the muscles' columns of its (F, r, nu) view: half the
+        # time of np.stack (4 stacks were 12 us of a legs env step)
+        t = np.array([r[0] for r in chosen]).T
+        length, velocity, force = (np.array([r[k] if k < 3 or every_force else r[k][-1:]
+                                             for r in chosen]).transpose(1, 0, 2)[..., cols]
+                                   for k in (1, 2, 3))
     return (t, muscles.length_L0(length), muscles.velocity_L0_s(velocity),
             muscles.tension_N(force))
 
 
 def _stacked(states: list) -> tuple[np.ndarray, ...]:
-    return (np.array([x[0] for x in states]), *(np.stack([x[k] for x in states])
-                                                for k in (1, 2, 3)))
+    return tuple(np.array([x[k] for x in states]) for k in range(4))
 
 
 def _step_end(taps: list, records: list, rows: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -538,11 +549,14 @@ def _step_end(taps: list, records: list, rows: np.ndarray) -> tuple[np.ndarray, 
 
 
 def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray,
-               V_prev: np.ndarray, moving: np.ndarray, F_prev: np.ndarray | None = None
+               V_prev: np.ndarray, moving: np.ndarray, F_prev: np.ndarray | None = None,
+               every_force: bool = True
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
     """The knots of one env step of n envs (``taps``, one per row, all alike): times (K, n),
     normalised lengths, velocities and tendon forces (N) (K, n, M), and ``"frames"`` or
-    ``"hermite"``.
+    ``"hermite"``. ``every_force`` False: the recorded frames' forces only at the last knot,
+    (1, n, M) (what the force readout keeps without the tendon organs; on myo-sim's legs
+    the other knots' forces were 7 us of an env step's ~170 us).
 
     Args:
         taps: the envs' :class:`EnvTap`.
@@ -566,25 +580,30 @@ def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray
     F_prev = np.zeros((n, M)) if F_prev is None else F_prev
     lag, timestep_s = taps[0].lag_physics_step, taps[0].timestep_s
     stacked = gather_records(records, rows, taps[0].muscles,
-                             [tap.record_forces for tap in taps])
+                             [tap.record_forces for tap in taps], every_force)
     if stacked is not None:
-        t_rec = stacked[0]
-        first = t_rec[0] - t_prev[rows]
+        t_rec, t_last = stacked[0], t_prev[rows]
+        first = t_rec[0] - t_last
         # a clock far from 0 (set forward by hand, a long run) resolves its physics steps
         # only to a few of its units in the last place
-        tol = TIME_TOL_S + 4 * np.spacing(np.abs(t_prev[rows]))
-        drop = int(np.all(np.abs(first) <= tol))
-        follows = drop or bool(np.all(np.abs(first - timestep_s) <= tol))
+        tol = TIME_TOL_S + 4 * np.spacing(np.abs(t_last))
+        drop = int((np.abs(first) <= tol).all())
+        follows = drop or bool((np.abs(first - timestep_s) <= tol).all())
         if follows and t_rec.shape[0] - drop + (not lag) >= 1:
-            knots = [a[drop:] for a in stacked]
+            knots = [a[drop:] for a in stacked[:3]]
+            forces = stacked[3][drop:] if every_force else stacked[3]
             if not lag:
                 ends = _step_end(taps, records, rows)
-                knots = [np.concatenate((a, e[None])) for a, e in zip(knots, ends,
+                knots = [np.concatenate((a, e[None])) for a, e in zip(knots, ends[:3],
                                                                        strict=True)]
+                forces = np.concatenate((forces, ends[3][None])) if every_force \
+                    else ends[3][None]
+            knots.append(forces)
             if rows.size == n:
                 return (*knots, "frames")
             K = knots[0].shape[0]
-            t, L, V, F = np.empty((K, n)), *(np.empty((K, n, M)) for _ in range(3))
+            t, L, V, F = np.empty((K, n)), *(np.empty((K, n, M)) for _ in range(2)), \
+                np.empty((knots[3].shape[0], n, M))
             t[:, rows], L[:, rows], V[:, rows], F[:, rows] = knots
             _fill_held(t, L, V, rows, moving)
             return t, L, V, F, "frames"

@@ -64,11 +64,21 @@ class ForceReadout:
         else:
             self.force_N[rows] = force_N
 
+    @property
+    def every_knot(self) -> bool:
+        """Whether :meth:`advance` needs every knot's force (the tendon organs step through
+        them), or the last knot's only (:func:`~proprio_env.wrappers.capture.step_knots`'s
+        ``every_force``)."""
+        return self.sense is not None
+
     def advance(self, force_N: np.ndarray, moving: np.ndarray) -> None:
-        """Through the knots' forces (K, n, M) of the rows ``moving`` (n,) (the others held)."""
+        """Through the knots' forces (K, n, M) of the rows ``moving`` (n,) (the others held);
+        without ``ib`` only the last knot's are read (K may be 1)."""
         if self.sense is not None:
             self.sense.step(force_N.transpose(1, 0, 2), hold=~moving)
             self.force_N[moving] = self.sense.force_N[moving]
+        elif moving.all():  # (two boolean indexings: 3 us of a legs env step)
+            self.force_N[...] = force_N[-1]
         else:
             self.force_N[moving] = force_N[-1, moving]
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import mujoco
 import numpy as np
@@ -53,6 +54,16 @@ class MuscleSet:
     @property
     def n(self) -> int:
         return len(self.names)
+
+    @cached_property
+    def columns(self) -> slice | np.ndarray:
+        """The muscles' columns of a per-actuator array: a slice where the ids run
+        consecutively (every muscle of myo-sim's models: a view, not a gather's copy), else
+        :attr:`ids`."""
+        first = int(self.ids[0])
+        if np.array_equal(self.ids, np.arange(first, first + self.ids.size)):
+            return slice(first, first + self.ids.size)
+        return self.ids
 
     def length_L0(self, actuator_length_m: np.ndarray) -> np.ndarray:
         """MuJoCo's normalised length of actuator lengths (m), (..., M)."""
@@ -167,7 +178,7 @@ class ActuatorKinematics:
         mujoco.mj_comPos(m, d)
         mujoco.mj_tendon(m, d)
         mujoco.mj_transmission(m, d)
-        return d.actuator_length[self.ids].copy(), self._velocity(qvel)
+        return d.actuator_length[self.ids], self._velocity(qvel)
 
     def forces(self, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, ctrl: np.ndarray,
                mocap_pos: np.ndarray | None = None, mocap_quat: np.ndarray | None = None
@@ -176,22 +187,25 @@ class ActuatorKinematics:
         actuator, (nu,), at the state (qpos, qvel, act) under ``ctrl``: the stages of
         ``mj_forward`` that the force needs (:meth:`compute`, the actuator velocities, then
         MuJoCo's own ``mj_fwdActuation``), so it equals what ``mj_forward`` gives there."""
-        d = self.scratch
-        self.compute(qpos, qvel, mocap_pos, mocap_quat)
-        d.actuator_velocity[:] = self._moment @ qvel
-        d.act[:] = act
-        d.ctrl[:] = ctrl
-        mujoco.mj_fwdActuation(self.model, d)
-        return d.actuator_force.copy()
+        return self._state(qpos, qvel, act, ctrl, mocap_pos, mocap_quat)[2].copy()
 
     def state_of_data(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(length_m, velocity_m_s, actuator_force) of the actuators ``ids``, (M,) each, at
         the state held in ``data`` (which is not modified), in one pass (:meth:`forces`)."""
-        force = self.forces(data.qpos, data.qvel, data.act, data.ctrl, data.mocap_pos,
-                            data.mocap_quat)
+        length, velocity, force = self._state(data.qpos, data.qvel, data.act, data.ctrl,
+                                              data.mocap_pos, data.mocap_quat)
+        return length, velocity, force[self.ids]
+
+    def _state(self, qpos, qvel, act, ctrl, mocap_pos, mocap_quat):
+        """:meth:`compute`'s (length, velocity) of ``ids`` and the scratch's actuator_force
+        of every actuator (a view) after ``mj_fwdActuation`` there."""
         d = self.scratch
-        return (d.actuator_length[self.ids].copy(), d.actuator_velocity[self.ids].copy(),
-                force[self.ids])
+        length, velocity = self.compute(qpos, qvel, mocap_pos, mocap_quat)
+        # compute left every actuator's velocity in the scratch (mj_fwdActuation reads it)
+        d.act[:] = act
+        d.ctrl[:] = ctrl
+        mujoco.mj_fwdActuation(self.model, d)
+        return length, velocity, d.actuator_force
 
     def of_data(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`compute` at the state held in ``data`` (which is not modified)."""
@@ -199,11 +213,13 @@ class ActuatorKinematics:
 
     def _velocity(self, qvel: np.ndarray) -> np.ndarray:
         # actuator_velocity = moment . qvel; the moment is stored sparse, and one dense
-        # product beats gathering the rows in numpy (5 + 2 us against 60 us, 54-muscle legs)
+        # product beats gathering the rows in numpy (5 + 2 us against 60 us, 54-muscle legs);
+        # every actuator's, into the scratch, where mj_fwdActuation finds it (forces)
         d = self.scratch
         mujoco.mju_sparse2dense(self._moment, d.actuator_moment, d.moment_rownnz,
                                 d.moment_rowadr, d.moment_colind)
-        return (self._moment @ qvel)[self.ids]
+        np.matmul(self._moment, qvel, out=d.actuator_velocity)
+        return d.actuator_velocity[self.ids]
 
 
 def model_and_data(env: object) -> tuple[mujoco.MjModel, mujoco.MjData]:

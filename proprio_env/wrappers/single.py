@@ -66,8 +66,10 @@ def add_afferents(obs: Any, rates: dict[str, np.ndarray], mode: str, scale: floa
     """``obs`` with the ``rates`` (pps, by afferent name, in observation order) added (the
     last axis is the muscles; a leading env axis for a vector env)."""
     if mode == "box":
-        parts = (np.asarray(obs), *(r / scale for r in rates.values()))
-        return np.concatenate(parts, axis=-1).astype(dtype or np.asarray(obs).dtype)
+        obs = np.asarray(obs)
+        # cast as astype would, in the one concatenation (no second copy)
+        return np.concatenate((obs, *(r / scale for r in rates.values())), axis=-1,
+                              dtype=dtype or obs.dtype, casting="unsafe")
     extra = {DICT_KEYS[name]: r / scale for name, r in rates.items()}
     if isinstance(obs, dict):
         return {**obs, **extra}
@@ -92,8 +94,9 @@ def bank_info(bank: SpindleDriver, measured_L0: np.ndarray, source: str,
         "spindle_length_L0": pick(bank.length_L0),
         "spindle_measured_length_L0": pick(measured_L0),
         "spindle_velocity_L0_s": pick(bank.velocity_L0_s),
-        "spindle_gamma_static_pps": pick(bank.gamma_static_pps),
-        "spindle_gamma_dynamic_pps": pick(bank.gamma_dynamic_pps),
+        # (the bank's properties are copies already)
+        "spindle_gamma_static_pps": bank.gamma_static_pps[row if row is not None else ...],
+        "spindle_gamma_dynamic_pps": bank.gamma_dynamic_pps[row if row is not None else ...],
     }
     for name in COUNTERS:
         info[f"spindle_{name}"] = pick(bank.counters[name])
@@ -211,6 +214,8 @@ class SpindleAfferents(gym.Wrapper):
                           self.max_interval_s)
         self.bank = bank
         self._measured = np.ones((1, self.muscles.n))
+        self._moving = np.ones(1, bool)  # the one row moves every step
+        self._moving.flags.writeable = False
         self._source = self.tap.substep_source
         self._started = False
 
@@ -248,11 +253,12 @@ class SpindleAfferents(gym.Wrapper):
             self.bank.restarts += 1
             self._rest()
         elif t_env > t_prev:
-            moving = np.ones(1, bool)
+            moving = self._moving
             t, L, V, F, self._source = step_knots([self.tap], records, self.bank.t_s,
                                                   self.bank.length_L0,
                                                   self.bank.velocity_L0_s, moving,
-                                                  self.forces.force_N)
+                                                  self.forces.force_N,
+                                                  self.forces.every_knot)
             self.bank.advance(t, L, V)
             self.forces.advance(F, moving)
             self._measured[0] = L[-1, 0]

@@ -168,7 +168,7 @@ class SpindleAfferentsVector(VectorWrapper):
         if moving.any():
             t, L, V, F, self._source = step_knots(
                 self.taps, records, self.bank.t_s, self.bank.length_L0,
-                self.bank.velocity_L0_s, moving, self.forces.force_N)
+                self.bank.velocity_L0_s, moving, self.forces.force_N, self.forces.every_knot)
             self.bank.advance(t, L, V, hold=~moving)
             self.forces.advance(F, moving)
             self._measured[moving] = L[-1, moving]
