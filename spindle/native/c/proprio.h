@@ -229,21 +229,20 @@ typedef struct ps_spindle_fx {
 } ps_spindle_fx;
 
 /* Precomputed constants of the fixed-point step (read-only after ps_plan_fx_init; can be a
- * const in flash). All Q24 except freq (pps, Q8), G_pri, c_sec1, c_sec2 (Q16). */
+ * const in flash). All Q24 except freq (pps, Q8) and the rate gains G_T .. s_0 (Q16). The
+ * step's equation is written in the state (ps_plan_fx_init in spindle.c says how). */
 typedef struct ps_plan_fx {
-    int32_t max_dL, theta, one_minus_theta, th_h, S, tol, y_max, v_max;
+    int32_t max_dL, one_minus_theta, th_h, om_h, S, tol, y_max, v_max;
     int32_t dg_shift; /* Newton's derivative is computed divided by 2^dg_shift */
-    int32_t KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES], inv_k1[PS_NFIBRES];
-    int32_t c_f0[PS_NFIBRES], c_a0[PS_NFIBRES], c_a1[PS_NFIBRES], freq[PS_NFIBRES];
-    int32_t beta0[PS_NFIBRES], beta_drive[PS_NFIBRES], Gamma_drive[PS_NFIBRES];
-    int32_t CL[PS_NFIBRES], CS[PS_NFIBRES], KPR[PS_NFIBRES], LPR0[PS_NFIBRES], R[PS_NFIBRES];
-    int32_t LSR0[PS_NFIBRES], LSR0_R[PS_NFIBRES], LSR0_LPR0[PS_NFIBRES];
-    int32_t c_Av[PS_NFIBRES], a2[PS_NFIBRES], inv_a2[PS_NFIBRES], r_cap[PS_NFIBRES];
-    int32_t M_h[PS_NFIBRES];
-    int32_t th_h_KSR[PS_NFIBRES], th_k1[PS_NFIBRES], th_KPR[PS_NFIBRES];
-    int32_t th_CL[PS_NFIBRES], th_CS[PS_NFIBRES];
-    int32_t stretch0[PS_NFIBRES], G_pri[PS_NFIBRES], c_sec1[PS_NFIBRES], c_sec2[PS_NFIBRES];
-    int32_t sec_off[PS_NFIBRES];
+    int32_t KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES], k1[PS_NFIBRES], inv_k1[PS_NFIBRES];
+    int32_t c_f0[PS_NFIBRES], c_fa[PS_NFIBRES], freq[PS_NFIBRES];
+    int32_t Gamma_drive[PS_NFIBRES], KPR[PS_NFIBRES], LSR0_R[PS_NFIBRES], LSR0_LPR0[PS_NFIBRES];
+    int32_t cv[PS_NFIBRES], cdL[PS_NFIBRES], c_Av[PS_NFIBRES], th_h_KSR[PS_NFIBRES];
+    int32_t a2[PS_NFIBRES], inv_a2[PS_NFIBRES], r_cap[PS_NFIBRES];
+    int32_t thCL_b0[PS_NFIBRES], thCL_bd[PS_NFIBRES], thCS_b0[PS_NFIBRES], thCS_bd[PS_NFIBRES];
+    int32_t omCL_b0[PS_NFIBRES], omCL_bd[PS_NFIBRES], omCS_b0[PS_NFIBRES], omCS_bd[PS_NFIBRES];
+    int32_t G_T[PS_NFIBRES], G_0[PS_NFIBRES], cs_T[PS_NFIBRES], c_sec2[PS_NFIBRES];
+    int32_t s_0[PS_NFIBRES];
     int32_t root10[PS_FX_ROOT_TABLE]; /* 2^((k - 23)/10): bounds of x^(1/10), x < 2^(k+1) */
 } ps_plan_fx;
 
