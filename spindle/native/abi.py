@@ -168,8 +168,8 @@ FX_ROOT_TABLE = 31
 PLAN_FX_SCALARS = ("max_dL", "one_minus_theta", "th_h", "om_h", "S", "tol", "y_max", "v_max",
                    "dg_shift")
 PLAN_FX_FIBRE_FIELDS = (
-    "KSR", "inv_KSR", "k1", "inv_k1", "c_f0", "c_fa", "freq", "Gamma_drive", "KPR", "LSR0_R",
-    "LSR0_LPR0", "cv", "cdL", "c_Av", "th_h_KSR", "a2", "inv_a2", "r_cap", "thCL_b0", "thCL_bd",
+    "KSR", "inv_KSR", "inv_k1", "thKSR", "c_f0", "c_fa", "freq", "Gamma_drive", "KPR", "LSR0_R",
+    "LSR0_LPR0", "cv", "c_Av", "th_h_KSR", "a2", "inv_a2", "r_cap", "thCL_b0", "thCL_bd",
     "thCS_b0", "thCS_bd", "omCL_b0", "omCL_bd", "omCS_b0", "omCS_bd", "G_T", "G_0", "cs_T",
     "c_sec2", "s_0")
 

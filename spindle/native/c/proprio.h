@@ -234,10 +234,10 @@ typedef struct ps_spindle_fx {
 typedef struct ps_plan_fx {
     int32_t max_dL, one_minus_theta, th_h, om_h, S, tol, y_max, v_max;
     int32_t dg_shift; /* Newton's derivative is computed divided by 2^dg_shift */
-    int32_t KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES], k1[PS_NFIBRES], inv_k1[PS_NFIBRES];
+    int32_t KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES], inv_k1[PS_NFIBRES], thKSR[PS_NFIBRES];
     int32_t c_f0[PS_NFIBRES], c_fa[PS_NFIBRES], freq[PS_NFIBRES];
     int32_t Gamma_drive[PS_NFIBRES], KPR[PS_NFIBRES], LSR0_R[PS_NFIBRES], LSR0_LPR0[PS_NFIBRES];
-    int32_t cv[PS_NFIBRES], cdL[PS_NFIBRES], c_Av[PS_NFIBRES], th_h_KSR[PS_NFIBRES];
+    int32_t cv[PS_NFIBRES], c_Av[PS_NFIBRES], th_h_KSR[PS_NFIBRES];
     int32_t a2[PS_NFIBRES], inv_a2[PS_NFIBRES], r_cap[PS_NFIBRES];
     int32_t thCL_b0[PS_NFIBRES], thCL_bd[PS_NFIBRES], thCS_b0[PS_NFIBRES], thCS_bd[PS_NFIBRES];
     int32_t omCL_b0[PS_NFIBRES], omCL_bd[PS_NFIBRES], omCS_b0[PS_NFIBRES], omCS_bd[PS_NFIBRES];

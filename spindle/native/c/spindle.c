@@ -1531,16 +1531,16 @@ static int fx_bounds_ok(const ps_params *p, int i, double h, double theta, doubl
     const double X = fx_absd(D_(p->LSR0[i]) + D_(p->LPR0[i]));
     const double a2 = fx_absd(D_(p->M[i]) / h + theta * theta * h * k1 * KSR);
     const double cv = fx_absd(D_(p->M[i]) / h - theta * k1 * (1.0 - theta) * h * KSR);
-    const double cdL = fx_absd(theta * k1 * KSR + (1.0 - theta) * KPR);
+    const double kpr_arg = Lmax + X + T * inv_KSR; /* L0 - LSR0 - LPR0 - T0/KSR */
     const double c = fx_damping_bound(p, i, theta), c0 = fx_damping_bound(p, i, 1.0 - theta);
     const double init_sum = Gam + fx_absd(KPR) * (Lmax + X);
     double pr0, p0, D0, rhs, qy, P, Q, WU, g, dg, stretch, L_sec;
-    double bound[24];
+    double bound[25];
     int k;
     pr0 = Lmax + LSR0_R + T * inv_KSR;
     p0 = pr0 + (1.0 - theta) * h * V;
     D0 = c0 * Y3 * pr0;
-    rhs = cv * V + fx_absd(k1) * T + cdL * max_dL + Gam + fx_absd(KPR) * (Lmax + X) + D0;
+    rhs = cv * V + T + theta * fx_absd(KSR) * max_dL + Gam + fx_absd(KPR) * kpr_arg + D0;
     qy = p0 + theta * h * V;
     P = a2 * V;
     Q = c * Y3 * qy;
@@ -1555,17 +1555,18 @@ static int fx_bounds_ok(const ps_params *p, int i, double h, double theta, doubl
     bound[0] = pr0; bound[1] = p0; bound[2] = c0; bound[3] = c0 * Y3; bound[4] = D0;
     bound[5] = rhs; bound[6] = c; bound[7] = c * Y3; bound[8] = qy; bound[9] = P;
     bound[10] = Q; bound[11] = WU; bound[12] = g; bound[13] = dg;
-    /* T1 = T0 + KSR dL - c_Av v0 - th_h_KSR v1 */
+    /* T1 = T0 + KSR (dL - (1 - theta) h v0 - theta h v1) */
     bound[14] = T + fx_absd(KSR) * (max_dL + h * V);
     bound[15] = V * (FX_LIMIT / FX_V_LIMIT);
     /* |g| y (the Newton step's numerator): a product, compared and divided only */
     bound[16] = g * Y * (FX_LIMIT / FX_V_LIMIT);
     bound[17] = stretch; bound[18] = L_sec; bound[19] = init_sum; bound[20] = cv * V;
-    bound[21] = fx_absd(k1) * T;
+    bound[21] = kpr_arg;
     /* the equilibria must be states in range: |T| = |init_sum / k1| <= T_MAX */
     bound[22] = init_sum / fx_absd(k1) <= T ? 0.0 : FX_LIMIT + 1.0;
     bound[23] = 1.0 / fx_absd(k1);
-    for (k = 0; k < 24; ++k) {
+    bound[24] = max_dL + h * V;
+    for (k = 0; k < 25; ++k) {
         if (!(bound[k] <= FX_LIMIT)) return 0;
     }
     *prim_out = fx_absd(D_(p->G_pri[i])) * stretch;
@@ -1647,7 +1648,6 @@ static int fx_plan_fibre(ps_plan_fx *out, int i, const ps_params *p, double h, d
     int st = PS_OK;
     st |= fx_const(&out->KSR[i], KSR, FX_LIMIT);
     st |= fx_const(&out->inv_KSR[i], 1.0 / KSR, FX_LIMIT);
-    st |= fx_const(&out->k1[i], k1, FX_LIMIT);
     st |= fx_const(&out->inv_k1[i], 1.0 / k1, FX_LIMIT);
     st |= fx_const(&out->Gamma_drive[i], D_(p->Gamma_drive[i]), FX_LIMIT);
     st |= fx_const(&out->KPR[i], KPR, FX_LIMIT);
@@ -1655,7 +1655,7 @@ static int fx_plan_fibre(ps_plan_fx *out, int i, const ps_params *p, double h, d
     st |= fx_const(&out->LSR0_LPR0[i], D_(p->LSR0[i]) + D_(p->LPR0[i]), FX_LIMIT);
     st |= fx_const(&out->cv[i], D_(p->M[i]) / h - theta * k1 * (1.0 - theta) * h * KSR,
                    FX_LIMIT);
-    st |= fx_const(&out->cdL[i], theta * k1 * KSR + (1.0 - theta) * KPR, FX_LIMIT);
+    st |= fx_const(&out->thKSR[i], theta * KSR, FX_LIMIT);
     st |= fx_const(&out->c_Av[i], (1.0 - theta) * h * KSR, FX_LIMIT);
     st |= fx_const(&out->th_h_KSR[i], theta * h * KSR, FX_LIMIT);
     st |= fx_const(&out->a2[i], a2, FX_LIMIT);
@@ -1784,36 +1784,42 @@ static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q)
     return 1;
 }
 
-/* y^10 (Q24) for 0 <= y <= y_max; y^5 to *y5. */
-static int32_t fx_pow10(int32_t y, int32_t *y5)
+/* y^10 and y^3 (Q24) for 0 <= y <= y_max. */
+static int32_t fx_pow10(int32_t y, int32_t *y3)
 {
-    const int32_t y2 = fx_mul(y, y);
-    *y5 = fx_mul(fx_mul(y2, y2), y);
-    return fx_mul(*y5, *y5);
+    const int32_t y2 = fx_mul(y, y), y5 = fx_mul(y2, *y3 = fx_mul(y2, y));
+    return fx_mul(y5, y5);
 }
 
 /* Newton for a = 0.3 in y = |z| (the fixed-point solve_03): g(y) = a2 y^10 + c y^3 qy - |rhs|
- * with qy = p0 + s th_h y^10 (clipped at 0), from min(|z0|, an upper bound of the root from
- * (|rhs|/a2)^(1/10)). With P = a2 y^10, W = c y^3, U = s th_h y^10 and Q = W qy, g = P + Q - r
- * and y g' = 10 P + 3 Q + 10 W U: nine products an iteration, and the step dy = |g| y / (y g')
- * by fx_quot. Stops as PS_FX_TOL_G says. */
-static int fx_solve_03(int32_t *z_io, int32_t *v, const ps_plan_fx *q, int i, int32_t p0,
-                       int32_t rhs, int32_t c)
+ * with qy = p0 + s th_h y^10 (clipped at 0), from y = |z0| (its y^10 = |v0| and y^3 = |y3_0|,
+ * if known, from the state and the start's damping: a first iteration without powers), or
+ * from an upper bound of the root from (|rhs|/a2)^(1/10) where a2 |v0| > |rhs|. With
+ * P = a2 y^10, W = c y^3, U = s th_h y^10 and Q = W qy, g = P + Q - r and
+ * y g' = 10 P + 3 Q + 10 W U: nine products an iteration, the relative step t = |g| / (y g')
+ * by fx_quot. Stops as PS_FX_TOL_G says; *v_io: v0 in, the new v out. */
+static int fx_solve_03(int32_t *z_io, int32_t *v_io, const ps_plan_fx *q, int i, int32_t p0,
+                       int32_t rhs, int32_t c, int32_t y3_0)
 {
     const int32_t r = fx_abs(rhs), s_th_h = rhs < 0 ? -q->th_h : q->th_h, a2 = q->a2[i];
-    const int sh = (int)q->dg_shift; /* y g' and |g| y are divided by 2^sh */
+    const int sh = (int)q->dg_shift; /* y g' and |g| are divided by 2^sh */
     const int32_t quarter = FX_ONE / 4;
-    int32_t y = fx_abs(*z_io), bound = q->y_max, y5;
+    int32_t y = fx_abs(*z_io), y10 = fx_abs(*v_io), y3 = y3_0 < 0 ? 0 : fx_abs(y3_0), P;
     int it, done = 0;
-    if (r < q->r_cap[i]) { /* x = r/a2 < y_max^10; + 3: rounding of r, inv_a2 */
-        bound = q->root10[fx_log2((uint32_t)(fx_mul(r, q->inv_a2[i]) + 3))];
+    if (y3_0 < 0 && y > 0) y10 = fx_pow10(y, &y3);
+    P = fx_mul(a2, y10);
+    if (P > r) { /* y is above the root's bound (x = r/a2 < y_max^10; + 3: rounding) */
+        const int32_t bound = r < q->r_cap[i]
+                                  ? q->root10[fx_log2((uint32_t)(fx_mul(r, q->inv_a2[i]) + 3))]
+                                  : q->y_max;
+        if (y > bound) {
+            y = bound > q->y_max ? q->y_max : bound;
+            y10 = fx_pow10(y, &y3);
+            P = fx_mul(a2, y10);
+        }
     }
-    if (bound > q->y_max) bound = q->y_max;
-    if (y > bound) y = bound;
-    for (it = 0; it < PS_NEWTON_MAX_ITER && !done; ++it) {
-        const int32_t y2 = fx_mul(y, y), y3 = fx_mul(y2, y);
-        const int32_t y10 = fx_pow10(y, &y5), W = fx_mul(c, y3), U = fx_mul(s_th_h, y10);
-        const int32_t P = fx_mul(a2, y10), qy = p0 + U;
+    for (it = 0; it < PS_NEWTON_MAX_ITER; ++it) {
+        const int32_t W = fx_mul(c, y3), U = fx_mul(s_th_h, y10), qy = p0 + U;
         int32_t g = P - r, dg = 10 * (P >> sh), num, t, dy;
         if (qy > 0) { /* else the damping's polar-length factor is clipped at 0 */
             const int32_t Q = fx_mul(W, qy);
@@ -1835,11 +1841,14 @@ static int fx_solve_03(int32_t *z_io, int32_t *v, const ps_plan_fx *q, int i, in
         y += g < 0 ? dy : -dy;
         if (y < 0) y = 0;
         if (y > q->y_max) y = q->y_max;
+        y10 = fx_pow10(y, &y3);
+        if (done) break;
+        P = fx_mul(a2, y10);
     }
-    if (it == PS_NEWTON_MAX_ITER && !done) return PS_ERR_NO_CONVERGENCE;
+    if (it == PS_NEWTON_MAX_ITER) return PS_ERR_NO_CONVERGENCE;
     if (y == q->y_max) return PS_ERR_NONFINITE; /* the root is outside the Q range */
     *z_io = rhs < 0 ? -y : y;
-    *v = rhs < 0 ? -fx_pow10(y, &y5) : fx_pow10(y, &y5);
+    *v_io = rhs < 0 ? -y10 : y10;
     return PS_OK;
 }
 
@@ -1857,42 +1866,47 @@ static int32_t fx_activation(const ps_plan_fx *q, int i, int32_t f0, int32_t tg0
     return fx_min(fx_max(f, 0), FX_ONE);
 }
 
-/* The damping at the start of the step, (1 - theta) C beta(f0) z0^3 (polar length beyond R,
- * pr0 > 0): the explicit part of the theta-method's damping term. */
+/* The damping at the start of the step, (1 - theta) C beta(f0) z0^3 times the polar length
+ * beyond R, pr0 > 0 (the explicit part of the theta-method's damping term); z0^3 to *z03. */
 static int32_t fx_start_damping(const ps_plan_fx *q, int i, int32_t z0, int32_t f0,
-                                int32_t pr0)
+                                int32_t pr0, int32_t *z03)
 {
     const int32_t cb = z0 > 0 ? q->omCL_b0[i] + fx_mul(q->omCL_bd[i], f0)
                               : q->omCS_b0[i] + fx_mul(q->omCS_bd[i], f0);
-    return fx_mul(fx_mul(cb, fx_mul(fx_mul(z0, z0), z0)), pr0);
+    *z03 = fx_mul(fx_mul(z0, z0), z0);
+    return fx_mul(fx_mul(cb, *z03), pr0);
 }
 
-/* Fibre i's step to length L1 (dL from the state's) with its drive drive1 (the equations of
- * plan_fibre for a = 0.3, p = 2, theta in (0, 1], the start's force expanded into the rhs);
+/* Fibre i's step by dL from the state's length with its drive drive1 (the equations of
+ * plan_fibre for a = 0.3, p = 2, theta in (0, 1]; the rhs with the start's force and
+ * A = T0 + KSR dL - (1 - theta) h KSR v0 expanded:
+ *   rhs = cv v0 + T0 + theta KSR dL - Gamma f_theta - KPR (L0 - LSR0 - LPR0 - T0/KSR) - D0,
+ *   T1 = T0 + KSR (dL - (1 - theta) h v0 - theta h v1));
  * its new T, v, z, f, target go to next. */
-static int fx_fibre(const ps_spindle_fx *s, const ps_plan_fx *q, int i, int32_t L1, int32_t dL,
-                    int32_t drive1, fx_fibres *next)
+static int fx_fibre(const ps_spindle_fx *s, const ps_plan_fx *q, int i, int32_t dL, int32_t drive1,
+                    fx_fibres *next)
 {
     const int32_t t_max = PS_FX_T_MAX * FX_ONE;
     const int32_t T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i], tg0 = s->target[i];
     const int32_t tg = drive1 == (i == 0 ? s->gd : s->gs) ? tg0 : fx_target(q, i, drive1);
+    const int32_t tk0 = fx_mul(T0, q->inv_KSR[i]), ov0 = fx_mul(q->om_h, v0);
     /* the polar length beyond R at the start, and at the end but for the new velocity */
-    const int32_t pr0 = s->L - q->LSR0_R[i] - fx_mul(T0, q->inv_KSR[i]);
-    const int32_t p0 = pr0 + fx_mul(q->om_h, v0);
-    int32_t f, f_th, rhs, c, T1, z = z0;
+    const int32_t pr0 = s->L - q->LSR0_R[i] - tk0, p0 = pr0 + ov0;
+    int32_t f, f_th, rhs, c, T1, z = z0, v = v0, z03 = -1;
     int status;
     f = fx_activation(q, i, f0, tg0, tg);
     f_th = f == f0 ? f : f + fx_mul(q->one_minus_theta, f0 - f); /* theta f + (1 - theta) f0 */
-    rhs = fx_mul(q->cv[i], v0) + fx_mul(q->k1[i], T0) + fx_mul(q->cdL[i], dL)
-          - fx_mul(q->Gamma_drive[i], f_th) - fx_mul(q->KPR[i], L1 - q->LSR0_LPR0[i]);
-    if (z0 != 0 && pr0 > 0) rhs -= fx_start_damping(q, i, z0, f0, pr0);
+    rhs = fx_mul(q->cv[i], v0) + T0 + fx_mul(q->thKSR[i], dL) - fx_mul(q->Gamma_drive[i], f_th)
+          - fx_mul(q->KPR[i], s->L - q->LSR0_LPR0[i] - tk0);
+    if (z0 != 0 && pr0 > 0) rhs -= fx_start_damping(q, i, z0, f0, pr0, &z03);
     c = rhs > 0 ? q->thCL_b0[i] + fx_mul(q->thCL_bd[i], f)
                 : q->thCS_b0[i] + fx_mul(q->thCS_bd[i], f);
-    status = fx_solve_03(&z, &next->v[i], q, i, p0, rhs, c);
+    status = fx_solve_03(&z, &v, q, i, p0, rhs, c, z03);
     if (status != PS_OK) return status;
-    T1 = T0 + fx_mul(q->KSR[i], dL) - fx_mul(q->c_Av[i], v0) - fx_mul(q->th_h_KSR[i], next->v[i]);
+    T1 = T0 + fx_mul(q->KSR[i], dL) - fx_mul(q->c_Av[i], v0) - fx_mul(q->th_h_KSR[i], v);
     if (T1 < -t_max || T1 > t_max) return PS_ERR_NONFINITE;
     next->T[i] = T1;
+    next->v[i] = v;
     next->z[i] = z;
     next->f[i] = f;
     next->target[i] = tg;
@@ -1913,7 +1927,7 @@ int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_
     dL = L1 - s->L;
     if (fx_abs(dL) > q->max_dL) return PS_ERR_SPEED;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        status = fx_fibre(s, q, i, L1, dL, i == 0 ? gd1 : gs1, &next);
+        status = fx_fibre(s, q, i, dL, i == 0 ? gd1 : gs1, &next);
         if (status != PS_OK) return status;
     }
     fx_afferents(q, next.T, L1, &r_ia, &r_ii);
