@@ -168,10 +168,10 @@ FX_ROOT_TABLE = 31
 PLAN_FX_SCALARS = ("max_dL", "one_minus_theta", "th_h", "om_h", "S", "tol", "y_max", "v_max",
                    "dg_shift")
 PLAN_FX_FIBRE_FIELDS = (
-    "KSR", "inv_KSR", "inv_k1", "thKSR", "c_f0", "c_fa", "freq", "Gamma_drive", "KPR", "LSR0_R",
-    "LSR0_LPR0", "cv", "c_Av", "th_h_KSR", "a2", "inv_a2", "r_cap", "thCL_b0", "thCL_bd",
-    "thCS_b0", "thCS_bd", "omCL_b0", "omCL_bd", "omCS_b0", "omCS_bd", "G_T", "G_0", "cs_T",
-    "c_sec2", "s_0")
+    "KSR", "inv_KSR", "inv_k1", "thKSR", "c_f0", "c_fa", "freq", "Gamma_drive", "KPR",
+    "LSR0_R", "LSR0_LPR0", "cv", "c_Av", "th_h_KSR", "a2", "inv_a2", "r_cap", "thCL_b0",
+    "thCL_bd", "thCS_b0", "thCS_bd", "omCL_b0", "omCL_bd", "omCS_b0", "omCS_bd", "G_T", "G_0",
+    "cs_T", "c_sec2", "s_0")
 
 
 @cache
@@ -180,10 +180,12 @@ def fixed_structs() -> tuple[type, type]:
     variants (the fixed-point step has no ``ps_real``)."""
     i32 = ctypes.c_int32
 
+    class PsPlanFxFibre(ctypes.Structure):
+        _fields_ = [(name, i32) for name in PLAN_FX_FIBRE_FIELDS]
+
     class PsPlanFx(ctypes.Structure):
         _fields_ = ([(name, i32) for name in PLAN_FX_SCALARS]
-                    + [(name, i32 * 3) for name in PLAN_FX_FIBRE_FIELDS]
-                    + [("root10", i32 * FX_ROOT_TABLE)])
+                    + [("fibre", PsPlanFxFibre * 3), ("root10", i32 * FX_ROOT_TABLE)])
 
     class PsSpindleFx(ctypes.Structure):
         _fields_ = ([(name, i32 * 3) for name in ("T", "v", "z", "f", "target")]

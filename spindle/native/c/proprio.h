@@ -230,19 +230,20 @@ typedef struct ps_spindle_fx {
 
 /* Precomputed constants of the fixed-point step (read-only after ps_plan_fx_init; can be a
  * const in flash). All Q24 except freq (pps, Q8) and the rate gains G_T .. s_0 (Q16). The
- * step's equation is written in the state (ps_plan_fx_init in spindle.c says how). */
+ * step's equation is written in the state (fx_fibre in spindle.c says how). One struct per
+ * fibre: the Cortex-M0+ loads a word at an offset of at most 124 bytes from a pointer in one
+ * instruction, so a fibre's constants are all one load away. */
+typedef struct ps_plan_fx_fibre {
+    int32_t KSR, inv_KSR, inv_k1, thKSR, c_f0, c_fa, freq;
+    int32_t Gamma_drive, KPR, LSR0_R, LSR0_LPR0, cv, c_Av, th_h_KSR, a2, inv_a2, r_cap;
+    int32_t thCL_b0, thCL_bd, thCS_b0, thCS_bd, omCL_b0, omCL_bd, omCS_b0, omCS_bd;
+    int32_t G_T, G_0, cs_T, c_sec2, s_0;
+} ps_plan_fx_fibre;
+
 typedef struct ps_plan_fx {
     int32_t max_dL, one_minus_theta, th_h, om_h, S, tol, y_max, v_max;
     int32_t dg_shift; /* Newton's derivative is computed divided by 2^dg_shift */
-    int32_t KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES], inv_k1[PS_NFIBRES], thKSR[PS_NFIBRES];
-    int32_t c_f0[PS_NFIBRES], c_fa[PS_NFIBRES], freq[PS_NFIBRES];
-    int32_t Gamma_drive[PS_NFIBRES], KPR[PS_NFIBRES], LSR0_R[PS_NFIBRES], LSR0_LPR0[PS_NFIBRES];
-    int32_t cv[PS_NFIBRES], c_Av[PS_NFIBRES], th_h_KSR[PS_NFIBRES];
-    int32_t a2[PS_NFIBRES], inv_a2[PS_NFIBRES], r_cap[PS_NFIBRES];
-    int32_t thCL_b0[PS_NFIBRES], thCL_bd[PS_NFIBRES], thCS_b0[PS_NFIBRES], thCS_bd[PS_NFIBRES];
-    int32_t omCL_b0[PS_NFIBRES], omCL_bd[PS_NFIBRES], omCS_b0[PS_NFIBRES], omCS_bd[PS_NFIBRES];
-    int32_t G_T[PS_NFIBRES], G_0[PS_NFIBRES], cs_T[PS_NFIBRES], c_sec2[PS_NFIBRES];
-    int32_t s_0[PS_NFIBRES];
+    ps_plan_fx_fibre fibre[PS_NFIBRES];
     int32_t root10[PS_FX_ROOT_TABLE]; /* 2^((k - 23)/10): bounds of x^(1/10), x < 2^(k+1) */
 } ps_plan_fx;
 

@@ -1470,7 +1470,7 @@ static int32_t fx_quot(uint32_t num, uint32_t den)
  * (any int32 drive; the ratio keeps >= 15 significant bits of the larger one). */
 static int32_t fx_target(const ps_plan_fx *q, int i, int32_t drive)
 {
-    uint32_t g = (uint32_t)drive, F = (uint32_t)q->freq[i], big = g > F ? g : F, g2;
+    uint32_t g = (uint32_t)drive, F = (uint32_t)q->fibre[i].freq, big = g > F ? g : F, g2;
     int k = 0;
     if (g == 0) return 0;
     while ((big >> k) >= 32768u) ++k;
@@ -1603,11 +1603,11 @@ static int fx_plan_activation(ps_plan_fx *out, int i, const ps_params *p, double
     const double den = 1.0 + theta * rate, freq = D_(p->freq[i]);
     int st = PS_OK;
     if (p->tau[i] > R_(0)) {
-        st |= fx_const(&out->c_f0[i], (1.0 - (1.0 - theta) * rate) / den, 1.0);
-        st |= fx_const(&out->c_fa[i], 1.0 / den, 1.0);
+        st |= fx_const(&out->fibre[i].c_f0, (1.0 - (1.0 - theta) * rate) / den, 1.0);
+        st |= fx_const(&out->fibre[i].c_fa, 1.0 / den, 1.0);
     }
     if (!(freq * 256.0 <= 2147483000.0)) return PS_ERR_CONFIG;
-    out->freq[i] = fx_round(freq * 256.0);
+    out->fibre[i].freq = fx_round(freq * 256.0);
     return st;
 }
 
@@ -1631,11 +1631,11 @@ static int fx_plan_rates(ps_plan_fx *out, int i, const ps_params *p)
     const double c1 = D_(p->G_sec[i]) * D_(p->X[i]) * (D_(p->Lsec[i]) / D_(p->LSR0[i]));
     const double c2 = D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * (D_(p->Lsec[i]) / D_(p->LPR0[i]));
     int st = PS_OK;
-    st |= fx_gain(&out->G_T[i], D_(p->G_pri[i]) * inv_KSR);
-    st |= fx_gain(&out->G_0[i], D_(p->G_pri[i]) * stretch0);
-    st |= fx_gain(&out->cs_T[i], (c1 - c2) * inv_KSR);
-    st |= fx_gain(&out->c_sec2[i], c2);
-    st |= fx_gain(&out->s_0[i], c1 * stretch0 + c2 * (D_(p->LSR0[i]) + D_(p->LNPR[i])));
+    st |= fx_gain(&out->fibre[i].G_T, D_(p->G_pri[i]) * inv_KSR);
+    st |= fx_gain(&out->fibre[i].G_0, D_(p->G_pri[i]) * stretch0);
+    st |= fx_gain(&out->fibre[i].cs_T, (c1 - c2) * inv_KSR);
+    st |= fx_gain(&out->fibre[i].c_sec2, c2);
+    st |= fx_gain(&out->fibre[i].s_0, c1 * stretch0 + c2 * (D_(p->LSR0[i]) + D_(p->LNPR[i])));
     return st;
 }
 
@@ -1646,25 +1646,25 @@ static int fx_plan_fibre(ps_plan_fx *out, int i, const ps_params *p, double h, d
     const double KSR = D_(p->KSR[i]), KPR = D_(p->KPR[i]), k1 = 1.0 + KPR / KSR;
     const double a2 = D_(p->M[i]) / h + theta * theta * h * k1 * KSR;
     int st = PS_OK;
-    st |= fx_const(&out->KSR[i], KSR, FX_LIMIT);
-    st |= fx_const(&out->inv_KSR[i], 1.0 / KSR, FX_LIMIT);
-    st |= fx_const(&out->inv_k1[i], 1.0 / k1, FX_LIMIT);
-    st |= fx_const(&out->Gamma_drive[i], D_(p->Gamma_drive[i]), FX_LIMIT);
-    st |= fx_const(&out->KPR[i], KPR, FX_LIMIT);
-    st |= fx_const(&out->LSR0_R[i], D_(p->LSR0[i]) + D_(p->R[i]), FX_LIMIT);
-    st |= fx_const(&out->LSR0_LPR0[i], D_(p->LSR0[i]) + D_(p->LPR0[i]), FX_LIMIT);
-    st |= fx_const(&out->cv[i], D_(p->M[i]) / h - theta * k1 * (1.0 - theta) * h * KSR,
+    st |= fx_const(&out->fibre[i].KSR, KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].inv_KSR, 1.0 / KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].inv_k1, 1.0 / k1, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].Gamma_drive, D_(p->Gamma_drive[i]), FX_LIMIT);
+    st |= fx_const(&out->fibre[i].KPR, KPR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].LSR0_R, D_(p->LSR0[i]) + D_(p->R[i]), FX_LIMIT);
+    st |= fx_const(&out->fibre[i].LSR0_LPR0, D_(p->LSR0[i]) + D_(p->LPR0[i]), FX_LIMIT);
+    st |= fx_const(&out->fibre[i].cv, D_(p->M[i]) / h - theta * k1 * (1.0 - theta) * h * KSR,
                    FX_LIMIT);
-    st |= fx_const(&out->thKSR[i], theta * KSR, FX_LIMIT);
-    st |= fx_const(&out->c_Av[i], (1.0 - theta) * h * KSR, FX_LIMIT);
-    st |= fx_const(&out->th_h_KSR[i], theta * h * KSR, FX_LIMIT);
-    st |= fx_const(&out->a2[i], a2, FX_LIMIT);
-    st |= fx_const(&out->inv_a2[i], 1.0 / a2, FX_LIMIT);
-    st |= fx_const(&out->r_cap[i], a2 * pow(PS_FX_Y_MAX, 10.0), FX_LIMIT);
-    st |= fx_plan_damping(&out->thCL_b0[i], &out->thCL_bd[i], &out->thCS_b0[i],
-                          &out->thCS_bd[i], p, i, theta);
-    st |= fx_plan_damping(&out->omCL_b0[i], &out->omCL_bd[i], &out->omCS_b0[i],
-                          &out->omCS_bd[i], p, i, 1.0 - theta);
+    st |= fx_const(&out->fibre[i].thKSR, theta * KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].c_Av, (1.0 - theta) * h * KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].th_h_KSR, theta * h * KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].a2, a2, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].inv_a2, 1.0 / a2, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].r_cap, a2 * pow(PS_FX_Y_MAX, 10.0), FX_LIMIT);
+    st |= fx_plan_damping(&out->fibre[i].thCL_b0, &out->fibre[i].thCL_bd, &out->fibre[i].thCS_b0,
+                          &out->fibre[i].thCS_bd, p, i, theta);
+    st |= fx_plan_damping(&out->fibre[i].omCL_b0, &out->fibre[i].omCL_bd, &out->fibre[i].omCS_b0,
+                          &out->fibre[i].omCS_bd, p, i, 1.0 - theta);
     st |= fx_plan_rates(out, i, p);
     return st;
 }
@@ -1723,10 +1723,10 @@ static void fx_afferents(const ps_plan_fx *q, const int32_t T[PS_NFIBRES], int32
     int32_t primary[PS_NFIBRES], sec[PS_NFIBRES], a_dyn, b_stat;
     int i;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        primary[i] = fx_max(fx_mul_wide(T[i], q->G_T[i]) - q->G_0[i], 0);
+        primary[i] = fx_max(fx_mul_wide(T[i], q->fibre[i].G_T) - q->fibre[i].G_0, 0);
         sec[i] = i == 0 ? 0
-                        : fx_mul_wide(T[i], q->cs_T[i]) + fx_mul_wide(L, q->c_sec2[i])
-                              - q->s_0[i];
+                        : fx_mul_wide(T[i], q->fibre[i].cs_T) + fx_mul_wide(L, q->fibre[i].c_sec2)
+                              - q->fibre[i].s_0;
     }
     a_dyn = primary[0];
     b_stat = primary[1] + primary[2];
@@ -1750,11 +1750,11 @@ int ps_spindle_fx_init(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L, int32_t
     status = fx_check_inputs(q, L, gd, gs);
     if (status != PS_OK) return status;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        int32_t f = fx_target(q, i, i == 0 ? gd : gs);
+        const ps_plan_fx_fibre *k = &q->fibre[i];
+        const int32_t f = fx_target(q, i, i == 0 ? gd : gs);
         out.target[i] = f;
         out.f[i] = f;
-        out.T[i] = fx_mul(fx_mul(q->Gamma_drive[i], f) + fx_mul(q->KPR[i], L - q->LSR0_LPR0[i]),
-                          q->inv_k1[i]);
+        out.T[i] = fx_mul(fx_mul(k->Gamma_drive, f) + fx_mul(k->KPR, L - k->LSR0_LPR0), k->inv_k1);
         out.v[i] = 0;
         out.z[i] = 0;
     }
@@ -1801,7 +1801,8 @@ static int32_t fx_pow10(int32_t y, int32_t *y3)
 static int fx_solve_03(int32_t *z_io, int32_t *v_io, const ps_plan_fx *q, int i, int32_t p0,
                        int32_t rhs, int32_t c, int32_t y3_0)
 {
-    const int32_t r = fx_abs(rhs), s_th_h = rhs < 0 ? -q->th_h : q->th_h, a2 = q->a2[i];
+    const ps_plan_fx_fibre *k = &q->fibre[i];
+    const int32_t r = fx_abs(rhs), s_th_h = rhs < 0 ? -q->th_h : q->th_h, a2 = k->a2;
     const int sh = (int)q->dg_shift; /* y g' and |g| are divided by 2^sh */
     const int32_t quarter = FX_ONE / 4;
     int32_t y = fx_abs(*z_io), y10 = fx_abs(*v_io), y3 = y3_0 < 0 ? 0 : fx_abs(y3_0), P;
@@ -1809,8 +1810,8 @@ static int fx_solve_03(int32_t *z_io, int32_t *v_io, const ps_plan_fx *q, int i,
     if (y3_0 < 0 && y > 0) y10 = fx_pow10(y, &y3);
     P = fx_mul(a2, y10);
     if (P > r) { /* y is above the root's bound (x = r/a2 < y_max^10; + 3: rounding) */
-        const int32_t bound = r < q->r_cap[i]
-                                  ? q->root10[fx_log2((uint32_t)(fx_mul(r, q->inv_a2[i]) + 3))]
+        const int32_t bound = r < k->r_cap
+                                  ? q->root10[fx_log2((uint32_t)(fx_mul(r, k->inv_a2) + 3))]
                                   : q->y_max;
         if (y > bound) {
             y = bound > q->y_max ? q->y_max : bound;
@@ -1858,21 +1859,21 @@ typedef struct fx_fibres {
 } fx_fibres;
 
 /* Fibre i's activation f after the step toward its target tg (the theta-method filter). */
-static int32_t fx_activation(const ps_plan_fx *q, int i, int32_t f0, int32_t tg0, int32_t tg)
+static int32_t fx_activation(const ps_plan_fx_fibre *k, int32_t f0, int32_t tg0, int32_t tg)
 {
     int32_t f = tg;
-    if (f0 != tg0) f += fx_mul(q->c_f0[i], f0 - tg0);
-    if (tg != tg0) f += fx_mul(q->c_fa[i], tg0 - tg);
+    if (f0 != tg0) f += fx_mul(k->c_f0, f0 - tg0);
+    if (tg != tg0) f += fx_mul(k->c_fa, tg0 - tg);
     return fx_min(fx_max(f, 0), FX_ONE);
 }
 
 /* The damping at the start of the step, (1 - theta) C beta(f0) z0^3 times the polar length
  * beyond R, pr0 > 0 (the explicit part of the theta-method's damping term); z0^3 to *z03. */
-static int32_t fx_start_damping(const ps_plan_fx *q, int i, int32_t z0, int32_t f0,
-                                int32_t pr0, int32_t *z03)
+static int32_t fx_start_damping(const ps_plan_fx_fibre *k, int32_t z0, int32_t f0, int32_t pr0,
+                                int32_t *z03)
 {
-    const int32_t cb = z0 > 0 ? q->omCL_b0[i] + fx_mul(q->omCL_bd[i], f0)
-                              : q->omCS_b0[i] + fx_mul(q->omCS_bd[i], f0);
+    const int32_t cb = z0 > 0 ? k->omCL_b0 + fx_mul(k->omCL_bd, f0)
+                              : k->omCS_b0 + fx_mul(k->omCS_bd, f0);
     *z03 = fx_mul(fx_mul(z0, z0), z0);
     return fx_mul(fx_mul(cb, *z03), pr0);
 }
@@ -1886,24 +1887,25 @@ static int32_t fx_start_damping(const ps_plan_fx *q, int i, int32_t z0, int32_t 
 static int fx_fibre(const ps_spindle_fx *s, const ps_plan_fx *q, int i, int32_t dL, int32_t drive1,
                     fx_fibres *next)
 {
+    const ps_plan_fx_fibre *k = &q->fibre[i];
     const int32_t t_max = PS_FX_T_MAX * FX_ONE;
     const int32_t T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i], tg0 = s->target[i];
     const int32_t tg = drive1 == (i == 0 ? s->gd : s->gs) ? tg0 : fx_target(q, i, drive1);
-    const int32_t tk0 = fx_mul(T0, q->inv_KSR[i]), ov0 = fx_mul(q->om_h, v0);
+    const int32_t tk0 = fx_mul(T0, k->inv_KSR), ov0 = fx_mul(q->om_h, v0);
     /* the polar length beyond R at the start, and at the end but for the new velocity */
-    const int32_t pr0 = s->L - q->LSR0_R[i] - tk0, p0 = pr0 + ov0;
+    const int32_t pr0 = s->L - k->LSR0_R - tk0, p0 = pr0 + ov0;
     int32_t f, f_th, rhs, c, T1, z = z0, v = v0, z03 = -1;
     int status;
-    f = fx_activation(q, i, f0, tg0, tg);
+    f = fx_activation(k, f0, tg0, tg);
     f_th = f == f0 ? f : f + fx_mul(q->one_minus_theta, f0 - f); /* theta f + (1 - theta) f0 */
-    rhs = fx_mul(q->cv[i], v0) + T0 + fx_mul(q->thKSR[i], dL) - fx_mul(q->Gamma_drive[i], f_th)
-          - fx_mul(q->KPR[i], s->L - q->LSR0_LPR0[i] - tk0);
-    if (z0 != 0 && pr0 > 0) rhs -= fx_start_damping(q, i, z0, f0, pr0, &z03);
-    c = rhs > 0 ? q->thCL_b0[i] + fx_mul(q->thCL_bd[i], f)
-                : q->thCS_b0[i] + fx_mul(q->thCS_bd[i], f);
+    rhs = fx_mul(k->cv, v0) + T0 + fx_mul(k->thKSR, dL) - fx_mul(k->Gamma_drive, f_th)
+          - fx_mul(k->KPR, s->L - k->LSR0_LPR0 - tk0);
+    if (z0 != 0 && pr0 > 0) rhs -= fx_start_damping(k, z0, f0, pr0, &z03);
+    c = rhs > 0 ? k->thCL_b0 + fx_mul(k->thCL_bd, f)
+                : k->thCS_b0 + fx_mul(k->thCS_bd, f);
     status = fx_solve_03(&z, &v, q, i, p0, rhs, c, z03);
     if (status != PS_OK) return status;
-    T1 = T0 + fx_mul(q->KSR[i], dL) - fx_mul(q->c_Av[i], v0) - fx_mul(q->th_h_KSR[i], v);
+    T1 = T0 + fx_mul(k->KSR, dL) - fx_mul(k->c_Av, v0) - fx_mul(k->th_h_KSR, v);
     if (T1 < -t_max || T1 > t_max) return PS_ERR_NONFINITE;
     next->T[i] = T1;
     next->v[i] = v;
