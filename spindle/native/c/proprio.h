@@ -196,8 +196,8 @@ int ps_spindle_batch_afferents(const ps_spindle *s, long n, const ps_plan *q, ps
 /* ---- fixed-point step (Cortex-M0+ and other cores without an FPU) ---------------------
  * The trapezoidal-family step of ps_spindle_step_plan (theta in (0, 1], a = 0.3, p = 2) in
  * int32 arithmetic: products round(a * b / 2^24) from 16-bit halves (the M0+ multiplies
- * 32x32->32 only), the Newton divide as a shift-subtract loop; no float, no libgcc call on the step's
- * path. Same model, same state quantities, same status codes. Q formats (value = int / 2^k):
+ * 32x32->32 only), divides by a reciprocal (a linear estimate and two Newton-Raphson steps);
+ * no float, no libgcc call on the step's path. Same model, same state quantities, same status codes. Q formats (value = int / 2^k):
  *   Q24 (PS_FX_ONE): lengths L (L0), T (tension), v (L0/s), z = sgn(v)|v|^0.1, f, targets
  *                    and every plan constant except the gains;
  *   Q8  (PS_FX_DRIVE_ONE): fusimotor drives gd, gs (pps);

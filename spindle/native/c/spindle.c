@@ -9,10 +9,12 @@
  *   that depends only on (params, h, theta) precomputed by ps_plan_init (no divide left but
  *   one per Newton iteration), optionally a fixed Newton iteration count (PS_NEWTON_ITER) and
  *   a polynomial cube root;
- * - ps_spindle_step_fx, the int32 Q24 step for cores without an FPU: 8,612 instructions per
- *   step on the Cortex-M0+ at 5 ms (1.72 MIPS per muscle, scripts/bench_embedded.py --quick)
- *   against 36,389 for the float plan step with every lever (7.28 MIPS, docs/c_port.md), at
- *   the same accuracy (1.42 pps RMS against the stiff reference).
+ * - ps_spindle_step_fx, the int32 Q24 step for cores without an FPU: ~3,970 instructions per
+ *   step on the Cortex-M0+ at 5 ms on the demo motion (3,790 on the two --quick Fig. 3 runs;
+ *   8,100 before issue 26: Newton now stops on its predicted residual, divides by a reciprocal,
+ *   starts from the state's powers; scripts/bench_embedded.py --system-only: spindle stage
+ *   3,755 instr/sample, was 6,992) against 36,389 for the float plan step with every lever
+ *   (docs/c_port.md), at the same accuracy (1.42 pps RMS against the stiff reference).
  * The pieces they share (activation target, force, Newton start and solve, the combination of
  * the potentials into Ia and II, commit) are the small static functions of the first section.
  * The host's batch (ps_spindle_batch_step) runs ps_spindle_step_plan for 8 spindles at a time
