@@ -79,7 +79,7 @@ def test_q_scales_and_layouts_match_the_header(tmp_path):
             header["PS_FX_ROOT_TABLE"]) == (fixed.FX_Q24, fixed.FX_DRIVE, fixed.FX_RATE,
                                             abi.FX_ROOT_TABLE)
     PsPlanFx, PsSpindleFx = abi.fixed_structs()
-    checks = [("ps_plan_fx", PsPlanFx, "dg_shift"), ("ps_plan_fx", PsPlanFx, "sec_off"),
+    checks = [("ps_plan_fx", PsPlanFx, "dg_shift"), ("ps_plan_fx", PsPlanFx, "fibre"),
               ("ps_plan_fx", PsPlanFx, "root10"), ("ps_spindle_fx", PsSpindleFx, "target"),
               ("ps_spindle_fx", PsSpindleFx, "gs")]
     got = [(ctypes.sizeof(py), getattr(py, field).offset) for _, py, field in checks]

@@ -165,13 +165,13 @@ def _plan_struct(variant: str) -> type:
 # ps_plan_fx and ps_spindle_fx of proprio.h (the fixed-point step), field by field.
 FX_ROOT_TABLE = 31
 """``PS_FX_ROOT_TABLE``: entries of ``ps_plan_fx.root10``."""
-PLAN_FX_SCALARS = ("max_dL", "theta", "one_minus_theta", "th_h", "S", "tol", "y_max", "v_max",
+PLAN_FX_SCALARS = ("max_dL", "one_minus_theta", "th_h", "om_h", "S", "tol", "y_max", "v_max",
                    "dg_shift")
 PLAN_FX_FIBRE_FIELDS = (
-    "KSR", "inv_KSR", "inv_k1", "c_f0", "c_a0", "c_a1", "freq", "beta0", "beta_drive",
-    "Gamma_drive", "CL", "CS", "KPR", "LPR0", "R", "LSR0", "LSR0_R", "LSR0_LPR0", "c_Av", "a2",
-    "inv_a2", "r_cap", "M_h", "th_h_KSR", "th_k1", "th_KPR", "th_CL", "th_CS", "stretch0",
-    "G_pri", "c_sec1", "c_sec2", "sec_off")
+    "KSR", "inv_KSR", "inv_k1", "thKSR", "c_f0", "c_fa", "freq", "Gamma_drive", "KPR",
+    "LSR0_R", "LSR0_LPR0", "cv", "c_Av", "th_h_KSR", "a2", "inv_a2", "r_cap", "thCL_b0",
+    "thCL_bd", "thCS_b0", "thCS_bd", "omCL_b0", "omCL_bd", "omCS_b0", "omCS_bd", "G_T", "G_0",
+    "cs_T", "c_sec2", "s_0")
 
 
 @cache
@@ -180,10 +180,12 @@ def fixed_structs() -> tuple[type, type]:
     variants (the fixed-point step has no ``ps_real``)."""
     i32 = ctypes.c_int32
 
+    class PsPlanFxFibre(ctypes.Structure):
+        _fields_ = [(name, i32) for name in PLAN_FX_FIBRE_FIELDS]
+
     class PsPlanFx(ctypes.Structure):
         _fields_ = ([(name, i32) for name in PLAN_FX_SCALARS]
-                    + [(name, i32 * 3) for name in PLAN_FX_FIBRE_FIELDS]
-                    + [("root10", i32 * FX_ROOT_TABLE)])
+                    + [("fibre", PsPlanFxFibre * 3), ("root10", i32 * FX_ROOT_TABLE)])
 
     class PsSpindleFx(ctypes.Structure):
         _fields_ = ([(name, i32 * 3) for name in ("T", "v", "z", "f", "target")]

@@ -196,8 +196,8 @@ int ps_spindle_batch_afferents(const ps_spindle *s, long n, const ps_plan *q, ps
 /* ---- fixed-point step (Cortex-M0+ and other cores without an FPU) ---------------------
  * The trapezoidal-family step of ps_spindle_step_plan (theta in (0, 1], a = 0.3, p = 2) in
  * int32 arithmetic: products round(a * b / 2^24) from 16-bit halves (the M0+ multiplies
- * 32x32->32 only), the Newton divide as a shift-subtract loop; no float, no libgcc call on the step's
- * path. Same model, same state quantities, same status codes. Q formats (value = int / 2^k):
+ * 32x32->32 only), divides by a reciprocal (a linear estimate and two Newton-Raphson steps);
+ * no float, no libgcc call on the step's path. Same model, same state quantities, same status codes. Q formats (value = int / 2^k):
  *   Q24 (PS_FX_ONE): lengths L (L0), T (tension), v (L0/s), z = sgn(v)|v|^0.1, f, targets
  *                    and every plan constant except the gains;
  *   Q8  (PS_FX_DRIVE_ONE): fusimotor drives gd, gs (pps);
@@ -229,21 +229,21 @@ typedef struct ps_spindle_fx {
 } ps_spindle_fx;
 
 /* Precomputed constants of the fixed-point step (read-only after ps_plan_fx_init; can be a
- * const in flash). All Q24 except freq (pps, Q8), G_pri, c_sec1, c_sec2 (Q16). */
+ * const in flash). All Q24 except freq (pps, Q8) and the rate gains G_T .. s_0 (Q16). The
+ * step's equation is written in the state (fx_fibre in spindle.c says how). One struct per
+ * fibre: the Cortex-M0+ loads a word at an offset of at most 124 bytes from a pointer in one
+ * instruction, so a fibre's constants are all one load away. */
+typedef struct ps_plan_fx_fibre {
+    int32_t KSR, inv_KSR, inv_k1, thKSR, c_f0, c_fa, freq;
+    int32_t Gamma_drive, KPR, LSR0_R, LSR0_LPR0, cv, c_Av, th_h_KSR, a2, inv_a2, r_cap;
+    int32_t thCL_b0, thCL_bd, thCS_b0, thCS_bd, omCL_b0, omCL_bd, omCS_b0, omCS_bd;
+    int32_t G_T, G_0, cs_T, c_sec2, s_0;
+} ps_plan_fx_fibre;
+
 typedef struct ps_plan_fx {
-    int32_t max_dL, theta, one_minus_theta, th_h, S, tol, y_max, v_max;
+    int32_t max_dL, one_minus_theta, th_h, om_h, S, tol, y_max, v_max;
     int32_t dg_shift; /* Newton's derivative is computed divided by 2^dg_shift */
-    int32_t KSR[PS_NFIBRES], inv_KSR[PS_NFIBRES], inv_k1[PS_NFIBRES];
-    int32_t c_f0[PS_NFIBRES], c_a0[PS_NFIBRES], c_a1[PS_NFIBRES], freq[PS_NFIBRES];
-    int32_t beta0[PS_NFIBRES], beta_drive[PS_NFIBRES], Gamma_drive[PS_NFIBRES];
-    int32_t CL[PS_NFIBRES], CS[PS_NFIBRES], KPR[PS_NFIBRES], LPR0[PS_NFIBRES], R[PS_NFIBRES];
-    int32_t LSR0[PS_NFIBRES], LSR0_R[PS_NFIBRES], LSR0_LPR0[PS_NFIBRES];
-    int32_t c_Av[PS_NFIBRES], a2[PS_NFIBRES], inv_a2[PS_NFIBRES], r_cap[PS_NFIBRES];
-    int32_t M_h[PS_NFIBRES];
-    int32_t th_h_KSR[PS_NFIBRES], th_k1[PS_NFIBRES], th_KPR[PS_NFIBRES];
-    int32_t th_CL[PS_NFIBRES], th_CS[PS_NFIBRES];
-    int32_t stretch0[PS_NFIBRES], G_pri[PS_NFIBRES], c_sec1[PS_NFIBRES], c_sec2[PS_NFIBRES];
-    int32_t sec_off[PS_NFIBRES];
+    ps_plan_fx_fibre fibre[PS_NFIBRES];
     int32_t root10[PS_FX_ROOT_TABLE]; /* 2^((k - 23)/10): bounds of x^(1/10), x < 2^(k+1) */
 } ps_plan_fx;
 

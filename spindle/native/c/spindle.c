@@ -9,10 +9,12 @@
  *   that depends only on (params, h, theta) precomputed by ps_plan_init (no divide left but
  *   one per Newton iteration), optionally a fixed Newton iteration count (PS_NEWTON_ITER) and
  *   a polynomial cube root;
- * - ps_spindle_step_fx, the int32 Q24 step for cores without an FPU: 8,612 instructions per
- *   step on the Cortex-M0+ at 5 ms (1.72 MIPS per muscle, scripts/bench_embedded.py --quick)
- *   against 36,389 for the float plan step with every lever (7.28 MIPS, docs/c_port.md), at
- *   the same accuracy (1.42 pps RMS against the stiff reference).
+ * - ps_spindle_step_fx, the int32 Q24 step for cores without an FPU: ~3,970 instructions per
+ *   step on the Cortex-M0+ at 5 ms on the demo motion (3,790 on the two --quick Fig. 3 runs;
+ *   8,100 before issue 26: Newton now stops on its predicted residual, divides by a reciprocal,
+ *   starts from the state's powers; scripts/bench_embedded.py --system-only: spindle stage
+ *   3,755 instr/sample, was 6,992) against 36,389 for the float plan step with every lever
+ *   (docs/c_port.md), at the same accuracy (1.42 pps RMS against the stiff reference).
  * The pieces they share (activation target, force, Newton start and solve, the combination of
  * the potentials into Ia and II, commit) are the small static functions of the first section.
  * The host's batch (ps_spindle_batch_step) runs ps_spindle_step_plan for 8 spindles at a time
@@ -1361,30 +1363,50 @@ int ps_spindle_batch_afferents(const ps_spindle *s, long n, const ps_plan *q, ps
 #define FX_V_LIMIT 127.0 /* v = y^10, only ever a factor of a product, never a term of a sum */
 #define FX_MAX_DG_SHIFT 6
 #define FX_RATE_LIMIT 32767.0
-/* Newton tolerance in y = |z| of the fixed-point step (1e-4: with the float fast path's 1e-3,
- * 10 L0/s moves with 300 pps drives, where |v| reaches 40 L0/s, differ from the double step
- * by up to 0.4 pps with the CAT gains; 1e-4 costs 13 % more iterations), and the
- * residual (Q24 LSB) at which the iteration stops anyway: near v = 0 the residual g is a few
- * LSB, rounding noise, and y cannot be resolved better (v = y^10 is then below 1e-9 L0/s). */
-#ifndef PS_FX_TOL_Z
-#define PS_FX_TOL_Z 1e-4
+/* Newton's stopping rule in y = |z|: the step dy just taken is accepted once |dy| <= y/8 and
+ * |dy| y^5 <= PS_FX_TOL_G. Newton's error after a step is about (g''/2g') dy^2 <= 6 dy^2/y
+ * (g is a sum of y^3, y^10, y^13 terms), i.e. an error of v = y^10 of about 60 y^8 dy^2:
+ * scaling the tolerance on dy by y^5 keeps that error, not the error of y, below ~60 tol^2
+ * (5e-6 L0/s at 3e-4) at every speed. (A fixed tolerance in y must be 1e-4 for the moves at
+ * 10 L0/s, where |v| reaches 40 L0/s and one LSB of y is 3e-5 L0/s of v, and is then 100x
+ * tighter than needed at the speeds of use: 2.2 Newton iterations per fibre and step instead of
+ * 1.3.) FX_G_TOL: the residual (Q24 LSB) at which the iteration stops anyway: near v = 0 the
+ * residual g is a few LSB, rounding noise, and y cannot be resolved better (v = y^10 is then
+ * below 1e-9 L0/s). */
+#ifndef PS_FX_TOL_G
+#define PS_FX_TOL_G 3e-6
 #endif
 #define FX_G_TOL 8
 
 /* round(a * b / 2^24) without a 64-bit product (the M0+ multiplies 32x32->32 only):
  * a = ah 2^16 + al, b = bh 2^16 + bl with al, bl unsigned 16-bit, |ah|, |bh| <= 2^15, so each
- * partial product fits in 32 bits, and a*b = H 2^32 + m 2^16 + (ll mod 2^16) with
- * H = hh + hl/2^16 + lh/2^16 (floored) and 0 <= m < 3 * 2^16. Exact round-half-up: a floor
- * here would bias every product by -1.5 LSB, and the bias accumulates in the state (measured:
- * 5x larger errors at 1 ms than at 5 ms). The caller keeps the result within +-2^30.
- * PS_FX_INLINE_MUL (gcc/clang): inlined at every use; on the Cortex-M0+ the call, the push
- * of five registers and the pop cost ~15 of its ~35 cycles (the system firmware's option;
- * the results are the same bits). */
+ * partial product fits in 32 bits. Exact round-half-up: a floor here would bias every product
+ * by -1.5 LSB, and the bias accumulates in the state (measured: 5x larger errors at 1 ms than
+ * at 5 ms). Two forms with the same result bits:
+ * - fx_mul, the step's: a*b = hh 2^32 + mid 2^16 + (ll mod 2^16) with
+ *   mid = hl + lh + ll/2^16 in one int32, which needs |ah| + |bh| < 2^15, i.e.
+ *   |a| + |b| < 2^31 (128 in Q24). Every product of the step has |a|, |b| <= 80.2 (plan
+ *   constants and intermediates <= 64, v and y^10 <= 80.2) and |a b| <= 127 (the bounds of
+ *   fx_bounds_ok), so |a| + |b| <= 80.2 + 127 / 80.2 < 82. 17 instructions on the M0+.
+ * - fx_mul_wide, any int32 operands (the rates: Q16 gains up to 2^31): m = the low halves of
+ *   hl and lh plus ll/2^16 kept apart, 22 instructions.
+ * The caller keeps the result within +-2^30 (v: 2^31). PS_FX_INLINE_MUL (gcc/clang):
+ * inlined at every use; on the Cortex-M0+ the call, the push and the pop cost ~15 cycles
+ * (the system firmware's option; the results are the same bits). */
 #if defined(PS_FX_INLINE_MUL) && defined(__GNUC__)
-__attribute__((always_inline)) static inline int32_t fx_mul(int32_t a, int32_t b)
+#define FX_MUL_DECL __attribute__((always_inline)) static inline int32_t
 #else
-static int32_t fx_mul(int32_t a, int32_t b)
+#define FX_MUL_DECL static int32_t
 #endif
+FX_MUL_DECL fx_mul(int32_t a, int32_t b)
+{
+    const int32_t ah = a >> 16, bh = b >> 16;
+    const uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
+    const int32_t mid = ah * (int32_t)bl + (int32_t)al * bh + (int32_t)((al * bl) >> 16);
+    return ah * bh * 256 + ((mid + 128) >> 8);
+}
+
+FX_MUL_DECL fx_mul_wide(int32_t a, int32_t b)
 {
     int32_t ah = a >> 16, bh = b >> 16;
     uint32_t al = (uint32_t)a & 0xFFFFu, bl = (uint32_t)b & 0xFFFFu;
@@ -1394,23 +1416,6 @@ static int32_t fx_mul(int32_t a, int32_t b)
     uint32_t m = ((uint32_t)hl & 0xFFFFu) + ((uint32_t)lh & 0xFFFFu) + (ll >> 16);
     int32_t H = ah * bh + (hl >> 16) + (lh >> 16);
     return H * 256 + (int32_t)((m + 128u) >> 8);
-}
-
-/* num / den in Q24 for 0 <= num < den <= 2^31 (restoring division, 24 quotient bits; the
- * M0+ has no divide instruction). */
-static int32_t fx_ratio(uint32_t num, uint32_t den)
-{
-    uint32_t r = 0;
-    int k;
-    for (k = 0; k < PS_FX_Q; ++k) {
-        num <<= 1;
-        r <<= 1;
-        if (num >= den) {
-            num -= den;
-            r |= 1u;
-        }
-    }
-    return (int32_t)r;
 }
 
 /* Straight-line for the reason of copy3 (no memcpy call). */
@@ -1439,12 +1444,35 @@ static int fx_log2(uint32_t x)
     return k;
 }
 
+/* num / den in Q24 for 0 <= num < den < 2^31, to ~3e-5 relative and 2 LSB (the Newton step
+ * and the activation targets; a 24-iteration shift-subtract loop cost ~190 instructions on the
+ * M0+, which has no divide, this ~50): den normalised to [2^30, 2^31) (num shifted alike), its
+ * top 16 bits d give 1/delta, delta = d / 2^16 in [0.5, 1], in Q15 from the linear estimate
+ * 48/17 - 32/17 delta (relative error <= 1/17) and two Newton-Raphson refinements
+ * r (2 - delta r) (error 1/17^2, then ~1e-5, the rest from the 16-bit d). Every product is
+ * unsigned below 2^32 or signed below 2^31: d r < 2^31 (1 + 1/17), halved before the
+ * subtraction; r <= 2^16 - 1 for the last product. */
+static int32_t fx_quot(uint32_t num, uint32_t den)
+{
+    const int k = 30 - fx_log2(den);
+    const uint32_t dn = den << k, nn = num << k; /* nn < 2^31 */
+    const uint32_t d = (dn + (1u << 14)) >> 15;  /* [2^15, 2^16] */
+    int32_t r = 92521 - (int32_t)((d * 61681u) >> 16), e;
+    e = (1 << 30) - (int32_t)((d * (uint32_t)r) >> 1); /* |e| < 2^30 / 17 */
+    r += (r * (e >> 14)) >> 16;
+    e = (1 << 30) - (int32_t)((d * (uint32_t)r) >> 1); /* |e| < 2^30 / 280 */
+    r += (r * (e >> 8)) >> 22;
+    if (r > 65535) r = 65535;
+    /* nn r / 2^22 from nn = nh 2^15 + nl (nh < 2^16, nl < 2^15) */
+    return (int32_t)((((nn >> 15) * (uint32_t)r) >> 7) + (((nn & 0x7FFFu) * (uint32_t)r) >> 22));
+}
+
 /* g^2 / (g^2 + freq^2) in Q24 for a drive g >= 0 and freq > 0, both Q8: both are shifted
  * right (rounded) by the same k until the larger is below 2^15, so that g^2 + freq^2 <= 2^31
  * (any int32 drive; the ratio keeps >= 15 significant bits of the larger one). */
 static int32_t fx_target(const ps_plan_fx *q, int i, int32_t drive)
 {
-    uint32_t g = (uint32_t)drive, F = (uint32_t)q->freq[i], big = g > F ? g : F, g2;
+    uint32_t g = (uint32_t)drive, F = (uint32_t)q->fibre[i].freq, big = g > F ? g : F, g2;
     int k = 0;
     if (g == 0) return 0;
     while ((big >> k) >= 32768u) ++k;
@@ -1454,7 +1482,7 @@ static int32_t fx_target(const ps_plan_fx *q, int i, int32_t drive)
         F = (F + half) >> k;
     }
     g2 = g * g;
-    return fx_ratio(g2, g2 + F * F);
+    return fx_min(fx_quot(g2, g2 + F * F), FX_ONE); /* the quotient's error can reach 1 */
 }
 
 static int32_t fx_round(double x) { return (int32_t)(x < 0.0 ? x - 0.5 : x + 0.5); }
@@ -1478,6 +1506,16 @@ static int fx_gain(int32_t *out, double x)
 
 static double fx_absd(double x) { return x < 0.0 ? -x : x; }
 
+/* The largest of the two damping coefficients x * C (beta0 + beta_drive f), f in [0, 1], of
+ * fibre i. */
+static double fx_damping_bound(const ps_params *p, int i, double x)
+{
+    const double beta = fx_absd(D_(p->beta0[i])) + fx_absd(D_(p->beta_drive[i]));
+    const double C = fx_absd(D_(p->CL[i])) > fx_absd(D_(p->CS[i])) ? fx_absd(D_(p->CL[i]))
+                                                                   : fx_absd(D_(p->CS[i]));
+    return fx_absd(x) * C * beta;
+}
+
 /* Worst-case magnitudes of the step's intermediates for fibre i over the state and input
  * ranges of proprio.h (|T| <= T_MAX, |z| <= Y_MAX, |v| <= Y_MAX^10, f in [0, 1], L in
  * [0.5, 1.5], |dL| <= 10 h): sums of the magnitudes of their terms, so that every partial
@@ -1487,57 +1525,56 @@ static double fx_absd(double x) { return x < 0.0 ? -x : x; }
 static int fx_bounds_ok(const ps_params *p, int i, double h, double theta, double *prim_out,
                         double *sec_out, int *dg_shift)
 {
-    const double KSR = D_(p->KSR[i]), inv_KSR = 1.0 / KSR;
-    const double KPR = fx_absd(D_(p->KPR[i])), k1 = fx_absd(1.0 + D_(p->KPR[i]) / KSR);
-    const double T = PS_FX_T_MAX, Y = PS_FX_Y_MAX, Y2 = Y * Y, Y3 = Y2 * Y;
-    const double Y9 = Y3 * Y3 * Y3, V = Y9 * Y, Lmax = PS_LENGTH_MAX_L0;
-    const double max_dL = PS_MAX_SPEED_L0_S * h;
-    const double Cmax = D_(p->CL[i]) > D_(p->CS[i]) ? D_(p->CL[i]) : D_(p->CS[i]);
-    const double beta = fx_absd(D_(p->beta0[i])) + fx_absd(D_(p->beta_drive[i]));
+    const double KSR = D_(p->KSR[i]), inv_KSR = fx_absd(1.0 / KSR), KPR = D_(p->KPR[i]);
+    const double k1 = 1.0 + KPR / KSR, T = PS_FX_T_MAX, Y = PS_FX_Y_MAX, Y3 = Y * Y * Y;
+    const double V = pow(Y, 10.0), Lmax = PS_LENGTH_MAX_L0, max_dL = PS_MAX_SPEED_L0_S * h;
     const double Gam = fx_absd(D_(p->Gamma_drive[i]));
-    const double LSR0 = fx_absd(D_(p->LSR0[i])), LPR0 = fx_absd(D_(p->LPR0[i]));
-    const double R = fx_absd(D_(p->R[i]));
-    const double a2 = fx_absd(D_(p->M[i]) / h + theta * theta * h * (1.0 + D_(p->KPR[i]) / KSR)
-                              * KSR);
-    const double c = theta * Cmax * beta;
-    const double init_sum = Gam + KPR * (Lmax + LSR0 + LPR0);
-    double A, polar, F0, p0, rhs, qy, g, dg, T1, stretch, prim, sec, L_sec;
-    double bound[22];
+    const double LSR0_R = fx_absd(D_(p->LSR0[i]) + D_(p->R[i]));
+    const double X = fx_absd(D_(p->LSR0[i]) + D_(p->LPR0[i]));
+    const double a2 = fx_absd(D_(p->M[i]) / h + theta * theta * h * k1 * KSR);
+    const double cv = fx_absd(D_(p->M[i]) / h - theta * k1 * (1.0 - theta) * h * KSR);
+    const double kpr_arg = Lmax + X + T * inv_KSR; /* L0 - LSR0 - LPR0 - T0/KSR */
+    const double c = fx_damping_bound(p, i, theta), c0 = fx_damping_bound(p, i, 1.0 - theta);
+    const double init_sum = Gam + fx_absd(KPR) * (Lmax + X);
+    double pr0, p0, D0, rhs, qy, P, Q, WU, g, dg, stretch, L_sec;
+    double bound[25];
     int k;
-    A = T + KSR * max_dL + (1.0 - theta) * h * KSR * V;
-    polar = Lmax + LSR0 + T * inv_KSR;
-    F0 = T + Gam + KPR * (polar + LPR0) + Cmax * beta * Y3 * (polar + R);
-    p0 = Lmax + LSR0 + R + A * inv_KSR;
-    rhs = D_(p->M[i]) / h * V + theta * k1 * A + theta * Gam
-          + theta * KPR * (Lmax + LSR0 + LPR0) + (1.0 - theta) * F0;
+    pr0 = Lmax + LSR0_R + T * inv_KSR;
+    p0 = pr0 + (1.0 - theta) * h * V;
+    D0 = c0 * Y3 * pr0;
+    rhs = cv * V + T + theta * fx_absd(KSR) * max_dL + Gam + fx_absd(KPR) * kpr_arg + D0;
     qy = p0 + theta * h * V;
-    g = a2 * V + c * Y3 * qy + rhs;
-    dg = Y9 * (10.0 * a2 + 10.0 * c * theta * h * Y3) + 3.0 * c * Y2 * qy;
-    T1 = A + theta * h * KSR * V;
+    P = a2 * V;
+    Q = c * Y3 * qy;
+    WU = c * Y3 * theta * h * V;
+    g = P + Q + rhs;
+    /* dg = y g' is computed divided by 2^shift (the Newton step does not change): at small
+     * steps M/h makes it the largest intermediate */
+    dg = 10.0 * P + 3.0 * Q + 10.0 * WU;
+    for (*dg_shift = 0; *dg_shift < FX_MAX_DG_SHIFT && dg > FX_LIMIT; ++*dg_shift) dg *= 0.5;
     stretch = T * inv_KSR + fx_absd(D_(p->LNSR[i]) - D_(p->LSR0[i]));
     L_sec = Lmax + T * inv_KSR + fx_absd(D_(p->LSR0[i]) + D_(p->LNPR[i]));
-    prim = fx_absd(D_(p->G_pri[i])) * stretch;
-    sec = fx_absd(D_(p->G_sec[i]) * D_(p->X[i]) * D_(p->Lsec[i]) / D_(p->LSR0[i])) * stretch
-          + fx_absd(D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * D_(p->Lsec[i]) / D_(p->LPR0[i]))
-            * L_sec;
-    bound[0] = A; bound[1] = polar; bound[2] = F0; bound[3] = p0; bound[4] = rhs;
-    /* dg is computed divided by 2^shift (the ratio g/dg does not change): at small steps
-     * M/h makes it the largest intermediate */
-    for (*dg_shift = 0; *dg_shift < FX_MAX_DG_SHIFT && dg > FX_LIMIT; ++*dg_shift) dg *= 0.5;
-    bound[5] = qy; bound[6] = g; bound[7] = dg; bound[8] = T1;
-    bound[9] = V * (FX_LIMIT / FX_V_LIMIT);
-    bound[10] = 10.0 * a2; bound[11] = 10.0 * c * theta * h; bound[12] = 3.0 * c * Y2;
-    bound[13] = stretch; bound[14] = L_sec; bound[15] = a2 * V;
-    bound[16] = beta * Cmax; bound[17] = Cmax * beta * Y3; bound[18] = init_sum;
-    bound[19] = c * Y3;
+    bound[0] = pr0; bound[1] = p0; bound[2] = c0; bound[3] = c0 * Y3; bound[4] = D0;
+    bound[5] = rhs; bound[6] = c; bound[7] = c * Y3; bound[8] = qy; bound[9] = P;
+    bound[10] = Q; bound[11] = WU; bound[12] = g; bound[13] = dg;
+    /* T1 = T0 + KSR (dL - (1 - theta) h v0 - theta h v1) */
+    bound[14] = T + fx_absd(KSR) * (max_dL + h * V);
+    bound[15] = V * (FX_LIMIT / FX_V_LIMIT);
+    /* |g| y (the Newton step's numerator): a product, compared and divided only */
+    bound[16] = g * Y * (FX_LIMIT / FX_V_LIMIT);
+    bound[17] = stretch; bound[18] = L_sec; bound[19] = init_sum; bound[20] = cv * V;
+    bound[21] = kpr_arg;
     /* the equilibria must be states in range: |T| = |init_sum / k1| <= T_MAX */
-    bound[20] = init_sum / k1 <= T ? 0.0 : FX_LIMIT + 1.0;
-    bound[21] = 1.0 / k1;
-    for (k = 0; k < 22; ++k) {
+    bound[22] = init_sum / fx_absd(k1) <= T ? 0.0 : FX_LIMIT + 1.0;
+    bound[23] = 1.0 / fx_absd(k1);
+    bound[24] = max_dL + h * V;
+    for (k = 0; k < 25; ++k) {
         if (!(bound[k] <= FX_LIMIT)) return 0;
     }
-    *prim_out = prim;
-    *sec_out = sec;
+    *prim_out = fx_absd(D_(p->G_pri[i])) * stretch;
+    *sec_out = fx_absd(D_(p->G_sec[i]) * D_(p->X[i]) * D_(p->Lsec[i]) / D_(p->LSR0[i])) * stretch
+               + fx_absd(D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * D_(p->Lsec[i])
+                         / D_(p->LPR0[i])) * L_sec;
     return 1;
 }
 
@@ -1546,19 +1583,21 @@ static int fx_plan_scalars(ps_plan_fx *out, const ps_params *p, double h, double
 {
     int st = PS_OK;
     st |= fx_const(&out->max_dL, PS_MAX_SPEED_L0_S * h, 1.0);
-    st |= fx_const(&out->theta, theta, 1.0);
     st |= fx_const(&out->one_minus_theta, 1.0 - theta, 1.0);
     st |= fx_const(&out->th_h, theta * h, 1.0);
+    st |= fx_const(&out->om_h, (1.0 - theta) * h, 1.0);
     st |= fx_const(&out->S, D_(p->S), FX_LIMIT);
     st |= fx_const(&out->y_max, PS_FX_Y_MAX, FX_LIMIT);
     st |= fx_const(&out->v_max, pow(PS_FX_Y_MAX, 10.0), FX_V_LIMIT);
     out->v_max += 16; /* z^10 in Q24 is rounded */
-    st |= fx_const(&out->tol, PS_FX_TOL_Z, 1.0);
+    st |= fx_const(&out->tol, PS_FX_TOL_G, 1.0);
     if (out->tol < 1) out->tol = 1;
     return st;
 }
 
-/* Fibre i's activation filter (as plan_activation_coefficients) and drive scale. */
+/* Fibre i's activation filter (as plan_activation_coefficients, written as
+ * f = tg + c_f0 (f0 - tg0) + c_fa (tg0 - tg), so that held drives cost one product and a
+ * fibre without a filter none) and drive scale. */
 static int fx_plan_activation(ps_plan_fx *out, int i, const ps_params *p, double h,
                               double theta)
 {
@@ -1566,54 +1605,69 @@ static int fx_plan_activation(ps_plan_fx *out, int i, const ps_params *p, double
     const double den = 1.0 + theta * rate, freq = D_(p->freq[i]);
     int st = PS_OK;
     if (p->tau[i] > R_(0)) {
-        st |= fx_const(&out->c_f0[i], (1.0 - (1.0 - theta) * rate) / den, 1.0);
-        st |= fx_const(&out->c_a0[i], (1.0 - theta) * rate / den, 1.0);
-        st |= fx_const(&out->c_a1[i], theta * rate / den, 1.0);
-    } else {
-        out->c_a1[i] = FX_ONE;
+        st |= fx_const(&out->fibre[i].c_f0, (1.0 - (1.0 - theta) * rate) / den, 1.0);
+        st |= fx_const(&out->fibre[i].c_fa, 1.0 / den, 1.0);
     }
     if (!(freq * 256.0 <= 2147483000.0)) return PS_ERR_CONFIG;
-    out->freq[i] = fx_round(freq * 256.0);
+    out->fibre[i].freq = fx_round(freq * 256.0);
     return st;
 }
 
-/* Fibre i's constants of the step (Q24) and of the rates (gains Q16). */
+/* Fibre i's damping coefficients x C (beta0 + beta_drive f) = *b0 + *bd f for C = CL, CS. */
+static int fx_plan_damping(int32_t *L_b0, int32_t *L_bd, int32_t *S_b0, int32_t *S_bd,
+                           const ps_params *p, int i, double x)
+{
+    int st = PS_OK;
+    st |= fx_const(L_b0, x * D_(p->CL[i]) * D_(p->beta0[i]), FX_LIMIT);
+    st |= fx_const(L_bd, x * D_(p->CL[i]) * D_(p->beta_drive[i]), FX_LIMIT);
+    st |= fx_const(S_b0, x * D_(p->CS[i]) * D_(p->beta0[i]), FX_LIMIT);
+    st |= fx_const(S_bd, x * D_(p->CS[i]) * D_(p->beta_drive[i]), FX_LIMIT);
+    return st;
+}
+
+/* Fibre i's rate gains (Q16): Ia's potential G_T T - G_0, II's cs_T T + c_sec2 L - s_0
+ * (the stretch T/KSR - (LNSR - LSR0) and the secondary length folded into the gains). */
+static int fx_plan_rates(ps_plan_fx *out, int i, const ps_params *p)
+{
+    const double inv_KSR = 1.0 / D_(p->KSR[i]), stretch0 = D_(p->LNSR[i]) - D_(p->LSR0[i]);
+    const double c1 = D_(p->G_sec[i]) * D_(p->X[i]) * (D_(p->Lsec[i]) / D_(p->LSR0[i]));
+    const double c2 = D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * (D_(p->Lsec[i]) / D_(p->LPR0[i]));
+    int st = PS_OK;
+    st |= fx_gain(&out->fibre[i].G_T, D_(p->G_pri[i]) * inv_KSR);
+    st |= fx_gain(&out->fibre[i].G_0, D_(p->G_pri[i]) * stretch0);
+    st |= fx_gain(&out->fibre[i].cs_T, (c1 - c2) * inv_KSR);
+    st |= fx_gain(&out->fibre[i].c_sec2, c2);
+    st |= fx_gain(&out->fibre[i].s_0, c1 * stretch0 + c2 * (D_(p->LSR0[i]) + D_(p->LNPR[i])));
+    return st;
+}
+
+/* Fibre i's constants of the step (Q24): the theta-method's rhs written in the state
+ * (cv v0 + k1 T0 + cdL dL - Gamma f_theta - KPR (L1 - LSR0 - LPR0) - the start's damping). */
 static int fx_plan_fibre(ps_plan_fx *out, int i, const ps_params *p, double h, double theta)
 {
-    const double KSR = D_(p->KSR[i]), k1 = 1.0 + D_(p->KPR[i]) / KSR;
+    const double KSR = D_(p->KSR[i]), KPR = D_(p->KPR[i]), k1 = 1.0 + KPR / KSR;
     const double a2 = D_(p->M[i]) / h + theta * theta * h * k1 * KSR;
     int st = PS_OK;
-    st |= fx_const(&out->KSR[i], KSR, FX_LIMIT);
-    st |= fx_const(&out->inv_KSR[i], 1.0 / KSR, FX_LIMIT);
-    st |= fx_const(&out->inv_k1[i], 1.0 / k1, FX_LIMIT);
-    st |= fx_const(&out->beta0[i], D_(p->beta0[i]), FX_LIMIT);
-    st |= fx_const(&out->beta_drive[i], D_(p->beta_drive[i]), FX_LIMIT);
-    st |= fx_const(&out->Gamma_drive[i], D_(p->Gamma_drive[i]), FX_LIMIT);
-    st |= fx_const(&out->CL[i], D_(p->CL[i]), FX_LIMIT);
-    st |= fx_const(&out->CS[i], D_(p->CS[i]), FX_LIMIT);
-    st |= fx_const(&out->KPR[i], D_(p->KPR[i]), FX_LIMIT);
-    st |= fx_const(&out->LPR0[i], D_(p->LPR0[i]), FX_LIMIT);
-    st |= fx_const(&out->R[i], D_(p->R[i]), FX_LIMIT);
-    st |= fx_const(&out->LSR0[i], D_(p->LSR0[i]), FX_LIMIT);
-    st |= fx_const(&out->LSR0_R[i], D_(p->LSR0[i]) + D_(p->R[i]), FX_LIMIT);
-    st |= fx_const(&out->LSR0_LPR0[i], D_(p->LSR0[i]) + D_(p->LPR0[i]), FX_LIMIT);
-    st |= fx_const(&out->c_Av[i], (1.0 - theta) * h * KSR, FX_LIMIT);
-    st |= fx_const(&out->a2[i], a2, FX_LIMIT);
-    st |= fx_const(&out->inv_a2[i], 1.0 / a2, FX_LIMIT);
-    st |= fx_const(&out->r_cap[i], a2 * pow(PS_FX_Y_MAX, 10.0), FX_LIMIT);
-    st |= fx_const(&out->M_h[i], D_(p->M[i]) / h, FX_LIMIT);
-    st |= fx_const(&out->th_h_KSR[i], theta * h * KSR, FX_LIMIT);
-    st |= fx_const(&out->th_k1[i], theta * k1, FX_LIMIT);
-    st |= fx_const(&out->th_KPR[i], theta * D_(p->KPR[i]), FX_LIMIT);
-    st |= fx_const(&out->th_CL[i], theta * D_(p->CL[i]), FX_LIMIT);
-    st |= fx_const(&out->th_CS[i], theta * D_(p->CS[i]), FX_LIMIT);
-    st |= fx_const(&out->stretch0[i], D_(p->LNSR[i]) - D_(p->LSR0[i]), FX_LIMIT);
-    st |= fx_gain(&out->G_pri[i], D_(p->G_pri[i]));
-    st |= fx_gain(&out->c_sec1[i],
-                  D_(p->G_sec[i]) * D_(p->X[i]) * (D_(p->Lsec[i]) / D_(p->LSR0[i])));
-    st |= fx_gain(&out->c_sec2[i],
-                  D_(p->G_sec[i]) * (1.0 - D_(p->X[i])) * (D_(p->Lsec[i]) / D_(p->LPR0[i])));
-    st |= fx_const(&out->sec_off[i], D_(p->LSR0[i]) + D_(p->LNPR[i]), FX_LIMIT);
+    st |= fx_const(&out->fibre[i].KSR, KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].inv_KSR, 1.0 / KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].inv_k1, 1.0 / k1, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].Gamma_drive, D_(p->Gamma_drive[i]), FX_LIMIT);
+    st |= fx_const(&out->fibre[i].KPR, KPR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].LSR0_R, D_(p->LSR0[i]) + D_(p->R[i]), FX_LIMIT);
+    st |= fx_const(&out->fibre[i].LSR0_LPR0, D_(p->LSR0[i]) + D_(p->LPR0[i]), FX_LIMIT);
+    st |= fx_const(&out->fibre[i].cv, D_(p->M[i]) / h - theta * k1 * (1.0 - theta) * h * KSR,
+                   FX_LIMIT);
+    st |= fx_const(&out->fibre[i].thKSR, theta * KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].c_Av, (1.0 - theta) * h * KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].th_h_KSR, theta * h * KSR, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].a2, a2, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].inv_a2, 1.0 / a2, FX_LIMIT);
+    st |= fx_const(&out->fibre[i].r_cap, a2 * pow(PS_FX_Y_MAX, 10.0), FX_LIMIT);
+    st |= fx_plan_damping(&out->fibre[i].thCL_b0, &out->fibre[i].thCL_bd, &out->fibre[i].thCS_b0,
+                          &out->fibre[i].thCS_bd, p, i, theta);
+    st |= fx_plan_damping(&out->fibre[i].omCL_b0, &out->fibre[i].omCL_bd, &out->fibre[i].omCS_b0,
+                          &out->fibre[i].omCS_bd, p, i, 1.0 - theta);
+    st |= fx_plan_rates(out, i, p);
     return st;
 }
 
@@ -1663,20 +1717,22 @@ static int fx_check_inputs(const ps_plan_fx *q, int32_t L, int32_t gd, int32_t g
 
 static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q);
 
+/* Ia and II (Q16) at tensions T and length L: the potentials are linear in T and L with the
+ * plan's folded gains (bag1 has no secondary ending; II sums bag2's and chain's). */
 static void fx_afferents(const ps_plan_fx *q, const int32_t T[PS_NFIBRES], int32_t L,
                          int32_t *ia, int32_t *ii)
 {
     int32_t primary[PS_NFIBRES], sec[PS_NFIBRES], a_dyn, b_stat;
     int i;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        int32_t t_ksr = fx_mul(T[i], q->inv_KSR[i]);
-        int32_t stretch = t_ksr - q->stretch0[i];
-        primary[i] = fx_max(fx_mul(stretch, q->G_pri[i]), 0);
-        sec[i] = fx_mul(stretch, q->c_sec1[i]) + fx_mul(L - t_ksr - q->sec_off[i], q->c_sec2[i]);
+        primary[i] = fx_max(fx_mul_wide(T[i], q->fibre[i].G_T) - q->fibre[i].G_0, 0);
+        sec[i] = i == 0 ? 0
+                        : fx_mul_wide(T[i], q->fibre[i].cs_T) + fx_mul_wide(L, q->fibre[i].c_sec2)
+                              - q->fibre[i].s_0;
     }
     a_dyn = primary[0];
     b_stat = primary[1] + primary[2];
-    if (ia != NULL) *ia = fx_max(a_dyn, b_stat) + fx_mul(q->S, fx_min(a_dyn, b_stat));
+    if (ia != NULL) *ia = fx_max(a_dyn, b_stat) + fx_mul_wide(q->S, fx_min(a_dyn, b_stat));
     if (ii != NULL) *ii = fx_max(sec[1], 0) + fx_max(sec[2], 0);
 }
 
@@ -1696,11 +1752,11 @@ int ps_spindle_fx_init(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L, int32_t
     status = fx_check_inputs(q, L, gd, gs);
     if (status != PS_OK) return status;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        int32_t f = fx_target(q, i, i == 0 ? gd : gs);
+        const ps_plan_fx_fibre *k = &q->fibre[i];
+        const int32_t f = fx_target(q, i, i == 0 ? gd : gs);
         out.target[i] = f;
         out.f[i] = f;
-        out.T[i] = fx_mul(fx_mul(q->Gamma_drive[i], f) + fx_mul(q->KPR[i], L - q->LSR0_LPR0[i]),
-                          q->inv_k1[i]);
+        out.T[i] = fx_mul(fx_mul(k->Gamma_drive, f) + fx_mul(k->KPR, L - k->LSR0_LPR0), k->inv_k1);
         out.v[i] = 0;
         out.z[i] = 0;
     }
@@ -1730,67 +1786,72 @@ static int fx_state_ok(const ps_spindle_fx *s, const ps_plan_fx *q)
     return 1;
 }
 
-/* Newton for a = 0.3 in y = |z| (the fixed-point solve_03): a2 y^10 + c y^3 (p0 + s th_h
- * y^10) = |rhs|, started at min(|z0|, an upper bound of the root from (|rhs|/a2)^(1/10)). */
-static int fx_solve_03(int32_t *z_io, int32_t *v, const ps_plan_fx *q, int i, int32_t p0,
-                       int32_t rhs, int32_t c)
+/* y^10 and y^3 (Q24) for 0 <= y <= y_max. */
+static int32_t fx_pow10(int32_t y, int32_t *y3)
 {
-    const int32_t r = fx_abs(rhs);
-    const int32_t s_th_h = rhs < 0 ? -q->th_h : q->th_h;
-    /* the derivative's coefficients divided by 2^dg_shift (so is |g| below) */
-    const int sh = (int)q->dg_shift;
-    const int32_t ten_a2 = (10 * q->a2[i]) >> sh, three_c = (3 * c) >> sh;
-    const int32_t ten_c_th_h = (10 * fx_mul(c, s_th_h)) >> sh;
+    const int32_t y2 = fx_mul(y, y), y5 = fx_mul(y2, *y3 = fx_mul(y2, y));
+    return fx_mul(y5, y5);
+}
+
+/* Newton for a = 0.3 in y = |z| (the fixed-point solve_03): g(y) = a2 y^10 + c y^3 qy - |rhs|
+ * with qy = p0 + s th_h y^10 (clipped at 0), from y = |z0| (its y^10 = |v0| and y^3 = |y3_0|,
+ * if known, from the state and the start's damping: a first iteration without powers), or
+ * from an upper bound of the root from (|rhs|/a2)^(1/10) where a2 |v0| > |rhs|. With
+ * P = a2 y^10, W = c y^3, U = s th_h y^10 and Q = W qy, g = P + Q - r and
+ * y g' = 10 P + 3 Q + 10 W U: nine products an iteration, the relative step t = |g| / (y g')
+ * by fx_quot. Stops as PS_FX_TOL_G says; *v_io: v0 in, the new v out. */
+static int fx_solve_03(int32_t *z_io, int32_t *v_io, const ps_plan_fx *q, int i, int32_t p0,
+                       int32_t rhs, int32_t c, int32_t y3_0)
+{
+    const ps_plan_fx_fibre *k = &q->fibre[i];
+    const int32_t r = fx_abs(rhs), s_th_h = rhs < 0 ? -q->th_h : q->th_h, a2 = k->a2;
+    const int sh = (int)q->dg_shift; /* y g' and |g| are divided by 2^sh */
     const int32_t quarter = FX_ONE / 4;
-    int32_t y = fx_abs(*z_io), bound = q->y_max;
-    int32_t y2, y4, y10, dy = quarter;
-    int it;
-    if (r < q->r_cap[i]) { /* x = r/a2 < y_max^10; + 3: rounding of r, inv_a2 */
-        bound = q->root10[fx_log2((uint32_t)(fx_mul(r, q->inv_a2[i]) + 3))];
+    int32_t y = fx_abs(*z_io), y10 = fx_abs(*v_io), y3 = y3_0 < 0 ? 0 : fx_abs(y3_0), P;
+    int it, done = 0;
+    if (y3_0 < 0 && y > 0) y10 = fx_pow10(y, &y3);
+    P = fx_mul(a2, y10);
+    if (P > r) { /* y is above the root's bound (x = r/a2 < y_max^10; + 3: rounding) */
+        const int32_t bound = r < k->r_cap
+                                  ? q->root10[fx_log2((uint32_t)(fx_mul(r, k->inv_a2) + 3))]
+                                  : q->y_max;
+        if (y > bound) {
+            y = bound > q->y_max ? q->y_max : bound;
+            y10 = fx_pow10(y, &y3);
+            P = fx_mul(a2, y10);
+        }
     }
-    if (bound > q->y_max) bound = q->y_max;
-    if (y > bound) y = bound;
     for (it = 0; it < PS_NEWTON_MAX_ITER; ++it) {
-        int32_t y3, y8, y9, qy, g, dg, ag;
-        y2 = fx_mul(y, y);
-        y3 = fx_mul(y2, y);
-        y4 = fx_mul(y2, y2);
-        y8 = fx_mul(y4, y4);
-        y9 = fx_mul(y8, y);
-        y10 = fx_mul(y8, y2);
-        qy = p0 + fx_mul(s_th_h, y10);
-        if (qy > 0) {
-            g = fx_mul(q->a2[i], y10) + fx_mul(fx_mul(c, y3), qy) - r;
-            dg = fx_mul(y9, ten_a2 + fx_mul(ten_c_th_h, y3)) + fx_mul(fx_mul(three_c, y2), qy);
-        } else { /* the damping's polar-length factor clipped at 0 */
-            g = fx_mul(q->a2[i], y10) - r;
-            dg = fx_mul(y9, ten_a2);
+        const int32_t W = fx_mul(c, y3), U = fx_mul(s_th_h, y10), qy = p0 + U;
+        int32_t g = P - r, dg = 10 * (P >> sh), num, t, dy;
+        if (qy > 0) { /* else the damping's polar-length factor is clipped at 0 */
+            const int32_t Q = fx_mul(W, qy);
+            g += Q;
+            dg += 3 * (Q >> sh) + 10 * (fx_mul(W, U) >> sh);
         }
-        if (dg < 1) dg = 1;
-        ag = fx_abs(g);
-        if (ag <= FX_G_TOL) {
-            dy = 0;
-            break;
-        }
-        ag >>= sh;
-        if (ag >= dg / 4) {
+        if (fx_abs(g) <= FX_G_TOL) break;
+        /* t = dy / y = |g| / (y g'); the residual after the step is about
+         * g''/2 dy^2 <= 6 y g' t^2 = 6 |g| t (g''y^2 <= 12 y g': y^3, y^10, y^13 terms) */
+        num = fx_abs(g) >> sh;
+        if (dg < 1 || num >= dg) { /* dy >= y, or no slope: clamped (at 0 or 1/4) */
+            t = FX_ONE;
             dy = quarter;
         } else {
-            dy = fx_ratio((uint32_t)ag, (uint32_t)dg);
+            t = fx_quot((uint32_t)num, (uint32_t)dg);
+            dy = fx_min(fx_mul(t, y), quarter);
         }
-        if (g < 0) dy = -dy;
-        y -= dy;
+        done = t <= FX_ONE / 8 && 6 * fx_mul(fx_abs(g), t) <= q->tol;
+        y += g < 0 ? dy : -dy;
         if (y < 0) y = 0;
         if (y > q->y_max) y = q->y_max;
-        if (fx_abs(dy) <= q->tol) break;
+        y10 = fx_pow10(y, &y3);
+        if (done) break;
+        P = fx_mul(a2, y10);
     }
-    if (fx_abs(dy) > q->tol) return PS_ERR_NO_CONVERGENCE;
+    if (it == PS_NEWTON_MAX_ITER) return PS_ERR_NO_CONVERGENCE;
     if (y == q->y_max) return PS_ERR_NONFINITE; /* the root is outside the Q range */
-    y2 = fx_mul(y, y);
-    y4 = fx_mul(y2, y2);
-    y10 = fx_mul(fx_mul(y4, y4), y2);
     *z_io = rhs < 0 ? -y : y;
-    *v = rhs < 0 ? -y10 : y10;
+    *v_io = rhs < 0 ? -y10 : y10;
     return PS_OK;
 }
 
@@ -1799,44 +1860,58 @@ typedef struct fx_fibres {
     int32_t T[PS_NFIBRES], v[PS_NFIBRES], z[PS_NFIBRES], f[PS_NFIBRES], target[PS_NFIBRES];
 } fx_fibres;
 
-/* The force of fibre i at the start of the step (as start_force). */
-static int32_t fx_start_force(const ps_spindle_fx *s, const ps_plan_fx *q, int i)
+/* Fibre i's activation f after the step toward its target tg (the theta-method filter). */
+static int32_t fx_activation(const ps_plan_fx_fibre *k, int32_t f0, int32_t tg0, int32_t tg)
 {
-    const int32_t T0 = s->T[i], z0 = s->z[i], f0 = s->f[i];
-    const int32_t polar = s->L - q->LSR0[i] - fx_mul(T0, q->inv_KSR[i]);
-    const int32_t beta0 = q->beta0[i] + fx_mul(q->beta_drive[i], f0);
-    const int32_t z03 = fx_mul(fx_mul(z0, z0), z0);
-    const int32_t damping = fx_mul(fx_mul(z0 > 0 ? q->CL[i] : q->CS[i], beta0), z03);
-    return T0 - fx_mul(q->Gamma_drive[i], f0) - fx_mul(q->KPR[i], polar - q->LPR0[i])
-           - fx_mul(damping, fx_max(polar - q->R[i], 0));
+    int32_t f = tg;
+    if (f0 != tg0) f += fx_mul(k->c_f0, f0 - tg0);
+    if (tg != tg0) f += fx_mul(k->c_fa, tg0 - tg);
+    return fx_min(fx_max(f, 0), FX_ONE);
 }
 
-/* Fibre i's step to length L1 (dL from the state's) with its drive drive1 (the equations of
- * plan_fibre for a = 0.3, p = 2, theta in (0, 1]); its new T, v, z, f, target go to next. */
-static int fx_fibre(const ps_spindle_fx *s, const ps_plan_fx *q, int i, int32_t L1, int32_t dL,
-                    int32_t drive1, fx_fibres *next)
+/* The damping at the start of the step, (1 - theta) C beta(f0) z0^3 times the polar length
+ * beyond R, pr0 > 0 (the explicit part of the theta-method's damping term); z0^3 to *z03. */
+static int32_t fx_start_damping(const ps_plan_fx_fibre *k, int32_t z0, int32_t f0, int32_t pr0,
+                                int32_t *z03)
 {
+    const int32_t cb = z0 > 0 ? k->omCL_b0 + fx_mul(k->omCL_bd, f0)
+                              : k->omCS_b0 + fx_mul(k->omCS_bd, f0);
+    *z03 = fx_mul(fx_mul(z0, z0), z0);
+    return fx_mul(fx_mul(cb, *z03), pr0);
+}
+
+/* Fibre i's step by dL from the state's length with its drive drive1 (the equations of
+ * plan_fibre for a = 0.3, p = 2, theta in (0, 1]; the rhs with the start's force and
+ * A = T0 + KSR dL - (1 - theta) h KSR v0 expanded:
+ *   rhs = cv v0 + T0 + theta KSR dL - Gamma f_theta - KPR (L0 - LSR0 - LPR0 - T0/KSR) - D0,
+ *   T1 = T0 + KSR (dL - (1 - theta) h v0 - theta h v1));
+ * its new T, v, z, f, target go to next. */
+static int fx_fibre(const ps_spindle_fx *s, const ps_plan_fx *q, int i, int32_t dL, int32_t drive1,
+                    fx_fibres *next)
+{
+    const ps_plan_fx_fibre *k = &q->fibre[i];
     const int32_t t_max = PS_FX_T_MAX * FX_ONE;
-    const int32_t v0 = s->v[i], f0 = s->f[i], tg0 = s->target[i];
+    const int32_t T0 = s->T[i], v0 = s->v[i], z0 = s->z[i], f0 = s->f[i], tg0 = s->target[i];
     const int32_t tg = drive1 == (i == 0 ? s->gd : s->gs) ? tg0 : fx_target(q, i, drive1);
-    int32_t f, beta1, A, F0, p0, rhs, c, z = s->z[i];
+    const int32_t tk0 = fx_mul(T0, k->inv_KSR), ov0 = fx_mul(q->om_h, v0);
+    /* the polar length beyond R at the start, and at the end but for the new velocity */
+    const int32_t pr0 = s->L - k->LSR0_R - tk0, p0 = pr0 + ov0;
+    int32_t f, f_th, rhs, c, T1, z = z0, v = v0, z03 = -1;
     int status;
-    f = fx_mul(q->c_f0[i], f0) + fx_mul(q->c_a0[i], tg0) + fx_mul(q->c_a1[i], tg);
-    f = fx_min(fx_max(f, 0), FX_ONE);
-    beta1 = q->beta0[i] + fx_mul(q->beta_drive[i], f);
-    A = s->T[i] + fx_mul(q->KSR[i], dL);
-    F0 = fx_start_force(s, q, i);
-    A -= fx_mul(q->c_Av[i], v0);
-    p0 = L1 - q->LSR0_R[i] - fx_mul(A, q->inv_KSR[i]);
-    rhs = fx_mul(q->M_h[i], v0) + fx_mul(q->th_k1[i], A)
-          - fx_mul(q->theta, fx_mul(q->Gamma_drive[i], f))
-          - fx_mul(q->th_KPR[i], L1 - q->LSR0_LPR0[i]) + fx_mul(q->one_minus_theta, F0);
-    c = fx_mul(rhs > 0 ? q->th_CL[i] : q->th_CS[i], beta1);
-    status = fx_solve_03(&z, &next->v[i], q, i, p0, rhs, c);
+    f = fx_activation(k, f0, tg0, tg);
+    f_th = f == f0 ? f : f + fx_mul(q->one_minus_theta, f0 - f); /* theta f + (1 - theta) f0 */
+    rhs = fx_mul(k->cv, v0) + T0 + fx_mul(k->thKSR, dL) - fx_mul(k->Gamma_drive, f_th)
+          - fx_mul(k->KPR, s->L - k->LSR0_LPR0 - tk0);
+    if (z0 != 0 && pr0 > 0) rhs -= fx_start_damping(k, z0, f0, pr0, &z03);
+    c = rhs > 0 ? k->thCL_b0 + fx_mul(k->thCL_bd, f)
+                : k->thCS_b0 + fx_mul(k->thCS_bd, f);
+    status = fx_solve_03(&z, &v, q, i, p0, rhs, c, z03);
     if (status != PS_OK) return status;
+    T1 = T0 + fx_mul(k->KSR, dL) - fx_mul(k->c_Av, v0) - fx_mul(k->th_h_KSR, v);
+    if (T1 < -t_max || T1 > t_max) return PS_ERR_NONFINITE;
+    next->T[i] = T1;
+    next->v[i] = v;
     next->z[i] = z;
-    next->T[i] = A - fx_mul(q->th_h_KSR[i], next->v[i]);
-    if (next->T[i] < -t_max || next->T[i] > t_max) return PS_ERR_NONFINITE;
     next->f[i] = f;
     next->target[i] = tg;
     return PS_OK;
@@ -1856,7 +1931,7 @@ int ps_spindle_step_fx(ps_spindle_fx *s, const ps_plan_fx *q, int32_t L1, int32_
     dL = L1 - s->L;
     if (fx_abs(dL) > q->max_dL) return PS_ERR_SPEED;
     for (i = 0; i < PS_NFIBRES; ++i) {
-        status = fx_fibre(s, q, i, L1, dL, i == 0 ? gd1 : gs1, &next);
+        status = fx_fibre(s, q, i, dL, i == 0 ? gd1 : gs1, &next);
         if (status != PS_OK) return status;
     }
     fx_afferents(q, next.T, L1, &r_ia, &r_ii);

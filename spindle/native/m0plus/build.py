@@ -112,13 +112,17 @@ def _float_literal(x: float) -> str:
 
 
 def _initializer(plan: ctypes.Structure, scalar) -> str:
-    """The struct's fields, in order, as a C initializer list (``scalar`` formats one)."""
-    parts = []
-    for name, ctype in type(plan)._fields_:
-        value = getattr(plan, name)
-        parts.append(scalar(ctype, value) if not issubclass(ctype, ctypes.Array)
-                     else "{" + ", ".join(scalar(ctype._type_, v) for v in value) + "}")
-    return ",\n    ".join(parts)
+    """The struct's fields, in order, as a C initializer list (``scalar`` formats one; nested
+    structs and arrays of them are braced in turn)."""
+    def value_source(ctype, value) -> str:
+        if issubclass(ctype, ctypes.Structure):
+            return "{" + _initializer(value, scalar) + "}"
+        if issubclass(ctype, ctypes.Array):
+            return "{" + ", ".join(value_source(ctype._type_, v) for v in value) + "}"
+        return scalar(ctype, value)
+
+    return ",\n    ".join(value_source(ctype, getattr(plan, name))
+                          for name, ctype in type(plan)._fields_)
 
 
 def _write_header(build_dir: Path, cfg: Config, name: str, text: str) -> Path:
