@@ -29,6 +29,7 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
     from proprio_env.runtime.sources import DynamixelSource
 
     tag = f"{backend}-{rt_priority}"
+    tty_priority = args.tty_worker_priority or None
     link = str(tmp / f"ax12-{tag}")
     child = start_virtual_servo(link, args.track, [], rt_priority,
                                 extra=("--return-delay", str(args.return_delay)))
@@ -38,7 +39,8 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
         runtime = Runtime(source, rate_hz=args.rate, backend=backend,
                           sinks=[LslSink(f"bench-{os.getpid()}-{tag}")],
                           log=CsvLog(tmp / f"log-{tag}.csv"), duration_s=args.duration,
-                          rt_priority=rt_priority)
+                          rt_priority=rt_priority,
+                          tty_worker_priority=tty_priority if rt_priority else None)
         summary = runtime.run()
     finally:
         child.terminate()
@@ -63,6 +65,9 @@ def main() -> int:
                     help="SCHED_FIFO priority 50 for the runtime and the servo (needs root)")
     ap.add_argument("--return-delay", type=int, default=0,
                     help="the virtual servo's return delay register (2 us units)")
+    ap.add_argument("--tty-worker-priority", type=int, default=49,
+                    help="with --rt on: the kernel's tty workers under SCHED_FIFO at this "
+                         "priority (0: left alone)")
     ap.add_argument("--latency-timer-ms", type=float, default=1.0)
     ap.add_argument("--track", default="elbow", choices=("scripted", "elbow"))
     ap.add_argument("--figure", default=None, help="PNG of the latency and read-time tails")
@@ -76,13 +81,14 @@ def main() -> int:
     print(f"bench_runtime: {args.duration:g} s per setting at {args.rate:g} Hz, virtual AX-12 "
           f"on a pty (return delay {2 * args.return_delay} us), LSL + CSV log, "
           f"{os.cpu_count()} CPUs")
-    head = ("backend", "SCHED_FIFO", "ticks", "read", "p50 ms", "p99 ms", "max ms",
+    head = ("backend", "SCHED_FIFO", "tty workers", "ticks", "read", "p50 ms", "p99 ms", "max ms",
             "read p50/p99 ms", "misses", "skipped", "timeouts", "stale", "load avg 1 min")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for s in rows:
         c, lat = s["counters"], s["latency"]
         cells = (s["backend"], "50" if s["rt"] else "off",
+                 str(s["tty_worker_priority"] or "off"),
                  str(c["readings"] + c["skipped_ticks"]), str(c["readings"]),
                  f"{lat['p50_ms']:.3f}", f"{lat['p99_ms']:.3f}", f"{lat['max_ms']:.3f}",
                  f"{s['read_ms'][0]:.2f}/{s['read_ms'][1]:.2f}", str(c["deadline_misses"]),
