@@ -6,6 +6,13 @@ config) and the CSV log, for --duration seconds. Prints per setting the latency 
 reading's arrival to the outputs published (p50, p99, max), the read time, the deadline
 misses and the machine's load average.
 
+Beside each run a *witness* (a child process doing nothing but wake every 1 ms, under
+SCHED_FIFO 99 when the run is real-time) records how late each of its wakes was. A witness
+wake late by a millisecond or more is a stall of the machine itself (the kernel or the
+hypervisor did not run even the highest-priority task); the table counts the deadline
+misses whose sample's period overlapped such a stall (``with a stall``). The miss count
+itself is unchanged: every sample published after its period is a miss.
+
     PYTHONPATH=. python scripts/bench_runtime.py                     # 60 s, C backend
     PYTHONPATH=. python scripts/bench_runtime.py --duration 20 --backends c,numpy --rt both
 """
@@ -14,9 +21,12 @@ from __future__ import annotations
 
 import argparse
 import csv
+import gc
 import os
+import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +43,10 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
     link = str(tmp / f"ax12-{tag}")
     child = start_virtual_servo(link, args.track, [], rt_priority,
                                 extra=("--return-delay", str(args.return_delay)))
+    stalls_path = tmp / f"witness-{tag}.npy"
+    witness = subprocess.Popen([sys.executable, __file__, "--witness", str(stalls_path),
+                                "--witness-priority", str(99 if rt_priority else 0),
+                                "--duration", str(args.duration + 2)])
     load_before = os.getloadavg()
     try:
         source = DynamixelSource(link, latency_timer_ms=args.latency_timer_ms)
@@ -45,8 +59,12 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
     finally:
         child.terminate()
         child.wait(10)
+        witness.wait(args.duration + 30)
     with open(tmp / f"log-{tag}.csv", newline="") as f:
         log = list(csv.DictReader(f))
+    summary["stalls"] = np.load(stalls_path)
+    summary["misses_in_stall"] = misses_in_stalls(log, runtime.t0, runtime.period_s,
+                                                  summary["stalls"])
     read_s = np.array([float(r["read_s"]) for r in log])
     summary["read_ms"] = np.percentile(read_s * 1e3, [50, 99]).tolist()
     summary["read_s"] = read_s
@@ -54,6 +72,46 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
     summary["load_before"] = load_before
     summary["rt"] = rt_priority
     return summary
+
+
+STALL_S = 1e-3
+"""A witness wake this late is a stall of the machine (its p99.9 is ~0.5 ms otherwise)."""
+
+
+def run_witness(out: Path, priority: int, duration_s: float) -> None:
+    """Wake every 1 ms for ``duration_s``; save each wake's (due, lateness) in s."""
+    gc.disable()
+    if priority:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    n = int(duration_s * 1000)
+    due = time.perf_counter() + (np.arange(n) + 1) * 1e-3
+    late = np.empty(n)
+    for k in range(n):
+        left = due[k] - time.perf_counter()
+        if left > 0:
+            time.sleep(left)
+        late[k] = time.perf_counter() - due[k]
+    np.save(out, np.stack((due, late), axis=1))
+
+
+def misses_in_stalls(log: list[dict], t0: float, period_s: float,
+                     witness: np.ndarray) -> int:
+    """Deadline misses (late samples and skipped ticks) during which the witness was held
+    off by a stall of at least :data:`STALL_S`: a late sample and the ticks skipped after
+    it count when the stall overlaps the time from its due time to the next sample's."""
+    stalls = witness[witness[:, 1] >= STALL_S]
+    begin, end = stalls[:, 0], stalls[:, 0] + stalls[:, 1]
+    count = 0
+    for row, nxt in zip(log, [*log[1:], None], strict=True):
+        k = int(row["index"])
+        skipped_after = int(nxt["skipped_before"]) if nxt is not None else 0
+        misses = int(row["deadline_missed"] == "1") + skipped_after
+        if misses == 0:
+            continue
+        a, b = t0 + k * period_s, t0 + (k + 1 + skipped_after) * period_s
+        if np.any((begin < b) & (end > a)):
+            count += misses
+    return count
 
 
 def main() -> int:
@@ -71,7 +129,12 @@ def main() -> int:
     ap.add_argument("--latency-timer-ms", type=float, default=1.0)
     ap.add_argument("--track", default="elbow", choices=("scripted", "elbow"))
     ap.add_argument("--figure", default=None, help="PNG of the latency and read-time tails")
+    ap.add_argument("--witness", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--witness-priority", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.witness:
+        run_witness(Path(args.witness), args.witness_priority, args.duration)
+        return 0
     tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
     from proprio_env.runtime.sinks import write_loopback_lsl_config
 
@@ -82,7 +145,8 @@ def main() -> int:
           f"on a pty (return delay {2 * args.return_delay} us), LSL + CSV log, "
           f"{os.cpu_count()} CPUs")
     head = ("backend", "SCHED_FIFO", "tty workers", "ticks", "read", "p50 ms", "p99 ms", "max ms",
-            "read p50/p99 ms", "misses", "skipped", "timeouts", "stale", "load avg 1 min")
+            "read p50/p99 ms", "misses", "with a stall", "skipped", "timeouts", "stale",
+            "witness stalls", "load avg 1 min")
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for s in rows:
@@ -92,12 +156,19 @@ def main() -> int:
                  str(c["readings"] + c["skipped_ticks"]), str(c["readings"]),
                  f"{lat['p50_ms']:.3f}", f"{lat['p99_ms']:.3f}", f"{lat['max_ms']:.3f}",
                  f"{s['read_ms'][0]:.2f}/{s['read_ms'][1]:.2f}", str(c["deadline_misses"]),
-                 str(c["skipped_ticks"]), str(c["timeout"]), str(c["stale_replies"]),
+                 str(s["misses_in_stall"]), str(c["skipped_ticks"]), str(c["timeout"]),
+                 str(c["stale_replies"]), stall_cell(s["stalls"]),
                  f"{s['load_before'][0]:.2f} -> {s['load_average'][0]:.2f}")
         print("| " + " | ".join(cells) + " |")
     if args.figure:
         plot(rows, args, Path(args.figure))
     return 0
+
+
+def stall_cell(witness: np.ndarray) -> str:
+    """How many witness wakes were a stall, and the longest (ms)."""
+    late = witness[:, 1]
+    return f"{int(np.sum(late >= STALL_S))} (max {late.max() * 1e3:.1f})"
 
 
 def plot(rows: list[dict], args, path: Path) -> None:
