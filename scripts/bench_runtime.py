@@ -6,12 +6,13 @@ config) and the CSV log, for --duration seconds. Prints per setting the latency 
 reading's arrival to the outputs published (p50, p99, max), the read time, the deadline
 misses and the machine's load average.
 
-Beside each run a *witness* (a child process doing nothing but wake every 1 ms, under
-SCHED_FIFO 99 when the run is real-time) records how late each of its wakes was. A witness
-wake late by a millisecond or more is a stall of the machine itself (the kernel or the
-hypervisor did not run even the highest-priority task); the table counts the deadline
-misses whose sample's period overlapped such a stall (``with a stall``). The miss count
-itself is unchanged: every sample published after its period is a miss.
+Beside each run a *witness* on each CPU (a child process pinned there, doing nothing but
+wake every 1 ms, under SCHED_FIFO 99 when the run is real-time) records how late each of
+its wakes was. A witness wake late by a millisecond or more is a stall of that CPU itself
+(the kernel or the hypervisor did not run even the highest-priority task there); the table
+counts the deadline misses whose sample's period overlapped such a stall (``with a
+stall``). The miss count itself is unchanged: every sample published after its period is a
+miss.
 
     PYTHONPATH=. python scripts/bench_runtime.py                     # 60 s, C backend
     PYTHONPATH=. python scripts/bench_runtime.py --duration 20 --backends c,numpy --rt both
@@ -43,10 +44,11 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
     link = str(tmp / f"ax12-{tag}")
     child = start_virtual_servo(link, args.track, [], rt_priority,
                                 extra=("--return-delay", str(args.return_delay)))
-    stalls_path = tmp / f"witness-{tag}.npy"
-    witness = subprocess.Popen([sys.executable, __file__, "--witness", str(stalls_path),
-                                "--witness-priority", str(99 if rt_priority else 0),
-                                "--duration", str(args.duration + 2)])
+    cpus = sorted(os.sched_getaffinity(0))
+    witnesses = [subprocess.Popen([sys.executable, __file__, "--witness",
+                                   str(tmp / f"witness-{tag}-{cpu}.npy"), "--witness-cpu",
+                                   str(cpu), "--witness-priority", str(99 if rt_priority else 0),
+                                   "--duration", str(args.duration + 2)]) for cpu in cpus]
     load_before = os.getloadavg()
     try:
         source = DynamixelSource(link, latency_timer_ms=args.latency_timer_ms)
@@ -59,10 +61,13 @@ def run_one(backend: str, rt_priority: int | None, args, tmp: Path) -> dict:
     finally:
         child.terminate()
         child.wait(10)
-        witness.wait(args.duration + 30)
+        for witness in witnesses:
+            witness.wait(args.duration + 30)
     with open(tmp / f"log-{tag}.csv", newline="") as f:
         log = list(csv.DictReader(f))
-    summary["stalls"] = np.load(stalls_path)
+    summary["stalls"] = np.concatenate([np.load(tmp / f"witness-{tag}-{cpu}.npy")
+                                        for cpu in cpus])
+    summary["t0"] = runtime.t0
     summary["misses_in_stall"] = misses_in_stalls(log, runtime.t0, runtime.period_s,
                                                   summary["stalls"])
     read_s = np.array([float(r["read_s"]) for r in log])
@@ -78,9 +83,10 @@ STALL_S = 1e-3
 """A witness wake this late is a stall of the machine (its p99.9 is ~0.5 ms otherwise)."""
 
 
-def run_witness(out: Path, priority: int, duration_s: float) -> None:
-    """Wake every 1 ms for ``duration_s``; save each wake's (due, lateness) in s."""
+def run_witness(out: Path, cpu: int, priority: int, duration_s: float) -> None:
+    """Wake every 1 ms for ``duration_s`` on ``cpu``; save each wake's (due, lateness) in s."""
     gc.disable()
+    os.sched_setaffinity(0, {cpu})
     if priority:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     n = int(duration_s * 1000)
@@ -131,9 +137,11 @@ def main() -> int:
     ap.add_argument("--figure", default=None, help="PNG of the latency and read-time tails")
     ap.add_argument("--witness", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--witness-priority", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--witness-cpu", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.witness:
-        run_witness(Path(args.witness), args.witness_priority, args.duration)
+        run_witness(Path(args.witness), args.witness_cpu, args.witness_priority,
+                    args.duration)
         return 0
     tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
     from proprio_env.runtime.sinks import write_loopback_lsl_config
@@ -166,7 +174,7 @@ def main() -> int:
 
 
 def stall_cell(witness: np.ndarray) -> str:
-    """How many witness wakes were a stall, and the longest (ms)."""
+    """How many witness wakes (all CPUs) were a stall, and the longest (ms)."""
     late = witness[:, 1]
     return f"{int(np.sum(late >= STALL_S))} (max {late.max() * 1e3:.1f})"
 
