@@ -9,6 +9,7 @@ of it.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -221,7 +222,7 @@ class _FileWriter:
     never holds up the loop. The thread drops to the lowest real-time priority when the
     loop is real-time: it then never competes with the loop for a CPU, yet is not held off
     a CPU by ordinary processes while it holds Python's GIL (the loop would wait for it).
-    An error of the thread is raised by :meth:`close`."""
+    An error of the thread is raised by the next :meth:`check` or :meth:`close`."""
 
     def __init__(self) -> None:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -244,11 +245,14 @@ class _FileWriter:
                 except BaseException as err:  # kept for close(); later chunks are dropped
                     self._error = err
 
+    def check(self) -> None:
+        if self._error is not None:
+            raise self._error
+
     def close(self) -> None:
         self._queue.put(None)
         self._thread.join()
-        if self._error is not None:
-            raise self._error
+        self.check()
 
 
 class CsvLog:
@@ -327,19 +331,25 @@ class CsvLog:
         return out
 
     def flush(self) -> None:
-        """Hand the rows written since the last flush to the writer thread."""
+        """Hand the rows written since the last flush to the writer thread; raises the
+        error of an earlier write (a full disk) if one failed."""
+        self._writer.check()
         self._writer.put(self._file, _take(self._text))
         if self._events is not None:
             self._writer.put(self._events_file, _take(self._events_text))
 
     def close(self, summary: dict | None = None) -> None:
-        self.flush()
         try:
-            self._writer.close()
+            self.flush()
         finally:
-            os.fsync(self._file.fileno())
-            self._file.close()
-            if self._events is not None:
-                self._events_file.close()
+            try:
+                self._writer.close()
+                os.fsync(self._file.fileno())
+            finally:  # an error is already on its way up; closing can only repeat it
+                with contextlib.suppress(OSError):
+                    self._file.close()
+                if self._events is not None:
+                    with contextlib.suppress(OSError):
+                        self._events_file.close()
         if summary is not None:
             self.summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True))
