@@ -78,8 +78,8 @@ def test_a_refused_boost_is_a_clear_error_and_changes_nothing():
         pytest.skip("RLIMIT_RTPRIO lets an ordinary user use SCHED_FIFO here")
     code = (
         "import os, sys\n"
-        "os.setgid(65534); os.setuid(65534)\n"
         "from proprio_env.runtime.realtime import TtyWorkers, set_realtime\n"
+        "os.setgid(65534); os.setuid(65534)  # imported first: root's packages\n"
         "w = TtyWorkers(3)\n"
         "try:\n    w.boost()\nexcept PermissionError as e:\n    print('tty:', e)\n"
         "print('left boosted:', len(w.previous))\n"
@@ -119,7 +119,7 @@ def test_a_log_write_that_fails_stops_the_run_with_the_error(tmp_path):
 
     replay = tmp_path / "in.csv"
     t = np.arange(300) * 2e-3
-    replay.write_text("t_s,counts\n" + "".join(f"{x!r},{500 + i % 7}\n"
+    replay.write_text("t_s,counts\n" + "".join(f"{float(x)!r},{500 + i % 7}\n"
                                                for i, x in enumerate(t)))
     runtime = Runtime(ReplaySource(replay), backend="numpy", rate_hz=5000,
                       log=CsvLog(Path("/dev/full"), flush_every=50))
