@@ -1,6 +1,6 @@
 """ns per spindle step of ``ps_spindle_batch_step``: SIMD lanes against the scalar loop.
 
-Records the inputs of every ``SpindleBatch.step`` call (the state before it, lengths, drives)
+Records the inputs of every ``CSpindleBatch.step`` call (the state before it, lengths, drives)
 of the C spindle bank of ``SpindleAfferentsVector`` on myo-sim's 54-muscle legs in a
 ``SyncVectorEnv`` of ``--envs`` envs (864 spindles at 16; 10 sub-steps of 1 ms per env step)
 under random uniform controls, then replays them through ``ps_spindle_batch_step`` of three
@@ -35,14 +35,14 @@ import numpy as np
 
 from spindle.native import build
 from spindle.native.abi import plan_struct, structs
-from spindle.native.spindle import SpindleBatch
+from spindle.native.spindle import CSpindleBatch
 
 BUILDS = {"scalar": ("-DPS_BATCH_SCALAR",), "lanes-sse2": ("-DPS_LANES_NO_AVX2",),
           "lanes": ()}
 
 
-def record(n_envs: int, steps: int, seed: int = 0) -> tuple[list, SpindleBatch]:
-    """The (state, L, gd, gs) of every SpindleBatch.step call of the legs' vector env."""
+def record(n_envs: int, steps: int, seed: int = 0) -> tuple[list, CSpindleBatch]:
+    """The (state, L, gd, gs) of every CSpindleBatch.step call of the legs' vector env."""
     import gymnasium as gym
     import mujoco
 
@@ -52,7 +52,7 @@ def record(n_envs: int, steps: int, seed: int = 0) -> tuple[list, SpindleBatch]:
     path = myo_sim_model_path("legs_osl")
     compiled = mujoco.MjModel.from_xml_path(str(path))
     calls, batches = [], []
-    original = SpindleBatch.step
+    original = CSpindleBatch.step
 
     def recording(self, length_L0, gamma_dyn_pps, gamma_stat_pps, rates=True):
         calls.append((self.fields.copy(), *(np.array(x, dtype=float) for x in
@@ -66,9 +66,9 @@ def record(n_envs: int, steps: int, seed: int = 0) -> tuple[list, SpindleBatch]:
             out = recording(self, *row)
         return out
 
-    original_steps = SpindleBatch.steps
-    SpindleBatch.step = recording
-    SpindleBatch.steps = one_call_per_step
+    original_steps = CSpindleBatch.steps
+    CSpindleBatch.step = recording
+    CSpindleBatch.steps = one_call_per_step
     try:
         env = SpindleAfferentsVector(gym.vector.SyncVectorEnv(
             [lambda: MuscleModelEnv(path, frame_skip=10, model=compiled)] * n_envs),
@@ -80,10 +80,10 @@ def record(n_envs: int, steps: int, seed: int = 0) -> tuple[list, SpindleBatch]:
             env.step(rng.uniform(low, high, (n_envs, low.size)).astype(np.float32))
         env.close()
     finally:
-        SpindleBatch.step = original
-        SpindleBatch.steps = original_steps
+        CSpindleBatch.step = original
+        CSpindleBatch.steps = original_steps
     if not calls:
-        raise RuntimeError("no SpindleBatch step was recorded")
+        raise RuntimeError("no CSpindleBatch step was recorded")
     if len({id(b) for b in batches}) != 1:
         raise RuntimeError("expected one C spindle bank")
     return calls, batches[0]
@@ -100,7 +100,7 @@ def compile_library(extra: tuple[str, ...], directory: Path) -> ctypes.CDLL:
 class Replay:
     """One build's ps_spindle_batch_step on a copy of the recorded bank."""
 
-    def __init__(self, lib: ctypes.CDLL, batch: SpindleBatch) -> None:
+    def __init__(self, lib: ctypes.CDLL, batch: CSpindleBatch) -> None:
         _, PsSpindle = structs("double")
         self.lib, self.n = lib, batch.n
         self.plan = plan_struct("double")()

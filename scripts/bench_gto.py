@@ -6,7 +6,7 @@ per step:
 
 - numpy, n = ``--n`` (4096) muscles, one call per step: ``spindle.step`` (HUMAN, 1 ms,
   the default method) against ``TendonOrgans.step`` (HUMAN, 1 ms);
-- C, the same n, ``--steps`` steps in one call: ``SpindleBatch.steps`` against
+- C, the same n, ``--steps`` steps in one call: ``CSpindleBatch.steps`` against
   ``CTendonOrgans.run``.
 
 Inputs: lengths 1 +- 0.05 L0 and forces 200 +- 150 N, sinusoids with a phase per muscle.
@@ -72,13 +72,13 @@ def numpy_figures(n: int, steps: int, rounds: int) -> tuple[float, float]:
 
 
 def c_figures(n: int, steps: int, rounds: int) -> tuple[float, float]:
-    from spindle.native.spindle import SpindleBatch
+    from spindle.native.spindle import CSpindleBatch
     from spindle.native.tendon_organ import CTendonOrgans
 
     L, F = inputs(n, steps)
     gd, gs = np.full((steps - 1, n), 50.0), np.full((steps - 1, n), 50.0)
     rest = spindle.equilibrium_state(L[0], 50.0, 50.0, spindle.HUMAN)
-    batch = SpindleBatch(rest, spindle.HUMAN, DT_S)
+    batch = CSpindleBatch(rest, spindle.HUMAN, DT_S)
     bank = CTendonOrgans(np.full(n, 179.5), GTO_HUMAN, DT_S, force_N=F[0])
 
     per = n * (steps - 1)

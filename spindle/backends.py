@@ -34,12 +34,12 @@ DEFAULT_BACKEND = "auto"
 IMPLEMENTATIONS: dict[str, dict[str, str]] = {
     "simulate": {"numpy": "spindle.simulation:simulate",
                  "c": "spindle.native.spindle:simulate"},
-    "spindle_batch": {"c": "spindle.native.spindle:SpindleBatch"},
+    "spindle_batch": {"c": "spindle.native.spindle:CSpindleBatch"},
     "tendon_organs": {"numpy": "spindle.tendon_organ:TendonOrgans",
                       "c": "spindle.native.tendon_organ:CTendonOrgans"},
     "chain": {"numpy": "spindle.chain.arm:ArmChain", "c": "spindle.native.chain:CArmChain"},
-    "chain_batch": {"numpy": "spindle.chain.batch:BatchedArmChain",
-                    "c": "spindle.native.chain:CBatchedArmChain"},
+    "chain_batch": {"numpy": "spindle.chain.batch:ArmChainBatch",
+                    "c": "spindle.native.chain:CArmChainBatch"},
     "stimulator": {"numpy": "spindle.stimulation.stimulator:NumpyStimulator",
                    "c": "spindle.native.stimulation:CStimulator"},
 }

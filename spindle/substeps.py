@@ -69,7 +69,7 @@ def bounded_hermite_length(s, start: np.ndarray, end: np.ndarray, v_start: np.nd
     (what the remaining sub-steps can still cover: a bridge whose end velocities disagree
     would otherwise overshoot both) and to the spindle's valid range. ``s``, ``dt``, ``reach``
     and ``left`` are floats or arrays broadcasting against the lengths (``dt`` is not
-    modified). ``ArmChain`` and ``BatchedArmChain`` (sample by sample and a block at once)
+    modified). ``ArmChain`` and ``ArmChainBatch`` (sample by sample and a block at once)
     step their spindles through these."""
     curve = hermite_curve(s, start, end, [(v_start, v_end)],
                           dt.copy() if isinstance(dt, np.ndarray) else dt)

@@ -1,4 +1,4 @@
-"""The batched chain: arm k of a BatchedArmChain equals a single ArmChain fed the same samples.
+"""The batched chain: arm k of a ArmChainBatch equals a single ArmChain fed the same samples.
 
 The reference is independent of the batch: N single ``ArmChain`` objects, each fed its arm's
 samples one by one (outputs within 1e-9, counters equal), through fault streams that exercise
@@ -16,7 +16,7 @@ import pytest
 
 from spindle import core
 from spindle.chain import ArmChain, ChainConfig
-from spindle.chain.batch import BatchedArmChain
+from spindle.chain.batch import ArmChainBatch
 from spindle.chain.config import COUNTERS, ArmSample
 from spindle.chain.length_model import load_length_fits
 from spindle.chain.samples import BatchSample
@@ -37,7 +37,7 @@ def assert_arm_equal(got: ArmSample, want: ArmSample, what: str) -> None:
                                    atol=1e-9, err_msg=f"{what}: {name}")
 
 
-def assert_counters_equal(batch: BatchedArmChain, singles: list[ArmChain], what: str) -> None:
+def assert_counters_equal(batch: ArmChainBatch, singles: list[ArmChain], what: str) -> None:
     counters = batch.counters
     for k, single in enumerate(singles):
         assert {name: int(counters[name][k]) for name in COUNTERS} == single.counters, \
@@ -105,7 +105,7 @@ def fault_stream(kind: str, arm: int, n: int, seed: int,
 
 
 def make_pair(n: int, config: ChainConfig = CONFIG):
-    batch = BatchedArmChain(n, config, FITS)
+    batch = ArmChainBatch(n, config, FITS)
     singles = [ArmChain(config, FITS) for _ in range(n)]
     start = np.array([5.0 + 25.0 * k for k in range(n)])
     batch.reset(start, t_s=0.0)
@@ -249,7 +249,7 @@ def test_ragged_blocks_equal_single_chains(kind, monkeypatch):
     assert 1 in calls, "no step with a step size per spindle"
 
 
-def _snapshot(batch: BatchedArmChain):
+def _snapshot(batch: ArmChainBatch):
     return pickle.dumps((batch.counters, batch.last, batch.spindle_state, batch._median.snapshot(),
                          batch._fusimotor.predictor.snapshot(), batch._behind, batch._t))
 
@@ -369,13 +369,13 @@ def test_shape_errors_name_the_argument():
     with pytest.raises(ValueError, match=r"angle_deg has shape \(2,\)"):
         batch.set_intended_angle(np.zeros(2))
     with pytest.raises(ValueError, match="n_arms=0"):
-        BatchedArmChain(0)
+        ArmChainBatch(0)
     with pytest.raises(ValueError, match="make_batched_chain"):
-        BatchedArmChain(2, ChainConfig(backend="c"))
+        ArmChainBatch(2, ChainConfig(backend="c"))
 
 
 def test_pushes_need_a_reset_and_outputs_are_read_only():
-    batch = BatchedArmChain(2, CONFIG, FITS)
+    batch = ArmChainBatch(2, CONFIG, FITS)
     with pytest.raises(RuntimeError, match="reset"):
         batch.push_angle(np.ones(2), np.ones(2))
     with pytest.raises(RuntimeError, match="reset"):
@@ -471,8 +471,8 @@ def test_block_pass_equals_single_chains(kind, lowpass_hz, monkeypatch):
     stepped alone, and every arm equals its single chain."""
     config = ChainConfig(lowpass_hz=lowpass_hz)
     columns = []
-    column = BatchedArmChain._column
-    monkeypatch.setattr(BatchedArmChain, "_column",
+    column = ArmChainBatch._column
+    monkeypatch.setattr(ArmChainBatch, "_column",
                         lambda self, *a: columns.append(1) or column(self, *a))
     n, k, blocks = 6, 11, 12
     batch, singles = make_pair(n, config)

@@ -1,4 +1,4 @@
-"""The C batched chain (CBatchedArmChain, ps_chain_batch_* in chain.c) against the single C chain.
+"""The C batched chain (CArmChainBatch, ps_chain_batch_* in chain.c) against the single C chain.
 
 The reference is a CArmChain per arm (itself tested against the numpy chain in
 test_c_chain.py) fed the same samples in the same order: arm k of the batch must give the same
@@ -38,7 +38,7 @@ try:
 except build.CBackendError:  # pragma: no cover - CI has a compiler
     pytest.skip("no C compiler: the C backend cannot be built", allow_module_level=True)
 
-from spindle.native.chain import CArmChain, CBatchedArmChain
+from spindle.native.chain import CArmChain, CArmChainBatch
 
 REPO = Path(build.__file__).resolve().parents[2]
 C = ChainConfig(backend="c")
@@ -109,7 +109,7 @@ def streams(kind: str) -> list[tuple[np.ndarray, np.ndarray]]:
     return [fault_stream(kind, seed) for seed in range(N_ARMS)]
 
 
-def fresh(angles=(40.0, 55.0, 70.0, 85.0, 100.0)) -> tuple[CBatchedArmChain, list[CArmChain]]:
+def fresh(angles=(40.0, 55.0, 70.0, 85.0, 100.0)) -> tuple[CArmChainBatch, list[CArmChain]]:
     batch = make_batched_chain(len(angles), C)
     batch.reset(np.array(angles))
     singles = [CArmChain(C) for _ in angles]
@@ -128,7 +128,7 @@ def assert_arm(batch_out, k: int, single: ArmSample, where: str) -> None:
         assert np.allclose(a, b, rtol=0, atol=TOL, equal_nan=True), (where, f.name, a, b)
 
 
-def assert_counters(batch: CBatchedArmChain, singles: list[CArmChain], where: str) -> None:
+def assert_counters(batch: CArmChainBatch, singles: list[CArmChain], where: str) -> None:
     counted = batch.counters
     assert set(counted) == set(COUNTERS)
     for k, chain in enumerate(singles):
@@ -293,7 +293,7 @@ def test_pickle_and_deepcopy_continue_bit_identically():
 
     feed(batch, range(6))
     copies = [pickle.loads(pickle.dumps(batch)), copy.deepcopy(batch)]
-    assert all(type(c) is CBatchedArmChain and c.n_arms == N_ARMS for c in copies)
+    assert all(type(c) is CArmChainBatch and c.n_arms == N_ARMS for c in copies)
     reference = feed(batch, range(6, 12))
     for c in copies:
         for a, b in zip(feed(c, range(6, 12)), reference, strict=True):
@@ -323,8 +323,8 @@ def test_shapes_and_arguments_are_checked():
     with pytest.raises(ValueError, match="repeats"):
         batch.reset(np.array([1.0, 2.0]), arms=np.array([1, 1]))
     with pytest.raises(ValueError, match="n_arms"):
-        CBatchedArmChain(0, C)
-    never = CBatchedArmChain(2, C)
+        CArmChainBatch(0, C)
+    never = CArmChainBatch(2, C)
     with pytest.raises(RuntimeError, match="reset"):
         never.push_angle(np.array([0.1, 0.1]), np.array([1.0, 1.0]))
     with pytest.raises(RuntimeError, match="reset"):

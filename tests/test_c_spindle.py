@@ -339,7 +339,7 @@ def test_plan_refuses_bad_setup_and_inputs():
         assert state_bytes(s) == before
 
 
-# ---- batches of independent spindles (ps_spindle_batch_step, SpindleBatch) ---------------
+# ---- batches of independent spindles (ps_spindle_batch_step, CSpindleBatch) ---------------
 
 def batch_inputs(seed: int = 5, n: int = 48, duration_s: float = 1.5):
     """Smooth random lengths of n spindles at 1 ms steps, each with its own stepwise random
@@ -354,7 +354,7 @@ def test_batch_step_matches_the_numpy_core(theta):
     inputs (HUMAN constants), to 1e-9 pps over 1.5 s of 1 ms steps."""
     length, gd, gs = batch_inputs()
     ref = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)
-    batch = native_spindle.SpindleBatch(ref.copy(), spindle.HUMAN, 1e-3, theta)
+    batch = native_spindle.CSpindleBatch(ref.copy(), spindle.HUMAN, 1e-3, theta)
     for got, want in zip(batch.afferents(), core.afferents(ref, spindle.HUMAN), strict=True):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
     method = "trapezoidal" if theta == 0.5 else "backward_euler"
@@ -378,7 +378,7 @@ def test_batch_step_names_the_first_failing_spindle_anywhere():
     n = 11
     length, gd, gs = batch_inputs(n=n, duration_s=0.01)
     state = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)
-    batch = native_spindle.SpindleBatch(state, spindle.HUMAN)
+    batch = native_spindle.CSpindleBatch(state, spindle.HUMAN)
     batch.step(length[1], gd[1], gs[1])
     before = batch.fields.copy()
     for bad in ([0], [3], [5], [6], [10], [7, 2], [9, 8]):
@@ -389,7 +389,7 @@ def test_batch_step_names_the_first_failing_spindle_anywhere():
             batch.step(L, gd[2], gs[2])
         np.testing.assert_array_equal(batch.fields, before)
     ia, ii = (x.copy() for x in batch.step(length[2], gd[2], gs[2]))
-    one = native_spindle.SpindleBatch(
+    one = native_spindle.CSpindleBatch(
         core.equilibrium_state(length[0][:1], gd[0][:1], gs[0][:1], spindle.HUMAN),
         spindle.HUMAN)
     for j in range(n):  # each spindle alone: the same bits
@@ -405,7 +405,7 @@ def test_batch_steps_equal_one_call_per_step_and_are_atomic_over_all_steps():
     n, k = 21, 6  # not a multiple of the lanes
     length, gd, gs = batch_inputs(n=n, duration_s=0.05)
     state = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)
-    one, many = (native_spindle.SpindleBatch(state.copy(), spindle.HUMAN) for _ in range(2))
+    one, many = (native_spindle.CSpindleBatch(state.copy(), spindle.HUMAN) for _ in range(2))
     for start in (1, 1 + k, 1 + 2 * k):
         rows = slice(start, start + k)
         for j in range(start, start + k):
@@ -439,7 +439,7 @@ def test_batch_steps_equal_one_call_per_step_and_are_atomic_over_all_steps():
 def test_batch_step_is_atomic_and_names_the_failing_spindle():
     length, gd, gs = batch_inputs(n=6, duration_s=0.01)
     state = core.equilibrium_state(length[0], gd[0], gs[0], spindle.HUMAN)
-    batch = native_spindle.SpindleBatch(state, spindle.HUMAN)
+    batch = native_spindle.CSpindleBatch(state, spindle.HUMAN)
     batch.step(length[1], gd[1], gs[1])
     before = batch.fields.copy()
     for bad, error, status in ((1.6, ValueError, "PS_ERR_LENGTH_RANGE"),
@@ -527,7 +527,7 @@ def test_batch_lanes_equal_the_scalar_step_bit_for_bit(variant, theta, step_s, p
     state.polar_velocity_L0_s[...] = rng.uniform(-2.0, 2.0, (n, 3))  # start off rest too
     state.velocity_root[...] = np.sign(state.polar_velocity_L0_s) \
         * np.abs(state.polar_velocity_L0_s) ** 0.1
-    batch = native_spindle.SpindleBatch(state, p, step_s, theta, variant)
+    batch = native_spindle.CSpindleBatch(state, p, step_s, theta, variant)
     moved = 0.0
     for j in range(1, steps + 1):
         before = batch.fields.copy()
@@ -550,7 +550,7 @@ def test_batch_lanes_failure_in_a_block_or_the_tail_is_atomic(variant, n):
     rng = np.random.default_rng(3)
     L, gd, gs = random_walk(rng, n, 2, 1e-3)
     state = core.equilibrium_state(L[0], gd[0], gs[0], spindle.HUMAN)
-    batch = native_spindle.SpindleBatch(state, spindle.HUMAN, 1e-3, 0.5, variant)
+    batch = native_spindle.CSpindleBatch(state, spindle.HUMAN, 1e-3, 0.5, variant)
     batch.step(L[1], gd[1], gs[1])
     before = batch.fields.copy()
     lib = batch.lib

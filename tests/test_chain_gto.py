@@ -21,7 +21,7 @@ from spindle.chain import (
     make_chain,
     run_chain,
 )
-from spindle.chain.batch import BatchedArmChain
+from spindle.chain.batch import ArmChainBatch
 from spindle.chain.force import load_moment_arm_fits
 from spindle.chain.sensor import AX12, AX12_LOAD, LOAD_DIRECTION_BIT, LoadParams, load_torque_Nm
 from spindle.native import abi, build
@@ -260,7 +260,7 @@ def test_arm_k_of_a_batch_equals_a_single_chain(backend):
 
 def test_numpy_single_equals_batched_bit_for_bit():
     t_s, counts, load = faulty_trace(0.6, seed=7)
-    single, batch = ArmChain(NUMPY), BatchedArmChain(1, NUMPY)
+    single, batch = ArmChain(NUMPY), ArmChainBatch(1, NUMPY)
     single.reset(60.0, t_s[0], load=load[0])
     batch.reset(np.array([60.0]), t_s[0], load=load[:1])
     for i in range(1, t_s.size):

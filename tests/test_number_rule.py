@@ -321,10 +321,10 @@ def test_an_intended_angle_that_is_not_a_number_raises_at_every_entry(backend, b
 
 
 def test_the_wrappers_bank_takes_its_step_by_the_rule():
-    from proprio_env.wrappers.bank import SpindleBank
+    from proprio_env.wrappers.bank import SpindleDriver
 
     def bank(**kwargs):
-        return SpindleBank(2, np.array([0.8, 0.9]), np.array([1.1, 1.2]), **kwargs)
+        return SpindleDriver(2, np.array([0.8, 0.9]), np.array([1.1, 1.2]), **kwargs)
 
     assert type(bank(step_s=np.float32(5e-4)).step_s) is float
     assert bank(step_s=np.float32(5e-4)).step_s == float(np.float32(5e-4))

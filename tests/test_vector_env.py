@@ -14,7 +14,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 import proprio_env  # noqa: F401  (registers the envs)
 import spindle.chain
-from proprio_env.body.encoder import CHUNK, Encoder, EncoderBank
+from proprio_env.body.encoder import CHUNK, Encoder, EncoderBatch
 from spindle.chain.sensor import AX12
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -181,7 +181,7 @@ def test_backend_auto_is_resolved_and_reported():
 
 
 def test_encoder_chunks_give_the_same_readings_one_by_one_in_blocks_and_in_a_bank():
-    """Readings drawn one at a time, in blocks, and by an EncoderBank (over more than one
+    """Readings drawn one at a time, in blocks, and by an EncoderBatch (over more than one
     chunk, interleaved with sample times) are the same numbers for the same seed."""
     angle = np.linspace(10.0, 120.0, 3 * CHUNK + 5)
     one = Encoder(rng=np.random.default_rng(4))
@@ -194,7 +194,7 @@ def test_encoder_chunks_give_the_same_readings_one_by_one_in_blocks_and_in_a_ban
                               blk.read_block(angle[150:])])
     np.testing.assert_array_equal(counts1, counts2)
     # the bank: the same intervals; a flat angle so that interpolation plays no part
-    bank = EncoderBank(2, AX12, window=40)
+    bank = EncoderBatch(2, AX12, window=40)
     for i in range(2):
         bank.reset(i, 0.0, 65.0, np.random.default_rng(4))
     t_bank = []

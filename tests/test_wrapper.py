@@ -18,7 +18,7 @@ from proprio_env.wrappers import (
     afferents_from_trajectory,
     find_muscles,
 )
-from proprio_env.wrappers.bank import SpindleBank
+from proprio_env.wrappers.bank import SpindleDriver
 from proprio_env.wrappers.muscles import ActuatorKinematics
 from spindle import core
 from spindle.chain import ArmChain, ChainConfig
@@ -304,7 +304,7 @@ def test_lagging_one_physics_step_gives_the_afferents_one_physics_step_earlier()
 
 
 def test_out_of_range_lengths_are_clamped_and_counted_never_nan():
-    bank = SpindleBank(2, np.full(3, 0.7), np.full(3, 1.3))
+    bank = SpindleDriver(2, np.full(3, 0.7), np.full(3, 1.3))
     bank.reset(None, np.zeros(2), np.array([[0.3, 1.0, 1.7], [1.0, 1.0, np.nan]]))
     np.testing.assert_array_equal(bank.counters["length_clamped"], [[1, 0, 1], [0, 0, 1]])
     np.testing.assert_array_equal(bank.length_L0, [[0.5, 1.0, 1.5], [1.0, 1.0, 0.5]])

@@ -3,7 +3,7 @@
 :class:`Encoder` produces what the device would (for the envs, experiments and tests):
 quantisation, Gaussian noise before rounding, sample-time jitter and rare invalid readings,
 with the figures of an :class:`~spindle.chain.sensor.EncoderParams` (:data:`AX12` by default).
-:class:`EncoderBank` reads many encoders at once (one per env of a vector env) with the same
+:class:`EncoderBatch` reads many encoders at once (one per env of a vector env) with the same
 maths and the same random numbers. The device-side processing of those readings lives in
 :mod:`spindle.chain.sensor`.
 
@@ -11,7 +11,7 @@ Random numbers are drawn in chunks of :data:`CHUNK` readings, from two generator
 the encoder's ``rng`` at construction: one for the sample intervals, one for the readings'
 noise and glitches. Each stream is consumed in order whatever the interleaving of
 :meth:`Encoder.next_sample_time_s` and :meth:`Encoder.read` calls, so an encoder read one value
-at a time, in blocks (:meth:`Encoder.read_block`) or inside an :class:`EncoderBank` gives the
+at a time, in blocks (:meth:`Encoder.read_block`) or inside an :class:`EncoderBatch` gives the
 same readings for the same seed.
 """
 
@@ -30,7 +30,7 @@ from spindle.chain.sensor import (
     LoadParams,
 )
 
-__all__ = ["CHUNK", "Encoder", "EncoderBank", "LoadSensor", "interp_rows", "interval_chunk",
+__all__ = ["CHUNK", "Encoder", "EncoderBatch", "LoadSensor", "interp_rows", "interval_chunk",
            "load_readings", "readings"]
 
 CHUNK = 64
@@ -175,7 +175,7 @@ class Encoder:
         return t_samples, counts.astype(np.int64)
 
 
-class EncoderBank:
+class EncoderBatch:
     """``n`` encoders read at once: each keeps its own :class:`Encoder` (its own streams), and
     the bank holds their next random draws in (n, width) buffers with a cursor per encoder,
     so that one env step's readings of every encoder take a few array operations (a Python

@@ -7,7 +7,7 @@ arms in one call) at different stages:
   sample per physics step (2 ms, 500 Hz);
 - ``"reduced"``: MuJoCo's elbow angle through the fitted length model, one sample per physics
   step;
-- ``"encoder"``: a simulated AX-12 encoder per arm (:class:`proprio_env.body.encoder.EncoderBank`:
+- ``"encoder"``: a simulated AX-12 encoder per arm (:class:`proprio_env.body.encoder.EncoderBatch`:
   jittered ~500 Hz sample times, 0.29 deg counts, noise, rare invalid readings) reading the
   elbow angle, then the prosthesis chain (median filter, f(x), fitted lengths), as in the
   seed paper.
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from proprio_env.body.encoder import EncoderBank
+from proprio_env.body.encoder import EncoderBatch
 from spindle.chain import ChainConfig, make_batched_chain
 from spindle.chain.length_model import LengthFits
 from spindle.chain.sensor import AX12, EncoderParams
@@ -55,7 +55,7 @@ class AfferentReadout:
         n: number of arms (one per env).
 
     ``chain`` is the batched chain (its ``counters`` and outputs have a leading axis of
-    arms), ``encoders`` the :class:`~proprio_env.body.encoder.EncoderBank`.
+    arms), ``encoders`` the :class:`~proprio_env.body.encoder.EncoderBatch`.
     """
 
     def __init__(self, source: str, chain_config: ChainConfig,
@@ -65,7 +65,7 @@ class AfferentReadout:
         self.n = n
         self.chain = make_batched_chain(n, chain_config, fits)
         self.encoder_params = encoder_params
-        self.encoders = EncoderBank(n, encoder_params, encoder_window(step_s, encoder_params))
+        self.encoders = EncoderBatch(n, encoder_params, encoder_window(step_s, encoder_params))
         self._all_frames: dict[int, np.ndarray] = {}
 
     def reset(self, arms: np.ndarray, t_s: np.ndarray, angle_deg: np.ndarray,

@@ -5,7 +5,7 @@ classes as their ``vector_entry_point``) returns an :class:`ElbowReachVectorEnv`
 ``ProsthesisElbow-v0``. One vector step advances the physics of every env in one
 ``mujoco.rollout`` call (:class:`~proprio_env.envs.physics.PhysicsBatch`; ``num_threads=2``
 runs it on rollout's pool of two threads), samples every env's sensor (exact lengths, the
-angle, or each env's own simulated encoder, :class:`~proprio_env.body.encoder.EncoderBank`) and
+angle, or each env's own simulated encoder, :class:`~proprio_env.body.encoder.EncoderBatch`) and
 pushes all the arms through one batched spindle chain
 (:func:`spindle.chain.make_batched_chain`) in one call.
 

@@ -16,8 +16,8 @@ from proprio_env.wrappers.muscles import MuscleSet, find_muscles
 from proprio_env.wrappers.single import SpindleAfferents
 from proprio_env.wrappers.trajectory import TrajectoryAfferents, afferents_from_trajectory
 from proprio_env.wrappers.vector import SpindleAfferentsVector
-from spindle.chain.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
+from spindle.chain.driver import ConstantFusimotor, SpindleDriver, TemplateFusimotor
 
 __all__ = ["ConstantFusimotor", "MuscleSet", "SpindleAfferents", "SpindleAfferentsVector",
-           "SpindleBank", "TemplateFusimotor", "TrajectoryAfferents",
+           "SpindleDriver", "TemplateFusimotor", "TrajectoryAfferents",
            "afferents_from_trajectory", "find_muscles"]

@@ -14,10 +14,10 @@ from proprio_env.wrappers.capture import MAX_INTERVAL_S, EnvTap, check_max_inter
 from proprio_env.wrappers.forces import DEFAULT_AFFERENTS, ForceReadout, check_afferents
 from proprio_env.wrappers.muscles import MuscleSet, find_muscles, model_and_data
 from spindle.backends import DEFAULT_BACKEND
-from spindle.chain.bank import (
+from spindle.chain.driver import (
     COUNTERS,
     ConstantFusimotor,
-    SpindleBank,
+    SpindleDriver,
     TemplateFusimotor,
 )
 from spindle.core import SLEW_LIMIT_L0_S
@@ -74,7 +74,7 @@ def add_afferents(obs: Any, rates: dict[str, np.ndarray], mode: str, scale: floa
     return {"observation": obs, **extra}
 
 
-def afferent_rates(bank: SpindleBank, forces: ForceReadout, afferents: tuple[str, ...],
+def afferent_rates(bank: SpindleDriver, forces: ForceReadout, afferents: tuple[str, ...],
                    row: int | slice = slice(None)) -> dict[str, np.ndarray]:
     """The rates (pps) of ``afferents`` of row ``row`` (every row by default)."""
     source = {"ia": lambda: bank.ia_pps, "ii": lambda: bank.ii_pps,
@@ -82,7 +82,7 @@ def afferent_rates(bank: SpindleBank, forces: ForceReadout, afferents: tuple[str
     return {name: source[name]()[row] for name in afferents}
 
 
-def bank_info(bank: SpindleBank, measured_L0: np.ndarray, source: str,
+def bank_info(bank: SpindleDriver, measured_L0: np.ndarray, source: str,
               row: int | None = None) -> dict[str, Any]:
     """The raw signals of a bank (row ``row``, or every row with a leading axis)."""
     pick = (lambda a: a[row].copy()) if row is not None else (lambda a: a.copy())
@@ -200,7 +200,7 @@ class SpindleAfferents(gym.Wrapper):
         self.observation_mode = observation
         self.observation_space = afferent_spaces(env.observation_space, self.muscles.n,
                                                  observation, self.afferents)
-        bank = SpindleBank(1, self.muscles.range_low_L0, self.muscles.range_high_L0,
+        bank = SpindleDriver(1, self.muscles.range_low_L0, self.muscles.range_high_L0,
                            params, fusimotor, method, step_s, max_speed_L0_s, backend)
         self.max_interval_s = check_max_interval(
             max_interval_s, float(model.opt.timestep), bank.step_s,

@@ -12,10 +12,10 @@ import numpy as np
 from proprio_env.body.force_sense import max_forces_N
 from proprio_env.wrappers.muscles import ActuatorKinematics, find_muscles
 from spindle.backends import DEFAULT_BACKEND
-from spindle.chain.bank import (
+from spindle.chain.driver import (
     COUNTERS,
     ConstantFusimotor,
-    SpindleBank,
+    SpindleDriver,
     TemplateFusimotor,
 )
 from spindle.core import SLEW_LIMIT_L0_S
@@ -124,7 +124,7 @@ def afferents_from_trajectory(
     dt = np.diff(t)
     muscle_set = find_muscles(model, muscles)
     forces, scales = _checked_forces(model, force_N_t, dt, muscle_set, ib_params)
-    bank = SpindleBank(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
+    bank = SpindleDriver(1, muscle_set.range_low_L0, muscle_set.range_high_L0, params,
                        fusimotor, method, step_s, max_speed_L0_s, backend)
     per_interval = _check_work(dt, bank.step_s, max_substeps)
     L, V = _normalised_lengths(model, muscle_set, q, t, qv)

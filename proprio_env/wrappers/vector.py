@@ -22,7 +22,7 @@ from proprio_env.wrappers.single import (
     check_rate_scale,
 )
 from spindle.backends import DEFAULT_BACKEND
-from spindle.chain.bank import ConstantFusimotor, SpindleBank, TemplateFusimotor
+from spindle.chain.driver import ConstantFusimotor, SpindleDriver, TemplateFusimotor
 from spindle.core import SLEW_LIMIT_L0_S
 from spindle.params import HUMAN, SpindleParams
 
@@ -31,7 +31,7 @@ class SpindleAfferentsVector(VectorWrapper):
     """:class:`~proprio_env.wrappers.SpindleAfferents` for a vector env whose sub-envs live in
     this process (``gymnasium.vector.SyncVectorEnv``: ``env.envs``).
 
-    Every muscle of every sub-env is one spindle of one :class:`SpindleBank`, advanced by one
+    Every muscle of every sub-env is one spindle of one :class:`SpindleDriver`, advanced by one
     batched call per 1 ms sub-step (numpy) or per env step (C). Sub-env i gives the same
     afferents as the single wrapper on that env with the same seed and actions.
 
@@ -80,7 +80,7 @@ class SpindleAfferentsVector(VectorWrapper):
         timesteps = {float(model_and_data(e)[0].opt.timestep) for e in subs}
         if len(timesteps) != 1:
             raise ValueError(f"the sub-envs' physics timesteps differ: {sorted(timesteps)}")
-        bank = SpindleBank(len(subs), self.muscles.range_low_L0, self.muscles.range_high_L0,
+        bank = SpindleDriver(len(subs), self.muscles.range_low_L0, self.muscles.range_high_L0,
                            params, fusimotor, method, step_s, max_speed_L0_s, backend)
         timestep_s = timesteps.pop()
         self.max_interval_s = max(check_max_interval(

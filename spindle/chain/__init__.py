@@ -9,8 +9,8 @@
 :class:`ArmChain` (numpy, :mod:`spindle.chain.arm`) streams sample by sample; its C mirror is
 :class:`spindle.native.chain.CArmChain`. :func:`make_chain` builds the one
 ``ChainConfig.backend`` names (``"auto"``: :func:`resolve_backend`), :func:`make_batched_chain`
-the batch of many arms advanced by one call (numpy ``spindle.chain.batch.BatchedArmChain`` or
-C :class:`spindle.native.chain.CBatchedArmChain`); :func:`run_chain` runs a whole trace
+the batch of many arms advanced by one call (numpy ``spindle.chain.batch.ArmChainBatch`` or
+C :class:`spindle.native.chain.CArmChainBatch`); :func:`run_chain` runs a whole trace
 through a chain. No MuJoCo here.
 """
 

@@ -16,7 +16,7 @@ sub-steps. Restarts and resets put them at rest at the sample's force.
 
 This is what would run on the prosthesis, so it needs no MuJoCo. :class:`ArmChain` streams:
 push samples as they come and read the rates. It is the one-arm view (``n_arms = 1``) of
-:class:`spindle.chain.batch.BatchedArmChain`, where every stage and every rule below is
+:class:`spindle.chain.batch.ArmChainBatch`, where every stage and every rule below is
 written once over a leading axis of arms; this class only turns scalars into one-arm arrays
 and back. :func:`spindle.chain.run_chain` takes a whole trace and returns every intermediate
 signal; it is the chain driven sample by sample (:meth:`ArmChain.run_trace`), so the two agree
@@ -84,7 +84,7 @@ import math
 import numpy as np
 
 from spindle import core, number_rule
-from spindle.chain.batch import BatchedArmChain
+from spindle.chain.batch import ArmChainBatch
 from spindle.chain.config import COUNTERS, ArmSample, ChainConfig, real_number
 from spindle.chain.length_model import LengthFits
 from spindle.chain.samples import (
@@ -99,7 +99,7 @@ from spindle.tendon_organ import TendonOrganState
 
 class ArmChain:
     """The streaming chain of one arm (BRA and TRImed), in numpy: the one-arm view of
-    :class:`~spindle.chain.batch.BatchedArmChain`.
+    :class:`~spindle.chain.batch.ArmChainBatch`.
 
     Call :meth:`reset` once, then push samples in increasing time. Each accepted push
     advances the spindles from the previous sample's time to the new one. The C chain
@@ -119,7 +119,7 @@ class ArmChain:
             raise ValueError(
                 "ArmChain is the numpy chain, but config.backend='c'; build the chain with "
                 "spindle.chain.make_chain(config, fits)")
-        self._arms = BatchedArmChain(1, config, fits)
+        self._arms = ArmChainBatch(1, config, fits)
         self.config = self._arms.config
         self.fits = self._arms.fits
         self.angle_range_deg = self._arms.angle_range_deg

@@ -1,6 +1,6 @@
 """The prosthesis chain over a leading axis of arms: every arm of a batch in one call per sample.
 
-:class:`BatchedArmChain` is :class:`spindle.chain.arm.ArmChain` for ``n_arms`` independent
+:class:`ArmChainBatch` is :class:`spindle.chain.arm.ArmChain` for ``n_arms`` independent
 arms (a vector env's): each arm has its own median window, calibration stage, slew limit,
 clamp, tracking low-pass, PI predictor (on its own update grid from its own reset time),
 gamma drive, spindles, tendon organs (the force sense: load word, torque, tendon forces, Ib),
@@ -80,7 +80,7 @@ def fits_and_ranges(config: ChainConfig, fits: LengthFits | None
 
 @dataclass
 class _Block:
-    """A block push's samples once checked (:meth:`BatchedArmChain._block_samples`): times,
+    """A block push's samples once checked (:meth:`ArmChainBatch._block_samples`): times,
     values (each arm's accepted ones first), the accepted mask ``ok`` and intervals ``dt``
     (n, k), accepted counts ``n_ok`` and rejected counts (None: none) per arm, the
     counts of slew-limited and clamped samples the length stage adds, and the load words
@@ -100,7 +100,7 @@ class _Block:
     missing_load: np.ndarray | int = 0
 
 
-class BatchedArmChain:
+class ArmChainBatch:
     """The streaming chain of ``n_arms`` independent arms (BRA and TRImed each), in numpy.
 
     Call :meth:`reset` once (every arm), then push one sample per arm per call, each arm's
@@ -127,7 +127,7 @@ class BatchedArmChain:
         config = ChainConfig() if config is None else config
         if config.backend == "c":
             raise ValueError(
-                "BatchedArmChain is the numpy batch, but config.backend='c'; build the batch "
+                "ArmChainBatch is the numpy batch, but config.backend='c'; build the batch "
                 "with spindle.chain.make_batched_chain(n_arms, config, fits)")
         self.config = replace(config, backend=self.backend)
         (self.fits, self.angle_range_deg, self.length_min_L0,
@@ -178,7 +178,7 @@ class BatchedArmChain:
         """Every arm's latest output (``accepted`` True: the output of its last accepted
         sample or reset, as :attr:`ArmChain.last`)."""
         if not self._ready.all():
-            raise RuntimeError(f"call BatchedArmChain.reset for every arm before using the "
+            raise RuntimeError(f"call ArmChainBatch.reset for every arm before using the "
                                f"chain (arms {np.flatnonzero(~self._ready).tolist()} never were)")
         return self._sample(np.ones(self.n_arms, dtype=bool))
 
@@ -802,7 +802,7 @@ class BatchedArmChain:
     def _check_ready(self, active: np.ndarray | None) -> None:
         waiting = ~self._ready if active is None else active & ~self._ready
         if waiting.any():
-            raise RuntimeError("call BatchedArmChain.reset before pushing samples (arms "
+            raise RuntimeError("call ArmChainBatch.reset before pushing samples (arms "
                                f"{np.flatnonzero(waiting).tolist()} were never reset)")
 
     def _arms_index(self, arms) -> np.ndarray:

@@ -29,8 +29,8 @@ def make_chain(config: ChainConfig | None = None, fits: LengthFits | None = None
 def make_batched_chain(n_arms: int, config: ChainConfig | None = None,
                        fits: LengthFits | None = None):
     """``n_arms`` chains advanced together, of the backend ``config.backend`` names:
-    :class:`~spindle.chain.batch.BatchedArmChain` (numpy) or
-    :class:`~spindle.native.chain.CBatchedArmChain` (C, one C call per push for all arms);
+    :class:`~spindle.chain.batch.ArmChainBatch` (numpy) or
+    :class:`~spindle.native.chain.CArmChainBatch` (C, one C call per push for all arms);
     ``"auto"`` as :func:`resolve_backend` decides. Both have the same API; the chain's
     ``config.backend`` is the resolved one."""
     config = _resolved(config)

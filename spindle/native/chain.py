@@ -717,10 +717,10 @@ def _batch_sample(table: np.ndarray, rows: np.ndarray | None, accepted: np.ndarr
     return out
 
 
-class CBatchedArmChain:
+class CArmChainBatch:
     """``n_arms`` arm chains in C, each advanced by ONE C call for the whole batch.
 
-    The API of :class:`spindle.chain.batch.BatchedArmChain` (``docs/c_chain.md``, Batches):
+    The API of :class:`spindle.chain.batch.ArmChainBatch` (``docs/c_chain.md``, Batches):
     arm k behaves exactly like a :class:`CArmChain` with the same config and fits fed the same
     samples (outputs, counters, handling rules). The chains are one contiguous ctypes array
     of ``ps_arm_chain``; outputs, counters and spindle states are read through numpy views of
@@ -793,13 +793,13 @@ class CBatchedArmChain:
                                bytes(self._chains))}
 
     def __setstate__(self, state: dict[str, object]) -> None:
-        CBatchedArmChain.__init__(self, state["n_arms"], state["config"], state["fits"],
+        CArmChainBatch.__init__(self, state["n_arms"], state["config"], state["fits"],
                                   state["variant"])
         layout, raw = state[_C_SNAPSHOTS]
         if layout != _layout(structs(self.variant)["PsArmChain"]) or len(raw) != ctypes.sizeof(
                 self._chains):
             raise ValueError(
-                f"cannot unpickle CBatchedArmChain: its chains were pickled with a different C "
+                f"cannot unpickle CArmChainBatch: its chains were pickled with a different C "
                 f"layout ({len(raw)} bytes) than this build's ({ctypes.sizeof(self._chains)} "
                 "bytes); unpickle with the version that pickled it")
         ctypes.memmove(self._addr[0], raw, len(raw))
@@ -809,7 +809,7 @@ class CBatchedArmChain:
               length_L0: np.ndarray | None = None, arms: np.ndarray | None = None,
               load: np.ndarray | None = None):
         """Arms at rest: every arm, or the arms of the index array ``arms`` (the others
-        untouched); see :meth:`spindle.chain.batch.BatchedArmChain.reset`. The first reset
+        untouched); see :meth:`spindle.chain.batch.ArmChainBatch.reset`. The first reset
         covers every arm (``arms=None``; a partial one before it raises RuntimeError and
         changes nothing). Returns :attr:`last` (every arm's output)."""
         index = self._arms(arms)

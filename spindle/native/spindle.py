@@ -5,7 +5,7 @@ The library is compiled on first use by :mod:`spindle.native.build` (a clear
 ``spindle.simulate(..., backend="c")``: the same validation and ValueErrors as the numpy path
 (:func:`spindle.simulation.prepare_inputs`), the same sub-step lengths
 (:func:`spindle.substeps.substep_lengths`), then one ``ps_spindle_run`` call per spindle.
-:class:`SpindleBatch` holds many independent spindles in one C array and advances them all by
+:class:`CSpindleBatch` holds many independent spindles in one C array and advances them all by
 one ``ps_spindle_batch_step`` call per step (the C counterpart of ``spindle.core.advance`` on
 a :class:`~spindle.core.SpindleState`).
 """
@@ -199,7 +199,7 @@ STATE_FIELDS = (("tension_FU", 0, 3), ("polar_velocity_L0_s", 3, 6), ("velocity_
 (T[3], v[3], z[3], f[3], L, gd, gs)."""
 
 
-class SpindleBatch:
+class CSpindleBatch:
     """``n`` independent C spindles in one contiguous ``ps_spindle`` array, all with the same
     constants and step, advanced together by one ``ps_spindle_batch_step`` call per step
     (each spindle's step is ``ps_spindle_step_plan``, the C port's planned step).
