@@ -51,6 +51,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--rt-priority", type=int, default=None,
                     help="run the loop (and a virtual servo) under SCHED_FIFO at this "
                          "priority, 1-99 (needs root or CAP_SYS_NICE)")
+    ap.add_argument("--tty-worker-priority", type=int, default=None,
+                    help="meanwhile run the kernel's workers that carry the serial port's "
+                         "bytes under SCHED_FIFO at this priority, 1-99, below "
+                         "--rt-priority (needs root; restored at the end)")
     ap.add_argument("--no-force-sense", action="store_true",
                     help="push the angle alone, not the servo's load word (Ib stays at 0)")
     ap.add_argument("--quiet", action="store_true", help="no live status line")
@@ -134,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
                           status=None if args.quiet else StatusLine(),
                           duration_s=args.duration, info={"port": args.port},
                           rt_priority=args.rt_priority,
+                          tty_worker_priority=args.tty_worker_priority,
                           force_sense=not args.no_force_sense)
         summary = runtime.run()
     finally:

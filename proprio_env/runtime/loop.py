@@ -33,6 +33,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from proprio_env.runtime.realtime import TtyWorkers, check_priority, set_realtime
 from proprio_env.runtime.sinks import (
     ACCEPTED,
     BEFORE_START,
@@ -56,6 +57,8 @@ from spindle.chain.sensor import is_valid_reading
 
 SPIN_S = 2e-4
 """The last part of each wait is spent spinning: ``time.sleep`` overshoots by ~0.1 ms."""
+REFRESH_SLACK_S = 1e-3
+"""Looking for new tty workers (~0.1 ms) is done only when the next sample is this far off."""
 
 
 class Runtime:
@@ -80,6 +83,10 @@ class Runtime:
         rt_priority: run the loop under ``SCHED_FIFO`` at this priority (1-99; needs
             CAP_SYS_NICE, e.g. root): other work on the machine then cannot delay a sample.
             ``None``: the normal scheduler. Refused by the system: ``PermissionError``.
+        tty_worker_priority: meanwhile run the kernel's workers that carry the serial
+            port's bytes (:class:`~proprio_env.runtime.realtime.TtyWorkers`) under
+            ``SCHED_FIFO`` at this priority (1-99, below ``rt_priority``; root); restored
+            at the end. ``None``: left alone. Refused: ``PermissionError``.
         force_sense: push each reading's load word into the chain (its tendon organs' Ib);
             False pushes the angle alone (Ib stays at rest at zero force).
     """
@@ -90,16 +97,16 @@ class Runtime:
                  sinks: Sequence[object] = (), log: CsvLog | None = None,
                  status: StatusLine | None = None, duration_s: float | None = None,
                  info: dict[str, str] | None = None, rt_priority: int | None = None,
-                 force_sense: bool = True) -> None:
+                 force_sense: bool = True, tty_worker_priority: int | None = None) -> None:
         if not (isinstance(rate_hz, int | float) and math.isfinite(rate_hz)
                 and 0 < rate_hz <= 10_000):
             raise ValueError(f"rate_hz={rate_hz!r} must be a real number in (0, 10000]")
         if duration_s is not None and not duration_s > 0:
             raise ValueError(f"duration_s={duration_s!r} must be > 0 (or None)")
-        if rt_priority is not None and not (isinstance(rt_priority, int)
-                                            and 1 <= rt_priority <= 99):
-            raise ValueError(f"rt_priority={rt_priority!r} must be an integer in 1..99")
-        self.rt_priority = rt_priority
+        check_priority("rt_priority", rt_priority)
+        check_priority("tty_worker_priority", tty_worker_priority)
+        self.rt_priority, self.tty_worker_priority = rt_priority, tty_worker_priority
+        self.tty_workers: TtyWorkers | None = None
         self.force_sense = bool(force_sense)
         stages = [SpindleStage()] if stages is None else list(stages)
         labels, units, self._widths = ["reading_index"], ["1"], []
@@ -135,6 +142,11 @@ class Runtime:
     def run(self) -> dict[str, object]:
         """Run until stopped; flush and close everything; return :meth:`summary`."""
         scheduler = set_realtime(self.rt_priority)
+        try:
+            self._boost_tty_workers()
+        except BaseException:
+            self._restore(None, scheduler)
+            raise
         previous = self._install_signals()
         gc_was_enabled = gc.isenabled()
         try:
@@ -157,6 +169,11 @@ class Runtime:
             finally:
                 self._restore(previous, scheduler)
         return self.summary()
+
+    def _boost_tty_workers(self) -> None:
+        if self.tty_worker_priority is not None:
+            self.tty_workers = TtyWorkers(self.tty_worker_priority)
+            self.tty_workers.boost()
 
     def _open_outputs(self) -> None:
         for sink in self.sinks:
@@ -196,6 +213,9 @@ class Runtime:
                 self.status.update(row.t_s, self.layout.channel_labels, row.values,
                                    self.counters, self.latencies)
             k += 1
+            if (self.tty_workers is not None
+                    and time.perf_counter() < t0 + k * period - REFRESH_SLACK_S):
+                self.tty_workers.refresh()  # in the slack before the next sample is due
             late = time.perf_counter() - (t0 + k * period)
             skipped = int(late // period) if late > period else 0
             while skipped and t0 + (k + skipped - 1) * period >= end:
@@ -272,10 +292,11 @@ class Runtime:
             return None
         return signal.signal(signal.SIGTERM, lambda *_: self.stop())
 
-    @staticmethod
-    def _restore(previous, scheduler) -> None:
+    def _restore(self, previous, scheduler) -> None:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if self.tty_workers is not None:
+            self.tty_workers.restore()
         if scheduler is not None:
             os.sched_setscheduler(0, *scheduler)
 
@@ -299,17 +320,8 @@ class Runtime:
                 "units": list(self.layout.units),
                 "event_fields": list(self.layout.event_fields),
                 "load_average": list(os.getloadavg()), "rt_priority": self.rt_priority,
+                "tty_worker_priority": self.tty_worker_priority,
                 "info": self.layout.info}
-
-
-def set_realtime(priority: int | None) -> tuple | None:
-    """Put this process under ``SCHED_FIFO`` at ``priority``; returns the previous
-    (policy, param) to restore, or None when ``priority`` is None."""
-    if priority is None:
-        return None
-    previous = (os.sched_getscheduler(0), os.sched_getparam(0))
-    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    return previous
 
 
 def _wait_until(target: float) -> None:
