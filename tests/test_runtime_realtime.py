@@ -137,9 +137,12 @@ def test_the_virtual_servo_serves_without_the_garbage_collector(tmp_path):
     assert gc.isenabled()
     th = threading.Thread(target=servo.serve, args=(0.3,), daemon=True)
     th.start()
-    time.sleep(0.15)
+    # Wait for serving to begin: the collection before it can take long on a loaded process
+    # (CI once saw it not begin within 0.15 s), and the duration counts from then.
+    assert servo.serving.wait(30)
     serving = gc.isenabled(), gc.get_freeze_count()
-    th.join(5)
+    th.join(30)
+    assert not th.is_alive()
     assert serving[0] is False and serving[1] > 0
     assert gc.isenabled() and gc.get_freeze_count() == 0
 

@@ -30,6 +30,7 @@ import os
 import select
 import signal
 import sys
+import threading
 import time
 import tty
 from dataclasses import dataclass
@@ -127,6 +128,8 @@ class VirtualServo:
         self._t0 = time.monotonic()
         self._received = time.perf_counter()
         self._stop = False
+        self.serving = threading.Event()
+        """Set while :meth:`serve` answers (after the collector is off), clear otherwise."""
 
     # -- the pty -----------------------------------------------------------------------------
     def plug(self) -> None:
@@ -159,14 +162,17 @@ class VirtualServo:
         The garbage collector is off meanwhile: a full collection in this process (MuJoCo
         and numpy loaded) took 26 ms, once in ~20 s of serving at 500 Hz, and the reply
         waiting behind it timed out; serving makes no reference cycles."""
-        self._t0 = time.monotonic()
         if self._master < 0:
             self.plug()
-        end = None if duration_s is None else self._t0 + duration_s
         gc_was_enabled = gc.isenabled()
-        gc.collect()
+        gc.collect()  # a full collection of a loaded process can take longer than a read
         gc.freeze()  # what is there now is never looked at again
         gc.disable()
+        # The clock starts after the collection, so neither the track nor the duration
+        # loses the time it took.
+        self._t0 = time.monotonic()
+        end = None if duration_s is None else self._t0 + duration_s
+        self.serving.set()
         try:
             while not self._stop and (end is None or time.monotonic() < end):
                 ready, _, _ = select.select([self._master], [], [], 0.05)
@@ -181,6 +187,7 @@ class VirtualServo:
                 for packet in self._parser.feed(data):
                     self._answer(packet)
         finally:
+            self.serving.clear()
             if gc_was_enabled:
                 gc.enable()
             gc.unfreeze()
