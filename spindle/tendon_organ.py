@@ -44,7 +44,8 @@ as it was):
   -> taken as 0 (a tendon cannot push: the slack tendon carries no force), at the samples,
   before the line between them is drawn; the count of such values is the caller's to keep
   (:func:`count_negative`);
-- force scale G2 (N): finite and > 0, a scalar or one per muscle;
+- force scale G2 (N): finite and at least :data:`MIN_FORCE_SCALE_N` (1e-6 N), a scalar or
+  one per muscle;
 - step h (s): finite, > 0 and <= :data:`MAX_STEP_S` -> else ValueError.
 Rates are never negative (the max(0, y) of the model) and never non-finite (bounded inputs
 into a stable linear system).
@@ -64,17 +65,21 @@ from spindle.tendon_organ_params import (
     HUMAN,
     MAX_FORCE_N,
     MAX_STEP_S,
+    MIN_FORCE_SCALE_N,
     TendonOrganParams,
+    check_force_scales,
     check_step,
 )
 
 __all__ = [
     "MAX_FORCE_N",
     "MAX_STEP_S",
+    "MIN_FORCE_SCALE_N",
     "SERIES_D",
     "TendonOrganPlan",
     "TendonOrganState",
     "TendonOrgans",
+    "check_force_scales",
     "check_step",
     "count_negative",
     "equilibrium_state",
@@ -223,12 +228,7 @@ def _forces(force_N: object, n: int | None) -> np.ndarray:
 
 
 def _scales(force_scale_N: object, n: int) -> np.ndarray:
-    g = np.asarray(force_scale_N, dtype=np.float64)
-    if g.shape != (n,):
-        g = np.broadcast_to(g, (n,))
-    if g.size and not (g.min() > 0 and g.max() < np.inf):  # NaN fails both
-        raise ValueError(f"force_scale_N={force_scale_N!r} must be finite and > 0")
-    return g
+    return check_force_scales(force_scale_N, n)
 
 
 def count_negative(force_N: object) -> int:

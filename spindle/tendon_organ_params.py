@@ -45,6 +45,13 @@ MAX_FORCE_N = 1.0e5
 finite value is an input error (a unit slip, a diverged simulation), refused with ValueError
 rather than turned into a rate."""
 
+MIN_FORCE_SCALE_N = 1.0e-6
+"""Smallest force scale G2 accepted (N). G2 sets where the log bends; real ones are newtons
+(4 N for the cat soleus, 114-180 N for Arm26's elbow muscles; a 0.2 N mouse muscle's would be
+0.04 N). The limit keeps MAX_FORCE_N / G2 (at most 1e11, log1p 25.3) far from overflow: below
+~5.6e-304 N the ratio was infinite and the rate NaN. A smaller G2 is refused with ValueError
+(``PS_ERR_CONFIG`` in C)."""
+
 MAX_STEP_S = 0.1
 """Longest step accepted (s). The step is exact and stable for any h; the limit only refuses
 a time in the wrong unit (1 ms passed as 1). Accuracy within 0.1 pps RMS is measured up to
@@ -61,6 +68,23 @@ def check_step(dt_s: object) -> float:
     if not (np.isfinite(h) and 0.0 < h <= MAX_STEP_S):
         raise ValueError(f"dt_s={dt_s!r} must be finite and in (0, {MAX_STEP_S}] s")
     return h
+
+
+def check_force_scales(force_scale_N: object, n: int | None = None) -> np.ndarray:
+    """``force_scale_N`` (N) as a float64 array, (n,) when ``n`` is given (a scalar is
+    broadcast), or ValueError naming the value and the limits: finite and at least
+    :data:`MIN_FORCE_SCALE_N`."""
+    g = np.asarray(force_scale_N, dtype=np.float64)
+    if n is not None and g.shape != (n,):
+        try:
+            g = np.broadcast_to(g, (n,))
+        except ValueError:
+            raise ValueError(f"force_scale_N has shape {g.shape}; expected a scalar or "
+                             f"({n},)") from None
+    if g.size and not (g.min() >= MIN_FORCE_SCALE_N and g.max() < np.inf):  # NaN fails both
+        raise ValueError(f"force_scale_N={force_scale_N!r} must be finite and at least "
+                         f"MIN_FORCE_SCALE_N={MIN_FORCE_SCALE_N} N")
+    return g
 
 
 @dataclass(frozen=True)
@@ -89,6 +113,7 @@ class TendonOrganParams:
             value = getattr(self, field)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{field}={value!r} must be finite and > 0")
+        check_force_scales(self.force_scale_N)
         if len(self.num) != 3 or len(self.den) != 2:
             raise ValueError(f"num={self.num!r} needs 3 and den={self.den!r} 2 coefficients")
         if not all(np.isfinite(c) for c in (*self.num, *self.den)):
@@ -113,12 +138,12 @@ def force_scales_N(params: TendonOrganParams, max_isometric_force_N: object) -> 
     """G2 (N) per muscle from its maximum isometric force: G2 * F_max / reference_max_force_N.
 
     ``max_isometric_force_N``: a scalar or an array over muscles (N, finite, > 0). Returns a
-    float64 array of its shape.
+    float64 array of its shape; a G2 below :data:`MIN_FORCE_SCALE_N` is refused.
     """
     f = np.asarray(max_isometric_force_N, dtype=np.float64)
     if not np.all(np.isfinite(f) & (f > 0)):
         raise ValueError(f"max_isometric_force_N={max_isometric_force_N!r} must be finite, > 0")
-    return params.force_scale_N * f / params.reference_max_force_N
+    return check_force_scales(params.force_scale_N * f / params.reference_max_force_N)
 
 
 def static_rate_pps(params: TendonOrganParams, force_N: object,

@@ -20,6 +20,7 @@ from spindle.tendon_organ_params import (
     HUMAN,
     MAX_FORCE_N,
     force_scales_N,
+    static_rate_pps,
 )
 from spindle.tendon_organ_reference import reference_rates
 
@@ -203,6 +204,7 @@ def test_status_code_of_the_force_range_is_in_the_header():
     consts = abi.header_constants()
     assert consts["PS_GTO_MAX_FORCE_N"] == MAX_FORCE_N
     assert consts["PS_GTO_MAX_STEP_S"] == gto.MAX_STEP_S
+    assert consts["PS_GTO_MIN_FORCE_SCALE_N"] == gto.MIN_FORCE_SCALE_N
     assert consts["PS_GTO_FX_FORCE_ONE"] == cgto.FX_FORCE
     assert consts["PS_GTO_FX_RATE_ONE"] == cgto.FX_RATE
     assert consts["PS_GTO_FX_INV_SCALE_ONE"] == cgto.FX_INV_SCALE
@@ -249,3 +251,24 @@ def test_fixed_point_refuses_plans_it_cannot_bound():
         cgto.fixed_plan(CAT.replace(gain_pps=5000.0), 1e-3)  # rates beyond Q16's int32
     x = cgto.fixed_rates(np.array([0.0, -3.0, 0.0]), 1e-3, 4.0, CAT)  # slack is 0
     np.testing.assert_array_equal(x, 0.0)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "c"])
+def test_the_smallest_force_scale_keeps_the_largest_force_finite(backend):
+    """At G2 = MIN_FORCE_SCALE_N the largest accepted force gives a finite rate equal to the
+    closed-form static rate (below ~5.6e-304 N it was NaN); a smaller G2 is refused, naming
+    the limit, by every entry: the organs, the params and the per-muscle rule."""
+    g = gto.MIN_FORCE_SCALE_N
+    organs = gto.make_tendon_organs([g, 4.0], CAT, dt_s=1e-3, force_N=[MAX_FORCE_N, 1.0],
+                                    backend=backend)
+    ib = np.array([organs.step([MAX_FORCE_N, 1.0]) for _ in range(5)])
+    assert np.all(np.isfinite(ib))
+    static = static_rate_pps(CAT, MAX_FORCE_N, g)
+    np.testing.assert_allclose(ib[:, 0], static, rtol=1e-12)
+    for bad in (g / 2, 5e-305, 0.0):
+        with pytest.raises(ValueError, match="MIN_FORCE_SCALE_N"):
+            gto.make_tendon_organs([bad, 4.0], CAT, backend=backend)
+    with pytest.raises(ValueError, match="MIN_FORCE_SCALE_N"):
+        CAT.replace(force_scale_N=g / 2)
+    with pytest.raises(ValueError, match="MIN_FORCE_SCALE_N"):
+        force_scales_N(CAT, 1e-9)

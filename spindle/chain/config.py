@@ -176,7 +176,7 @@ class ChainConfig:
         if len(forces) != len(MUSCLES):
             raise ValueError(f"max_isometric_force_N={self.max_isometric_force_N!r} needs one "
                              f"force per muscle of {MUSCLES}")
-        force_scales_N(self.gto, forces)  # finite and > 0, or ValueError naming them
+        force_scales_N(self.gto, forces)  # G2 >= MIN_FORCE_SCALE_N, or ValueError naming them
         object.__setattr__(self, "max_isometric_force_N", forces)
         if not isinstance(self.backend, str) or self.backend not in BACKEND_CHOICES:
             raise ValueError(f"backend={self.backend!r} is not one of {BACKEND_CHOICES}")

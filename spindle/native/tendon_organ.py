@@ -15,7 +15,13 @@ import numpy as np
 
 from spindle.native import build
 from spindle.native.abi import Status, status_name
-from spindle.tendon_organ_params import HUMAN, MAX_FORCE_N, TendonOrganParams, check_step
+from spindle.tendon_organ_params import (
+    HUMAN,
+    MAX_FORCE_N,
+    TendonOrganParams,
+    check_force_scales,
+    check_step,
+)
 
 FX_FORCE = 256
 """``PS_GTO_FX_FORCE_ONE``: 1 N in Q8."""
@@ -110,9 +116,10 @@ class CTendonOrgans:
 
     def __init__(self, force_scale_N: object, params: TendonOrganParams = HUMAN,
                  dt_s: float = 1e-3, force_N: object = 0.0) -> None:
-        g = np.ascontiguousarray(np.atleast_1d(np.asarray(force_scale_N, dtype=np.float64)))
-        if g.ndim != 1 or not np.all(np.isfinite(g) & (g > 0)):
-            raise ValueError(f"force_scale_N={force_scale_N!r} must be finite and > 0")
+        g = np.atleast_1d(np.asarray(force_scale_N, dtype=np.float64))
+        if g.ndim != 1:
+            raise ValueError(f"force_scale_N has shape {g.shape}; expected a scalar or (n,)")
+        g = np.ascontiguousarray(check_force_scales(g))
         self.params = params
         self.force_scale_N = g
         self._plans: dict[float, PsGtoPlan] = {}

@@ -370,7 +370,8 @@ static int force_ok(const ps_chain_config *cfg)
         return 0;
     }
     for (k = 0; k < PS_MUSCLES; ++k) {
-        if (!(cfg->force_scale_N[k] > 0 && isfinite(cfg->force_scale_N[k]))) {
+        if (!(cfg->force_scale_N[k] >= (ps_real)PS_GTO_MIN_FORCE_SCALE_N
+              && isfinite(cfg->force_scale_N[k]))) {
             return 0;
         }
         for (i = 0; i < n; ++i) {

@@ -335,6 +335,7 @@ void ps_tracking_step(ps_real x, ps_real v, ps_real u0, ps_real u1, ps_real dt_s
 
 #define PS_GTO_MAX_FORCE_N 1.0e5 /* larger finite forces: PS_ERR_FORCE_RANGE */
 #define PS_GTO_MAX_STEP_S 0.1    /* longest step (s): PS_ERR_STEP above */
+#define PS_GTO_MIN_FORCE_SCALE_N 1.0e-6 /* smaller G2: PS_ERR_CONFIG (MAX_FORCE_N / G2 stays finite) */
 
 /* Constants of spindle.tendon_organ_params.TendonOrganParams (G2 is per muscle, passed to
  * each call). num = (b2, b1, b0), den = (a1, a0) of H(s). */

@@ -124,7 +124,8 @@ GTO_INLINE int check_force(ps_real force_N, ps_real force_scale_N)
 {
     if (!finite_d((double)force_N)) return PS_ERR_NONFINITE;
     if (force_N > (ps_real)PS_GTO_MAX_FORCE_N) return PS_ERR_FORCE_RANGE;
-    if (!(finite_d((double)force_scale_N) && force_scale_N > 0)) return PS_ERR_CONFIG;
+    if (!(finite_d((double)force_scale_N) && force_scale_N >= (ps_real)PS_GTO_MIN_FORCE_SCALE_N))
+        return PS_ERR_CONFIG;
     return PS_OK;
 }
 
@@ -326,7 +327,8 @@ GTO_INLINE int inputs_ok(long n, long steps, const ps_real *force_N,
     long i;
     int l;
     for (i = 0; i < n; ++i)
-        bad |= !((force_scale_N[i] > 0) & (force_scale_N[i] <= GTO_REAL_MAX));
+        bad |= !((force_scale_N[i] >= (ps_real)PS_GTO_MIN_FORCE_SCALE_N)
+                 & (force_scale_N[i] <= GTO_REAL_MAX));
     for (i = 0; i + 8 <= total; i += 8) { /* in blocks of a known length, for the vectoriser */
         for (l = 0; l < 8; ++l) bad |= !force_in_range(force_N[i + l]);
     }
