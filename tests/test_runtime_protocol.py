@@ -63,7 +63,7 @@ def test_the_virtual_servo_answers_the_sdk(tmp_path):
     servo.plug()
     th = threading.Thread(target=servo.serve, daemon=True)
     th.start()
-    assert servo.serving.wait(30)  # after its garbage collection, which a loaded process can make long
+    assert servo.serving.wait(30)  # after its garbage collection (long in a loaded process)
     try:
         port = sdk.PortHandler(str(tmp_path / "ax12"))
         assert port.openPort() and port.setBaudRate(1_000_000)
