@@ -50,12 +50,16 @@ three spindle steps (the deadline; the host default bridges 50 ms, 25 sub-steps)
 
 DECAY_COARSE = 128
 """``FW_DECAY_COARSE`` of system.c: the tracking filter's decay tables cover 128 x 64 us."""
-GTO_PLANS = 26
-"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 256 us, ... 6.4 ms."""
-GTO_PLAN_STEP_US = 256
+GTO_PLANS = 30
+"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 512 us, ... 14.8 ms."""
+GTO_PLAN_STEP_US = 512
 """``1 << FW_GTO_PLAN_SHIFT``: the table's step."""
 NOMINAL_INTERVAL_US = 2000
-"""The encoder's period (500 Hz): the interval with its own exact tendon-organ plan."""
+"""The encoder's period (500 Hz, ``FW_SAMPLE_US``)."""
+GTO_STEP_S = 8e-3
+"""The tendon organs' step in the firmware (``fw_gto_config.step_us``, its own exact plan):
+four samples, the two muscles' grids offset by half a step (one organ steps every second
+sample). The host chain steps them every sample."""
 FORCE_PER_COUNT_BITS = 12
 """``fw_arm_force``: force (Q8 N) per load count, in Q12 (stored >> ``arm_shift`` as uint16)."""
 
@@ -137,23 +141,28 @@ def _plan_fields(plan) -> list[int]:
         [int(v) for v in plan.g1]
 
 
-def gto_config(config: ChainConfig, moment_arms=None) -> tuple[dict, list[list[int]]]:
+def gto_config(config: ChainConfig, moment_arms=None,
+               gto_step_s: float = GTO_STEP_S) -> tuple[dict, list[list[int]]]:
     """The fields of ``fw_gto_config`` (system.c) and ``fw_arm_force`` (per grid point, per
     muscle, Q12 >> ``arm_shift``), from the force-sense settings of ``config`` as
     ``ps_chain_config`` holds them (``_fill_force_sense``): the load's resolution and sign,
     the moment-arm table, G2 and the tendon organs' fixed-point plans
-    (``ps_gto_plan_fx_init``) at the nominal interval and on the table."""
+    (``ps_gto_plan_fx_init``) at their step ``gto_step_s`` and on the table (to the longest
+    step: ``gto_step_s`` + max_bridge_s, a grid point just missed and the longest bridged
+    interval after it)."""
     from spindle.chain.force import load_moment_arm_fits
     from spindle.native.tendon_organ import FX_FORCE, FX_INV_SCALE, fixed_plan
 
     arms = moment_arms if moment_arms is not None else \
         load_moment_arm_fits(config.moment_arm_fits_path)
-    max_bridge_us = config.max_bridge_s * 1e6
-    if max_bridge_us + 2 > (GTO_PLANS - 1) * GTO_PLAN_STEP_US:
-        raise ValueError(f"max_bridge_s={config.max_bridge_s!r} exceeds the firmware's "
-                         f"tendon-organ plans ({(GTO_PLANS - 1) * GTO_PLAN_STEP_US} us)")
-    n_plans = min(GTO_PLANS, math.ceil((max_bridge_us + 2) / GTO_PLAN_STEP_US) + 1)
-    nominal = fixed_plan(config.gto, NOMINAL_INTERVAL_US * 1e-6)
+    step_us = round(gto_step_s * 1e6)
+    longest_us = step_us + config.max_bridge_s * 1e6 + 2
+    if step_us < NOMINAL_INTERVAL_US or longest_us > (GTO_PLANS - 1) * GTO_PLAN_STEP_US:
+        raise ValueError(f"gto_step_s={gto_step_s!r} with max_bridge_s={config.max_bridge_s!r}"
+                         f" leaves the firmware's tendon-organ plans "
+                         f"({(GTO_PLANS - 1) * GTO_PLAN_STEP_US} us)")
+    n_plans = min(GTO_PLANS, math.ceil(longest_us / GTO_PLAN_STEP_US) + 1)
+    nominal = fixed_plan(config.gto, step_us * 1e-6)
     identity = [1 << 30 if i == j else 0 for i in range(3) for j in range(3)] + [0] * 6
     plans = [identity] + [_plan_fields(fixed_plan(config.gto, k * GTO_PLAN_STEP_US * 1e-6))
                           for k in range(1, n_plans)]
@@ -173,7 +182,7 @@ def gto_config(config: ChainConfig, moment_arms=None) -> tuple[dict, list[list[i
         "arm_lo_Q16": _q(lo, 16), "arm_scale_Q28": _q((points - 1) / (hi - lo), 28),
         "arm_last": points - 1, "arm_shift": shift,
         "inv_scale_Q24": [round(FX_INV_SCALE / float(g2)) for g2 in config.force_scale_N],
-        "nominal_us": NOMINAL_INTERVAL_US,
+        "step_us": step_us,
         "plan_nominal": _struct_literal(nominal),
         "n_plans": n_plans,
         "plan_Q30": plans,
@@ -223,9 +232,10 @@ def stim_channel_source(stim) -> str:
 
 def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits | None = None,
                          spindle_step_s: float = SPINDLE_STEP_S, stim=None,
-                         tendon_organs: bool = True) -> str:
+                         tendon_organs: bool = True, gto_step_s: float = GTO_STEP_S) -> str:
     """fw_system_config.h for ``config``, ``fits``, the spindle step, (if not None) the
-    stimulator's ``StimConfig`` and (``tendon_organs``) the FW_GTO stage's constants."""
+    stimulator's ``StimConfig`` and (``tendon_organs``) the FW_GTO stage's constants, its
+    organs stepping every ``gto_step_s``."""
     from spindle.native import fixed
     from spindle.native.spindle import library
 
@@ -244,12 +254,12 @@ def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits |
             f"const ps_plan_fx fw_plan = {{\n    {plan_body}\n}};\n"
             + _table_source("fw_length_Q24", length_table(config, fits))
             + ("" if stim is None else "\n" + stim_channel_source(stim))
-            + ("" if not tendon_organs else "\n#ifdef FW_GTO\n" + _gto_source(config)
+            + ("" if not tendon_organs else "\n#ifdef FW_GTO\n" + _gto_source(config, gto_step_s)
                + "#endif\n"))
 
 
-def _gto_source(config: ChainConfig) -> str:
-    fields, table = gto_config(config)
+def _gto_source(config: ChainConfig, gto_step_s: float) -> str:
+    fields, table = gto_config(config, gto_step_s=gto_step_s)
     body = ",\n    ".join(f".{k} = {_literal(v)}" for k, v in fields.items())
     return (f"const fw_gto_config fw_gto_cfg = {{\n    {body}\n}};\n"
             + _table_source("fw_arm_force", table, "uint16_t"))
