@@ -577,13 +577,41 @@ typedef struct clock_fx {
     uint64_t draws;
 } clock_fx;
 
+/* No crossing in [tau, t1) (ceil(need / rate) >= t1 - tau) is need > rate (t1 - tau - 1): the
+ * common case of a sample's interval, decided without the 64-bit division (~200 instructions
+ * on a core without a divider); then the phase advances to t1 and 1 is returned. rate > 0. */
+static int no_crossing_fx(int64_t *phase, int64_t need, int64_t rate, int64_t tau, int64_t t1)
+{
+    const int64_t short_of_end = rate <= INT32_MAX
+                                     ? wide_product((int32_t)rate, (int32_t)(t1 - tau - 1))
+                                     : rate * (t1 - tau - 1);
+    if (need <= short_of_end)
+        return 0;
+    *phase += short_of_end + rate;
+    return 1;
+}
+
+/* A deterministic channel (no dead time) with no crossing in the step, its phase advanced in
+ * place (1), without the clock's copies and the crossings' call: the usual sample of the
+ * device (measured on the Cortex-M0+ system firmware: the pulse encoder's 1261 instructions
+ * per sample for four channels became ...); 0: the channel needs channel_crossings_fx. */
+static int quiet_channel_fx(ps_stim_fx_state *s, const ps_stim_fx_config *q, int k,
+                            int64_t rate, int64_t t0, int64_t t1)
+{
+    const int64_t tau = t0 > s->resume_us[k] ? t0 : s->resume_us[k];
+    if (q->mode == PS_STIM_MODE_STOCHASTIC)
+        return 0;
+    if (rate <= 0 || tau >= t1)
+        return 1; /* channel_crossings_fx would leave the clock as it is */
+    return no_crossing_fx(&s->phase[k], s->threshold[k] - s->phase[k], rate, tau, t1);
+}
+
 static long channel_crossings_fx(const ps_stim_fx_config *q, int k, clock_fx *cl,
                                  int64_t pulse_q16, int64_t t0, int64_t t1, ps_pulse_fx *out,
                                  long room)
 {
     int stochastic = q->mode == PS_STIM_MODE_STOCHASTIC;
     int64_t dead = stochastic ? q->dead_us : 0, rate = pulse_q16, tau, need, offset, cross;
-    int64_t short_of_end;
     long n = 0;
     if (stochastic && pulse_q16 > 0)  /* r / (1 - r dead), in the phase's units per µs */
         rate = pulse_q16 * (FX_ONE >> 10) / ((FX_ONE - pulse_q16 * dead) >> 10);
@@ -592,15 +620,8 @@ static long channel_crossings_fx(const ps_stim_fx_config *q, int k, clock_fx *cl
     tau = t0 > cl->resume_us ? t0 : cl->resume_us;
     while (tau < t1) {
         need = cl->threshold - cl->phase;
-        /* no crossing before t1 (ceil(need / rate) >= t1 - tau) is need > rate (t1 - tau - 1):
-         * the common case of a sample's interval, without the 64-bit division (~200
-         * instructions on a core without a divider) */
-        short_of_end = rate <= INT32_MAX ? wide_product((int32_t)rate, (int32_t)(t1 - tau - 1))
-                                         : rate * (t1 - tau - 1);
-        if (need > short_of_end) {
-            cl->phase += short_of_end + rate;
+        if (no_crossing_fx(&cl->phase, need, rate, tau, t1))
             break;
-        }
         offset = need <= 0 ? 0 : (need + rate - 1) / rate;
         cross = tau + offset;
         if (out != NULL && n < room)
@@ -700,11 +721,13 @@ int ps_stim_fx_step(ps_stim_fx_state *s, const ps_stim_fx_config *q, const int32
         drive_fx d;
         clock_fx cl;
         channel_drive_fx(q, k, s->previous_q16[k], rates_q16[k], dt_us, &d);
-        clock_of(s, k, &cl);
         if (d.rule >= 0)
             s->counts[k][d.rule] += 1;
         s->counts[k][PS_STIM_COUNT_AMPLITUDE_CLIPPED] += (uint32_t)d.amp_clipped;
         s->previous_q16[k] = d.previous_q16;
+        if (quiet_channel_fx(s, q, k, d.pulse_q16, t0, t1))
+            continue;
+        clock_of(s, k, &cl);
         m = channel_crossings_fx(q, k, &cl, d.pulse_q16, t0, t1, events + n, capacity - n);
         for (i = n; i < n + m; ++i) {
             events[i].channel = k;

@@ -51,8 +51,8 @@ three spindle steps (the deadline; the host default bridges 50 ms, 25 sub-steps)
 DECAY_COARSE = 128
 """``FW_DECAY_COARSE`` of system.c: the tracking filter's decay tables cover 128 x 64 us."""
 GTO_PLANS = 30
-"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 512 us, ... 14.8 ms."""
-GTO_PLAN_STEP_US = 512
+"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 1024 us, ... 29.7 ms."""
+GTO_PLAN_STEP_US = 1024
 """``1 << FW_GTO_PLAN_SHIFT``: the table's step."""
 NOMINAL_INTERVAL_US = 2000
 """The encoder's period (500 Hz, ``FW_SAMPLE_US``)."""
@@ -111,6 +111,7 @@ def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -
                                           strict=True)],
         "spindle_step_us": step_us,
         "spindle_reach_Q24": _round_q_product(_q(c.max_speed_L0_s * 1e-6, 40), step_us, 16),
+        "spindle_lead_us": step_us // 2,
         "decay_coarse_Q30": [_q(math.exp(-c.lowpass_rad_s * 64e-6 * i), 30)
                              for i in range(DECAY_COARSE)],
         "decay_fine_Q30": [_q(math.exp(-c.lowpass_rad_s * 1e-6 * j), 30) for j in range(64)],

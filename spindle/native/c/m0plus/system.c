@@ -60,6 +60,7 @@ typedef struct fw_config {
     int32_t gs_gain_Q8[PS_MUSCLES];             /* span / (Lmax - Lmin) (pps/L0) */
     int32_t spindle_step_us;                    /* the plan's h */
     int32_t spindle_reach_Q24;                  /* the length's slew limit over one step */
+    int32_t spindle_lead_us;                    /* grid points this far ahead step now */
     /* e^(-omega dt) of the tracking filter for dt = 64 i + j us (Q30): coarse i, fine j */
     int32_t decay_coarse_Q30[FW_DECAY_COARSE], decay_fine_Q30[64];
 } fw_config;
@@ -68,14 +69,14 @@ typedef struct fw_config {
 /* The force sense's constants (generated with fw_cfg, from the same ps_chain_config): the load
  * word's sign, the moment-arm grid (the host's table points) as force per load count of each
  * muscle, 1/G2, and the tendon organs' fixed-point plans: one at the organs' nominal step
- * (step_us) and a table at h = k 512 us (k = 0: no time passes), linear between its points.
+ * (step_us) and a table at h = k 1024 us (k = 0: no time passes), linear between its points.
  *
  * The organs step on their own grid of step_us (several samples; the two muscles' grids
  * offset by half a step, so a sample steps at most one organ): a 3-state filter whose fastest
  * pole is 37 /s (Lin & Crago 2002) needs no 2 ms step, and the force is a line over the step
  * as it is over a sample on the host. Between its steps a muscle's Ib holds. */
-#define FW_GTO_PLANS 30          /* intervals up to (FW_GTO_PLANS - 1) * 512 us = 14.8 ms */
-#define FW_GTO_PLAN_SHIFT 9      /* the table's step, 512 us: its index is a shift */
+#define FW_GTO_PLANS 30          /* intervals up to (FW_GTO_PLANS - 1) * 1024 us = 29.7 ms */
+#define FW_GTO_PLAN_SHIFT 10     /* the table's step, 1024 us: its index is a shift */
 typedef struct fw_gto_config {
     int32_t load_sign;           /* the torque's sign of a counter-clockwise load word */
     int32_t arm_lo_Q16;          /* the moment-arm grid's first angle (deg, Q16) */
@@ -86,7 +87,7 @@ typedef struct fw_gto_config {
     int32_t step_us;             /* the organs' step, the interval of plan_nominal */
     ps_gto_plan_fx plan_nominal;
     int32_t n_plans;
-    int32_t plan_Q30[FW_GTO_PLANS][15]; /* phi (row-major), g0, g1 at h = k 512 us */
+    int32_t plan_Q30[FW_GTO_PLANS][15]; /* phi (row-major), g0, g1 at h = k 1024 us */
 } fw_gto_config;
 #endif
 
@@ -402,6 +403,16 @@ static void interval_constants(fw_interval *out, int32_t dt_us)
     out->length_limit_Q24 = mul_q(fw_cfg.max_speed_L0_Q40_us, dt_us, 16);
 }
 
+/* round(since 10^6 / 2^32) for 0 <= since < FW_EPOCH_S 2^32 (Q32 s to us) in 32-bit
+ * products, exactly: 10^6 = 15625 2^6, the low word in 16-bit halves (the int64 product
+ * called libgcc's __muldi3, ~45 instructions a sample). */
+static uint32_t us_of_Q32(int64_t since)
+{
+    const uint32_t hi = (uint32_t)(since >> 32), lo = (uint32_t)since;
+    const uint32_t a = (lo >> 16) * 15625u, x = (lo & 0xFFFFu) * 15625u + (1u << 25);
+    return hi * 1000000u + ((a + (x >> 16)) >> 10);
+}
+
 /* The time t of a sample within max_bridge_s of the last accepted one, in us since the epoch
  * (rounded, below 2^31): from the Q32 times, else (a time outside to_Q32's range) the
  * doubles'. The epoch moves on once it is FW_EPOCH_S old. */
@@ -414,7 +425,7 @@ static uint32_t time_us(const fw_ctx *c, double t)
             rebase_epoch();
             since = c->t_Q32 - st.epoch_Q32;
         }
-        return (uint32_t)((since * 1000000 + ((int64_t)1 << 31)) >> 32);
+        return us_of_Q32(since);
     }
     half_us = (t - st.epoch_s) * 2e6;
     if (order_key(half_us) >= order_key(2e6 * FW_EPOCH_S)) {
@@ -701,8 +712,11 @@ static int step_oldest(fw_ctx *c)
     return status;
 }
 
-/* The spindles: every grid point of the interval queues its length (the Hermite curve, within
- * the slew limit of the previous grid point and the spindle's range); at most FW_MAX_STEPS of
+/* The spindles: every grid point up to spindle_lead_us after the sample queues its length (in
+ * the interval the Hermite curve, after the sample the tracking filter's line x1 + v1 (tau - t),
+ * within the slew limit of the previous grid point and the spindle's range): a muscle's rates
+ * then stand for a grid point within half a step of the sample, not up to a step before it
+ * (the output's lag was the larger part of the RMS against the host); at most FW_MAX_STEPS of
  * the queued steps run in this sample, oldest first (a queue that fills runs its oldest at
  * once, counted in fw_overruns). */
 static int stage_spindles(fw_ctx *c)
@@ -713,9 +727,11 @@ static int stage_spindles(fw_ctx *c)
         return rest_spindles(c);
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
-        while ((int32_t)(c->t_us - st.next_step_us[m]) >= 0) {
-            int32_t L = (st.next_step_us[m] == c->t_us) ? c->x1_Q24[m]
-                                                         : hermite_Q24(c, m, st.next_step_us[m]);
+        while ((int32_t)(c->t_us + (uint32_t)fw_cfg.spindle_lead_us - st.next_step_us[m]) >= 0) {
+            int32_t ahead = (int32_t)(st.next_step_us[m] - c->t_us);
+            int32_t L = ahead == 0 ? c->x1_Q24[m]
+                        : ahead < 0 ? hermite_Q24(c, m, st.next_step_us[m])
+                                    : c->x1_Q24[m] + mul_q(c->v1_Q20[m], us_to_Q30(ahead), 26);
             L = clamp_i32(L, st.last_L_Q24[m] - reach, st.last_L_Q24[m] + reach);
             L = clamp_i32(L, PS_FX_ONE / 2, PS_FX_ONE + PS_FX_ONE / 2);
             if (st.pending_n[m] == FW_PENDING) {
