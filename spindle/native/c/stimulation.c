@@ -518,35 +518,19 @@ static int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
 static int64_t div_round(int64_t a, int64_t b) { return (a + b / 2) / b; }
 static int64_t shift_round(int64_t a, int k) { return (a + ((int64_t)1 << (k - 1))) >> k; }
 
-/* (into *out: a struct returned by value costs a copy on the device) */
-static void channel_drive_fx(const ps_stim_fx_config *q, int k, int32_t previous, int32_t r,
-                             int32_t dt_us, drive_fx *out)
+/* The amplitude and biomimetic drives of a rate r already within the rules (into *d, whose
+ * rule and previous_q16 are set). */
+static void graded_drive_fx(const ps_stim_fx_config *q, int k, int32_t previous, int32_t r,
+                            int32_t dt_us, drive_fx *d)
 {
-    drive_fx d;
     int64_t level, change, drive, x;
     int32_t thr = q->threshold_uA[k], top = q->max_uA[k];
-    d.rule = -1;
-    d.amp_clipped = 0;
-    if (r < 0) {
-        d.rule = PS_STIM_COUNT_RATE_NEGATIVE;
-        r = 0;
-    } else if (r > q->max_rate_q16) {
-        d.rule = PS_STIM_COUNT_RATE_CLIPPED;
-        r = q->max_rate_q16;
-    }
-    d.previous_q16 = r;
-    if (q->mode == PS_STIM_MODE_FREQUENCY || q->mode == PS_STIM_MODE_STOCHASTIC) {
-        d.pulse_q16 = r;
-        d.amplitude_uA = top;
-        *out = d;
-        return;
-    }
     /* drives as fractions in Q24, every quotient and shift rounded to nearest: Q16 or
      * truncation would bias the biomimetic rate and let its pulses drift by tens of µs
      * over seconds against the double form */
     level = min64(div_round(((int64_t)r << 24), q->full_scale_q16), FX_Q24);
     if (q->mode == PS_STIM_MODE_AMPLITUDE) {
-        d.pulse_q16 = r > 0 ? q->carrier_q16 : 0;
+        d->pulse_q16 = r > 0 ? q->carrier_q16 : 0;
         drive = div_round(((int64_t)r << 24), q->full_scale_q16);
     } else {
         int64_t diff = previous < 0 ? 0 : (int64_t)(r > previous ? r - previous : previous - r);
@@ -555,14 +539,40 @@ static void channel_drive_fx(const ps_stim_fx_config *q, int k, int32_t previous
                                  (int64_t)dt_us * q->full_scale_change_pps_s), FX_Q24);
         x = min64(shift_round((int64_t)q->rate_level_q16 * level
                               + (int64_t)q->rate_change_q16 * change, 16), FX_Q24);
-        d.pulse_q16 = shift_round((int64_t)q->max_rate_q16 * x, 24);
+        d->pulse_q16 = shift_round((int64_t)q->max_rate_q16 * x, 24);
         drive = shift_round((int64_t)q->amp_level_q16 * level
                             + (int64_t)q->amp_change_q16 * change, 16);
     }
-    d.amp_clipped = drive > FX_Q24 && d.pulse_q16 > 0;
-    d.amplitude_uA = thr + (int32_t)(((int64_t)(top - thr) * min64(drive, FX_Q24)
-                                      + (FX_Q24 >> 1)) >> 24);
-    *out = d;
+    d->amp_clipped = drive > FX_Q24 && d->pulse_q16 > 0;
+    d->amplitude_uA = thr + (int32_t)(((int64_t)(top - thr) * min64(drive, FX_Q24)
+                                       + (FX_Q24 >> 1)) >> 24);
+}
+
+/* The rate's rules (negative: 0, above max_rate: clipped) and the drive; inline for the
+ * frequency and stochastic modes' few operations (the call cost ~30 instructions per channel
+ * and sample on the Cortex-M0+). Into *out: a struct returned by value costs a copy. */
+#if defined(__GNUC__)
+__attribute__((always_inline))
+#endif
+static inline void channel_drive_fx(const ps_stim_fx_config *q, int k, int32_t previous,
+                                    int32_t r, int32_t dt_us, drive_fx *out)
+{
+    out->rule = -1;
+    out->amp_clipped = 0;
+    if (r < 0) {
+        out->rule = PS_STIM_COUNT_RATE_NEGATIVE;
+        r = 0;
+    } else if (r > q->max_rate_q16) {
+        out->rule = PS_STIM_COUNT_RATE_CLIPPED;
+        r = q->max_rate_q16;
+    }
+    out->previous_q16 = r;
+    if (q->mode == PS_STIM_MODE_FREQUENCY || q->mode == PS_STIM_MODE_STOCHASTIC) {
+        out->pulse_q16 = r;
+        out->amplitude_uA = q->max_uA[k];
+        return;
+    }
+    graded_drive_fx(q, k, previous, r, dt_us, out);
 }
 
 /* a b for int32 a, b (ps_fx_mul_wide: no 64 x 64 multiply helper on the device) */

@@ -37,11 +37,16 @@ from spindle.params import HUMAN
 AFFERENTS = ("ia", "ii", "ib")
 """The afferents of ``fw_stim_source``, by index (system.c's held rates)."""
 
-SPINDLE_STEP_S = 5e-3
-"""The firmware's spindle step: 0.8 steps per sample at 500 Hz for the two muscles (grids
-offset by half a step), so the one-step-per-sample budget has room to catch up after jitter
-or a bridged interval (at 4 ms, exactly one step per nominal sample, a backlog never drains
-and the worst RMS against the host grew from 0.40 to 0.48 pps on the faulty trace)."""
+SPINDLE_STEP_S = 8e-3
+"""The firmware's spindle step: 0.5 steps per sample at 500 Hz for the two muscles (grids
+offset by half a step, so a sample steps at most one of them), each grid point stepped up to
+half a step before its time (``spindle_lead_us``: the length from the tracking filter's line
+past the sample), so a muscle's rates stand within half a step of the sample. Measured
+against the host double chain (bench_embedded --system-only, worst RMS of Ia and II on the
+demo motion / the faulty servo trace): 5 ms without the lead 0.64 / 0.98 pps (9330
+instructions a sample), with it 0.42 / 0.73; 6 ms 0.53 / 0.88; 8 ms 0.68 / 1.06 for 2369
+instructions a sample where 5 ms took 3668. (At 4 ms, exactly one step per nominal sample, a
+backlog after jitter never drains.)"""
 DEVICE_CONFIG = ChainConfig(params=HUMAN, max_bridge_s=6e-3)
 """The chain on the device: the seed paper's chain with one change, intervals above 6 ms
 (two lost samples) restart at rest instead of being bridged, which bounds a sample's work to
@@ -56,10 +61,12 @@ GTO_PLAN_STEP_US = 1024
 """``1 << FW_GTO_PLAN_SHIFT``: the table's step."""
 NOMINAL_INTERVAL_US = 2000
 """The encoder's period (500 Hz, ``FW_SAMPLE_US``)."""
-GTO_STEP_S = 8e-3
+GTO_STEP_S = 16e-3
 """The tendon organs' step in the firmware (``fw_gto_config.step_us``, its own exact plan):
-four samples, the two muscles' grids offset by half a step (one organ steps every second
-sample). The host chain steps them every sample."""
+eight samples, the two muscles' grids offset by half a step (one organ steps every fourth
+sample); the host chain steps them every sample. Measured (worst Ib RMS against the host
+double chain on the demo motion / the faulty trace, instructions a sample on the demo):
+every sample 0.0004 pps / 2176, 8 ms 0.20 / 0.26 pps / 606, 16 ms 0.44 / 0.44 pps / 336."""
 FORCE_PER_COUNT_BITS = 12
 """``fw_arm_force``: force (Q8 N) per load count, in Q12 (stored >> ``arm_shift`` as uint16)."""
 
