@@ -61,12 +61,15 @@ GTO_PLAN_STEP_US = 1024
 """``1 << FW_GTO_PLAN_SHIFT``: the table's step."""
 NOMINAL_INTERVAL_US = 2000
 """The encoder's period (500 Hz, ``FW_SAMPLE_US``)."""
-GTO_STEP_S = 16e-3
+GTO_STEP_S = 8e-3
 """The tendon organs' step in the firmware (``fw_gto_config.step_us``, its own exact plan):
-eight samples, the two muscles' grids offset by half a step (one organ steps every fourth
+four samples, the two muscles' grids offset by half a step (one organ steps every second
 sample); the host chain steps them every sample. Measured (worst Ib RMS against the host
-double chain on the demo motion / the faulty trace, instructions a sample on the demo):
-every sample 0.0004 pps / 2176, 8 ms 0.20 / 0.26 pps / 606, 16 ms 0.44 / 0.44 pps / 336."""
+double chain on the demo motion / the faulty trace; instructions a sample on the demo;
+TRImed Ib on the 60 samples of test_time_and_load_rules_at_their_limits_as_the_host, whose
+load word flips from flexion to extension at once): every sample 0.0004 / 0.0004 pps, 2176;
+4 ms -, 0.24; 8 ms 0.20 / 0.26 pps, 606, 0.94; 16 ms 0.44 / 0.44 pps, 336, 2.32 (the held
+output lags a sudden load by up to a step: 16 ms is too coarse)."""
 FORCE_PER_COUNT_BITS = 12
 """``fw_arm_force``: force (Q8 N) per load count, in Q12 (stored >> ``arm_shift`` as uint16)."""
 
