@@ -20,7 +20,7 @@ if shutil.which("arm-none-eabi-gcc") is None:
 from spindle.native.m0plus import system as sysfw
 
 RMS_LIMIT_PPS = 1.5  # the issue's target
-FAULTY_TRACE_RMS_LIMIT_PPS = 1.8  # measured 1.68 on the faulty trace below
+FAULTY_TRACE_RMS_LIMIT_PPS = 1.8  # measured 1.66 on the faulty trace below
 PULSE_COUNT_LIMIT = 1  # per channel per second, the issue's target
 
 
@@ -49,10 +49,10 @@ def test_demo_motion_rates_match_the_host_double_chain(firmware):
     # the rates move (measured ranges 9.2 and 35.9 pps of Ia): the comparison is not of two
     # rest outputs
     assert np.ptp(c.run.ia_pps, axis=0).min() > 5.0
-    # the tendon organs, stepped every 16 ms where the host steps every 2 ms: measured 0.57
-    # pps RMS (BRA Ib, 0-15.2 pps over the 0.8 s; the servo torque is a flexion one there,
-    # TRImed's Ib is 0 in both)
-    assert c.rms_pps["BRA Ib"] <= 0.8 and c.rms_pps["TRImed Ib"] <= 0.8, c.rms_pps
+    # the tendon organs, stepped every 8 ms where the host steps every 2 ms: measured 0.25
+    # pps RMS (BRA Ib, 0-15.2 pps over the 0.8 s; 0.0006 stepped every sample; the servo
+    # torque is a flexion one there, TRImed's Ib is 0 in both)
+    assert c.rms_pps["BRA Ib"] <= 0.5 and c.rms_pps["TRImed Ib"] <= 0.5, c.rms_pps
     assert np.ptp(c.run.ib_pps[:, 0]) > 10.0
     assert not firmware.emu.violations
 
@@ -63,8 +63,9 @@ def test_faulty_trace_counts_every_bad_sample_as_the_host(firmware):
     c = sysfw.compare(firmware, samples)
     assert c.counters_equal, (c.run.counters, c.host_counters)
     assert c.run.counters["invalid_load"] > 0  # measured 20
-    # measured 0.48 pps RMS (BRA Ib; the organs on their 16 ms grid)
-    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.8, c.rms_pps
+    # measured 0.21 pps RMS (BRA Ib; the organs on their 8 ms grid; 0.0005 stepped every
+    # sample)
+    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.5, c.rms_pps
     rejected = sum(c.run.counters[k] for k in ("invalid_reading", "bad_time",
                                                 "repeated_time", "time_backwards"))
     assert rejected > 0  # measured 6 (3 invalid readings, 3 bad times)
@@ -76,7 +77,7 @@ def test_faulty_trace_counts_every_bad_sample_as_the_host(firmware):
     assert c.worst_rms_pps <= FAULTY_TRACE_RMS_LIMIT_PPS, c.rms_pps
     # one spindle step per sample at most: the worst sample is bounded
     assert c.run.steps.max() <= 1
-    # measured: 31 pulses from each, the counts per channel-second equal
+    # measured: 39 pulses from the firmware, the counts per channel-second within one
     assert c.pulse_count_diff <= PULSE_COUNT_LIMIT and c.run.pulses_lost == 0
 
 
@@ -136,14 +137,15 @@ def test_time_and_load_rules_at_their_limits_as_the_host(firmware):
     assert c.counters_equal, (c.run.counters, c.host_counters)
     np.testing.assert_array_equal(c.run.accepted != 0, host["accepted"])
     # Ib: both muscles' organs loaded in turn (TRImed's Ib rises by 11.7 pps); measured
-    # RMS_IB_RULES pps RMS
+    # 0.94 pps RMS (TRImed Ib: its force appears at once and the organ, stepped every 8 ms,
+    # holds its rate up to a step behind the host's; 2.32 with a 16 ms step)
     assert np.ptp(c.run.ib_pps[:, 1]) > 5.0
-    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.8, c.rms_pps
+    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 1.2, c.rms_pps
 
 
 def test_tendon_organs_step_on_offset_grids(firmware):
-    # each organ steps every GTO_STEP_S (8 samples of the nominal 2 ms), the two grids half a
-    # step apart: an organ's Ib changes at most once in 8 samples and never in the same sample
+    # each organ steps every GTO_STEP_S (4 samples of the nominal 2 ms), the two grids half a
+    # step apart: an organ's Ib changes at most once in 4 samples and never in the same sample
     # as the other's (a sample's worst case has one organ step), and both follow the host's
     # organs stepped every sample
     n = 200
@@ -162,4 +164,5 @@ def test_tendon_organs_step_on_offset_grids(firmware):
         assert np.diff(moments).min() >= step
     assert not np.any(changed[:, 0] & changed[:, 1])
     assert np.ptp(c.run.ib_pps, axis=0).min() > 5.0
-    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.8, c.rms_pps
+    # measured 0.30 pps RMS (TRImed Ib, whose force appears at once half-way)
+    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.6, c.rms_pps

@@ -603,8 +603,9 @@ static int no_crossing_fx(int64_t *phase, int64_t need, int64_t rate, int64_t ta
 
 /* A deterministic channel (no dead time) with no crossing in the step, its phase advanced in
  * place (1), without the clock's copies and the crossings' call: the usual sample of the
- * device (measured on the Cortex-M0+ system firmware: the pulse encoder's 1261 instructions
- * per sample for four channels became ...); 0: the channel needs channel_crossings_fx. */
+ * device (measured on the Cortex-M0+ system firmware, bench_embedded --system-only: the
+ * pulse encoder's 1261 instructions per sample for four channels became 1003, 877 with the
+ * drive inline); 0: the channel needs channel_crossings_fx. */
 static int quiet_channel_fx(ps_stim_fx_state *s, const ps_stim_fx_config *q, int k,
                             int64_t rate, int64_t t0, int64_t t1)
 {

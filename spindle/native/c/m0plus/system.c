@@ -17,14 +17,18 @@
  * the sample's time as a double, as the host chain does (ps_time), so the bad-sample rules and
  * counters are those of spindle/chain/arm.py and chain.c (see fw_counters).
  *
- * The spindles run on a fixed grid of FW_SPINDLE_STEP_US (the plan's h, generated on the host
- * by ps_plan_fx_init), the two muscles' grids offset by half a step so that a sample at the
- * nominal rate steps one spindle; at each grid point in the sample's interval the length
- * follows the cubic Hermite curve through the interval's ends (as chain.c's sub-steps), and a
- * muscle's output holds its last step's rates. A sample runs at most FW_MAX_STEPS (1) spindle
- * steps, the oldest queued grid point first: one step is the worst case of a sample (with the
- * grids offset, a sample at the nominal rate has one grid point; jitter and bridged intervals
- * queue the others for the next samples).
+ * The spindles run on a fixed grid of the plan's h (fw_cfg.spindle_step_us, 8 ms; generated on
+ * the host by ps_plan_fx_init), the two muscles' grids offset by half a step, so that a sample
+ * at the nominal rate steps at most one spindle (every second sample one). A grid point steps
+ * at the first sample at most spindle_lead_us (half a step) before it: its length is the
+ * tracking filter's line x1 + v1 (tau - t) past the sample, or for a point the sample came
+ * late for the cubic Hermite curve through the interval's ends (as chain.c's sub-steps); a
+ * muscle's output holds its last step's rates, which then stand for a time within half a step
+ * of the sample. A sample runs at most FW_MAX_STEPS (1) spindle steps, the oldest queued grid
+ * point first (jitter and bridged intervals queue the others for the next samples).
+ *
+ * The tendon organs step on their own grid (fw_gto_cfg.step_us, 8 ms), likewise offset by
+ * half a step between the muscles (FW_GTO section).
  *
  * The configuration (fw_system_config.h: const fw_config fw_cfg, const ps_plan_fx fw_plan) is
  * generated on the host by spindle.native.m0plus.system_config from a ChainConfig.
