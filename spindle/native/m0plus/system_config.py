@@ -5,12 +5,12 @@ fw_config fw_cfg`` (the chain's settings and fusimotor constants in the Q format
 system.c), ``fw_length_Q24`` (the length fits at every encoder count of the fitted range)
 and ``const ps_plan_fx fw_plan`` (the spindle plan at the firmware's spindle step, made on the
 host by ``ps_plan_fx_init``); for the tendon organs (``FW_GTO``) ``fw_gto_cfg`` (the load's
-sign, 1/G2, the fixed-point plans of ``ps_gto_plan_fx_init`` at the nominal interval and on a
-256 us table) and ``fw_arm_force`` (force per load count over the moment-arm table). Every
-number comes from the same resolved ``ps_chain_config`` the host C chain runs
-(``spindle.native.chain.chain_config_struct``) and from the ranges ``ps_chain_init`` derives
-(fitted angle range, each muscle's length range), so the firmware and the host chain it is
-compared with share one configuration.
+sign, 1/G2, the fixed-point plans of ``ps_gto_plan_fx_init`` at the organs' step
+(:data:`GTO_STEP_S`) and on a 1024 us table) and ``fw_arm_force`` (force per load count over
+the moment-arm table). Every number comes from the same resolved ``ps_chain_config`` the
+host C chain runs (``spindle.native.chain.chain_config_struct``) and from the ranges
+``ps_chain_init`` derives (fitted angle range, each muscle's length range), so the firmware
+and the host chain it is compared with share one configuration.
 
 With a stimulator configuration (a ``spindle.stimulation.StimConfig``) it also holds the
 channel map ``fw_stim_source[channel] = {muscle index, 0 for Ia / 1 for II / 2 for Ib}`` of the
