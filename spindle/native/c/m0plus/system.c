@@ -75,10 +75,12 @@ typedef struct fw_config {
  * muscle, 1/G2, and the tendon organs' fixed-point plans: one at the organs' nominal step
  * (step_us) and a table at h = k 1024 us (k = 0: no time passes), linear between its points.
  *
- * The organs step on their own grid of step_us (several samples; the two muscles' grids
- * offset by half a step, so a sample steps at most one organ): a 3-state filter whose fastest
- * pole is 37 /s (Lin & Crago 2002) needs no 2 ms step, and the force is a line over the step
- * as it is over a sample on the host. Between its steps a muscle's Ib holds. */
+ * The organs step on their own grid of step_us (8 ms, four samples; the two muscles' grids
+ * offset by half a step, so a sample at the nominal rate steps at most one organ): a 3-state
+ * filter whose fastest pole is its 10 ms low-pass's (Lin & Crago 2002) needs no 2 ms step, and
+ * the force is a line over the step as it is over a sample on the host. Between its steps a
+ * muscle's Ib holds (measured against the host's organs stepped every sample: 0.26 pps RMS on
+ * the bench's servo trace, 0.94 right after a load that appears at once; 2.3 at 16 ms). */
 #define FW_GTO_PLANS 30          /* intervals up to (FW_GTO_PLANS - 1) * 1024 us = 29.7 ms */
 #define FW_GTO_PLAN_SHIFT 10     /* the table's step, 1024 us: its index is a shift */
 typedef struct fw_gto_config {
@@ -413,7 +415,8 @@ static void interval_constants(fw_interval *out, int32_t dt_us)
     out->length_limit_Q24 = mul_q(fw_cfg.max_speed_L0_Q40_us, dt_us, 16);
 }
 
-/* round(since 10^6 / 2^32) for 0 <= since < FW_EPOCH_S 2^32 (Q32 s to us) in 32-bit
+/* round(since 10^6 / 2^32) for 0 <= since < FW_EPOCH_S 2^32 (Q32 s to us; FW_EPOCH_S below
+ * 4295 keeps the result in uint32) in 32-bit
  * products, exactly: 10^6 = 15625 2^6, the low word in 16-bit halves (the int64 product
  * called libgcc's __muldi3, ~45 instructions a sample). */
 static uint32_t us_of_Q32(int64_t since)
