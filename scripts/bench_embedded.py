@@ -44,8 +44,9 @@ last line, which stays the Fig. 3 figure.
 The whole system (spindle/native/c/m0plus/system.c, spindle.native.m0plus.system): one
 fw_sample call per encoder sample, as the 500 Hz timer interrupt would make it, running the
 whole chain (time and reading rules, median, f(x), fitted lengths, tracking low-pass,
-predictor and fusimotor drive, the fixed-point BRA and TRImed spindles on a 5 ms grid, the
-tendon organs from the servo's load word, the stimulation encoder) in integer arithmetic, the
+predictor and fusimotor drive, the fixed-point BRA and TRImed spindles on an 8 ms grid stepped
+up to half a step ahead of the sample, the tendon organs from the servo's load word on their own
+8 ms grid, the stimulation encoder) in integer arithmetic, the
 configuration generated on the host (system_config). Measured on the
 demo motion (the triangle above, read by an ideal encoder at 500 Hz) and on a recorded servo
 trace with the encoder's jitter, noise and invalid readings and injected faults
@@ -342,7 +343,7 @@ def run_system(quick: bool, build_dir: Path, figure: Path | None = None) -> int:
     breakdown, the build without the pulse encoder); prints the system's last line."""
     from spindle.native.m0plus import cycles as cyc
     from spindle.native.m0plus import system as sysfw
-    from spindle.native.m0plus.system_config import DEVICE_CONFIG, SPINDLE_STEP_S
+    from spindle.native.m0plus.system_config import DEVICE_CONFIG, GTO_STEP_S, SPINDLE_STEP_S
 
     t0 = time.perf_counter()
     demo_s, fault_n = (1.5, 1500) if quick else (DEMO_CYCLES * 2 * 90 / 130, 10000)
@@ -350,7 +351,8 @@ def run_system(quick: bool, build_dir: Path, figure: Path | None = None) -> int:
     inputs = {"demo motion": sysfw.demo_samples(demo_s), "servo trace, jitter + faults": faulty}
     period = sysfw.SAMPLE_PERIOD_S
     print(f"\nwhole system (system.c, chain config max_bridge_s={DEVICE_CONFIG.max_bridge_s:g} s, "
-          f"spindles fixed point on a {SPINDLE_STEP_S * 1e3:g} ms grid) vs the host double "
+          f"spindles fixed point on a {SPINDLE_STEP_S * 1e3:g} ms grid, tendon organs on a "
+          f"{GTO_STEP_S * 1e3:g} ms grid) vs the host double "
           f"chain (CArmChain, trapezoidal {DEVICE_CONFIG.spindle_step_s * 1e3:g} ms) and the "
           f"host double stimulation encoder (CStimulator, StimConfig()); faults injected: "
           f"{len(faults)} ({', '.join(sorted(set(faults)))})")

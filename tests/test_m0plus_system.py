@@ -20,7 +20,7 @@ if shutil.which("arm-none-eabi-gcc") is None:
 from spindle.native.m0plus import system as sysfw
 
 RMS_LIMIT_PPS = 1.5  # the issue's target
-FAULTY_TRACE_RMS_LIMIT_PPS = 1.8  # measured 1.68 on the faulty trace below
+FAULTY_TRACE_RMS_LIMIT_PPS = 1.8  # measured 1.66 on the faulty trace below
 PULSE_COUNT_LIMIT = 1  # per channel per second, the issue's target
 
 
@@ -33,7 +33,11 @@ def test_demo_motion_rates_match_the_host_double_chain(firmware):
     samples = sysfw.demo_samples(0.8)
     t = samples.t_s
     c = sysfw.compare(firmware, samples)
-    # measured: worst RMS 0.56 pps (TRImed Ia) over 0.8 s; 0.66 (BRA Ia) over 1.5 s
+    # measured: worst RMS of Ia and II 0.62 pps (TRImed Ia) over 0.8 s with the spindles on
+    # their 8 ms grid; 0.84 if each grid point were stepped at the first sample after it
+    # instead of up to half a step before (spindle_lead_us = 0): the bound needs the lead
+    spindle_rms = max(v for k, v in c.rms_pps.items() if not k.endswith(" Ib"))
+    assert spindle_rms <= 0.7, c.rms_pps
     assert c.worst_rms_pps <= RMS_LIMIT_PPS, c.rms_pps
     assert c.counters_equal, (c.run.counters, c.host_counters)
     assert c.run.counters["accepted"] == len(t) - 1
@@ -45,9 +49,10 @@ def test_demo_motion_rates_match_the_host_double_chain(firmware):
     # the rates move (measured ranges 9.2 and 35.9 pps of Ia): the comparison is not of two
     # rest outputs
     assert np.ptp(c.run.ia_pps, axis=0).min() > 5.0
-    # the tendon organs: measured 0.0006 pps RMS (BRA Ib, 0-15.2 pps over the 0.8 s; the
-    # servo torque is a flexion one there, TRImed's Ib is 0 in both)
-    assert c.rms_pps["BRA Ib"] <= 0.002 and c.rms_pps["TRImed Ib"] <= 0.002, c.rms_pps
+    # the tendon organs, stepped every 8 ms where the host steps every 2 ms: measured 0.25
+    # pps RMS (BRA Ib, 0-15.2 pps over the 0.8 s; 0.0006 stepped every sample; the servo
+    # torque is a flexion one there, TRImed's Ib is 0 in both)
+    assert c.rms_pps["BRA Ib"] <= 0.5 and c.rms_pps["TRImed Ib"] <= 0.5, c.rms_pps
     assert np.ptp(c.run.ib_pps[:, 0]) > 10.0
     assert not firmware.emu.violations
 
@@ -58,19 +63,21 @@ def test_faulty_trace_counts_every_bad_sample_as_the_host(firmware):
     c = sysfw.compare(firmware, samples)
     assert c.counters_equal, (c.run.counters, c.host_counters)
     assert c.run.counters["invalid_load"] > 0  # measured 20
-    # measured 0.0005 pps RMS (BRA Ib)
-    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.002, c.rms_pps
+    # measured 0.21 pps RMS (BRA Ib; the organs on their 8 ms grid; 0.0005 stepped every
+    # sample)
+    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.5, c.rms_pps
     rejected = sum(c.run.counters[k] for k in ("invalid_reading", "bad_time",
                                                 "repeated_time", "time_backwards"))
     assert rejected > 0  # measured 6 (3 invalid readings, 3 bad times)
-    # measured 1.68 pps (BRA Ia) over this trace of 700 (a faster stretch of the servo trace
-    # than before the stream gained load words: 0.14 pps then). Above the issue's 1.5 pps
-    # target: the fixed-point spindles take at most one 5 ms step per sample and hold their
-    # output in between (issue 26 stays open on it); the bound keeps it from getting worse.
+    # measured 1.66 pps (BRA Ia) over this trace of 700 (a faster stretch of the servo trace
+    # than before the stream gained load words: 0.14 pps then; 1.06 over the bench's 10000
+    # samples). Above the issue's 1.5 pps target on this stretch: the fixed-point spindles
+    # step on an 8 ms grid and hold their output in between; the bound keeps it from getting
+    # worse (1.68 with the 5 ms grid without the lead).
     assert c.worst_rms_pps <= FAULTY_TRACE_RMS_LIMIT_PPS, c.rms_pps
     # one spindle step per sample at most: the worst sample is bounded
     assert c.run.steps.max() <= 1
-    # measured: 31 pulses from each, the counts per channel-second equal
+    # measured: 39 pulses from the firmware, the counts per channel-second within one
     assert c.pulse_count_diff <= PULSE_COUNT_LIMIT and c.run.pulses_lost == 0
 
 
@@ -130,6 +137,32 @@ def test_time_and_load_rules_at_their_limits_as_the_host(firmware):
     assert c.counters_equal, (c.run.counters, c.host_counters)
     np.testing.assert_array_equal(c.run.accepted != 0, host["accepted"])
     # Ib: both muscles' organs loaded in turn (TRImed's Ib rises by 11.7 pps); measured
-    # 0.0003 pps RMS
+    # 0.94 pps RMS (TRImed Ib: its force appears at once and the organ, stepped every 8 ms,
+    # holds its rate up to a step behind the host's; 2.32 with a 16 ms step)
     assert np.ptp(c.run.ib_pps[:, 1]) > 5.0
-    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.002, c.rms_pps
+    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 1.2, c.rms_pps
+
+
+def test_tendon_organs_step_on_offset_grids(firmware):
+    # each organ steps every GTO_STEP_S (4 samples of the nominal 2 ms), the two grids half a
+    # step apart: an organ's Ib changes at most once in 4 samples and never in the same sample
+    # as the other's (a sample's worst case has one organ step), and both follow the host's
+    # organs stepped every sample
+    n = 200
+    t = 1.0 + 0.002 * np.arange(n)
+    counts = np.full(n, 600.0)
+    load = np.round(200.0 + 150.0 * np.sin(2 * np.pi * 2.0 * (t - 1.0)))  # flexion: BRA's
+    load[n // 2:] += 1024.0  # the same magnitudes clockwise: TRImed's force
+    samples = sysfw.Samples(t, counts, load, np.ones(n, dtype=bool))
+    c = sysfw.compare(firmware, samples)
+    assert c.counters_equal, (c.run.counters, c.host_counters)
+    changed = np.abs(np.diff(c.run.ib_pps, axis=0)) > 0
+    step = round(sysfw.GTO_STEP_S / sysfw.SAMPLE_PERIOD_S)
+    for m in range(2):
+        moments = np.flatnonzero(changed[:, m])
+        assert len(moments) >= n // 2 // step - 1  # it steps while loaded
+        assert np.diff(moments).min() >= step
+    assert not np.any(changed[:, 0] & changed[:, 1])
+    assert np.ptp(c.run.ib_pps, axis=0).min() > 5.0
+    # measured 0.30 pps RMS (TRImed Ib, whose force appears at once half-way)
+    assert max(c.rms_pps["BRA Ib"], c.rms_pps["TRImed Ib"]) <= 0.6, c.rms_pps

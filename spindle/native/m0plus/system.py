@@ -33,6 +33,7 @@ from spindle.native.m0plus.build import ARM_FLAGS, C_DIR, FW_DIR, LINK_FLAGS, ke
 from spindle.native.m0plus.emulator import M0Plus
 from spindle.native.m0plus.system_config import (
     DEVICE_CONFIG,
+    GTO_STEP_S,
     SPINDLE_STEP_S,
     system_config_source,
 )
@@ -71,12 +72,14 @@ def default_stim():
 
 def build_system(build_dir: Path, config: ChainConfig = DEVICE_CONFIG,
                  spindle_step_s: float = SPINDLE_STEP_S, stack_bytes: int = STACK_BYTES,
-                 defines: tuple[str, ...] = DEFINES, opt: str = "-Os") -> Path:
-    """The system firmware's ELF for ``config`` at ``spindle_step_s``."""
+                 defines: tuple[str, ...] = DEFINES, opt: str = "-Os",
+                 gto_step_s: float = GTO_STEP_S) -> Path:
+    """The system firmware's ELF for ``config``, the spindles at ``spindle_step_s``, the
+    tendon organs at ``gto_step_s``."""
     stim = default_stim() if "FW_STIM" in defines else None
     gto = "FW_GTO" in defines
     source = system_config_source(config, spindle_step_s=spindle_step_s, stim=stim,
-                                  tendon_organs=gto)
+                                  tendon_organs=gto, gto_step_s=gto_step_s)
     tag = key(source, stack_bytes, defines, opt, (FW_DIR / "system.c").read_bytes(),
               (C_DIR / "tendon_organ.c").read_bytes())
     header_dir = build_dir / f"system_{tag}"
@@ -405,8 +408,9 @@ def compare(fw: SystemFirmware, samples: Samples,
 
 def firmware_sizes(elf: Path, stack_used: int, build_dir: Path,
                    config: ChainConfig = DEVICE_CONFIG, spindle_step_s: float = SPINDLE_STEP_S,
-                   defines: tuple[str, ...] = DEFINES) -> tuple[int, int]:
+                   defines: tuple[str, ...] = DEFINES,
+                   gto_step_s: float = GTO_STEP_S) -> tuple[int, int]:
     """(flash, RAM) bytes, the stack re-linked to the high-water mark + 64 B (64 B units)."""
     stack = (stack_used + 64 + 63) // 64 * 64
     return sizes(build_system(build_dir, config, spindle_step_s, stack_bytes=stack,
-                              defines=defines))
+                              defines=defines, gto_step_s=gto_step_s))

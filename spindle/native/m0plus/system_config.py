@@ -5,12 +5,12 @@ fw_config fw_cfg`` (the chain's settings and fusimotor constants in the Q format
 system.c), ``fw_length_Q24`` (the length fits at every encoder count of the fitted range)
 and ``const ps_plan_fx fw_plan`` (the spindle plan at the firmware's spindle step, made on the
 host by ``ps_plan_fx_init``); for the tendon organs (``FW_GTO``) ``fw_gto_cfg`` (the load's
-sign, 1/G2, the fixed-point plans of ``ps_gto_plan_fx_init`` at the nominal interval and on a
-256 us table) and ``fw_arm_force`` (force per load count over the moment-arm table). Every
-number comes from the same resolved ``ps_chain_config`` the host C chain runs
-(``spindle.native.chain.chain_config_struct``) and from the ranges ``ps_chain_init`` derives
-(fitted angle range, each muscle's length range), so the firmware and the host chain it is
-compared with share one configuration.
+sign, 1/G2, the fixed-point plans of ``ps_gto_plan_fx_init`` at the organs' step
+(:data:`GTO_STEP_S`) and on a 1024 us table) and ``fw_arm_force`` (force per load count over
+the moment-arm table). Every number comes from the same resolved ``ps_chain_config`` the
+host C chain runs (``spindle.native.chain.chain_config_struct``) and from the ranges
+``ps_chain_init`` derives (fitted angle range, each muscle's length range), so the firmware
+and the host chain it is compared with share one configuration.
 
 With a stimulator configuration (a ``spindle.stimulation.StimConfig``) it also holds the
 channel map ``fw_stim_source[channel] = {muscle index, 0 for Ia / 1 for II / 2 for Ib}`` of the
@@ -37,11 +37,16 @@ from spindle.params import HUMAN
 AFFERENTS = ("ia", "ii", "ib")
 """The afferents of ``fw_stim_source``, by index (system.c's held rates)."""
 
-SPINDLE_STEP_S = 5e-3
-"""The firmware's spindle step: 0.8 steps per sample at 500 Hz for the two muscles (grids
-offset by half a step), so the one-step-per-sample budget has room to catch up after jitter
-or a bridged interval (at 4 ms, exactly one step per nominal sample, a backlog never drains
-and the worst RMS against the host grew from 0.40 to 0.48 pps on the faulty trace)."""
+SPINDLE_STEP_S = 8e-3
+"""The firmware's spindle step: 0.5 steps per sample at 500 Hz for the two muscles (grids
+offset by half a step, so a sample steps at most one of them), each grid point stepped up to
+half a step before its time (``spindle_lead_us``: the length from the tracking filter's line
+past the sample), so a muscle's rates stand within half a step of the sample. Measured
+against the host double chain (bench_embedded --system-only, worst RMS of Ia and II on the
+demo motion / the faulty servo trace): 5 ms without the lead 0.64 / 0.98 pps (9330
+instructions a sample), with it 0.42 / 0.73; 6 ms 0.53 / 0.88; 8 ms 0.68 / 1.06 for 2369
+instructions a sample where 5 ms took 3668. (At 4 ms, exactly one step per nominal sample, a
+backlog after jitter never drains.)"""
 DEVICE_CONFIG = ChainConfig(params=HUMAN, max_bridge_s=6e-3)
 """The chain on the device: the seed paper's chain with one change, intervals above 6 ms
 (two lost samples) restart at rest instead of being bridged, which bounds a sample's work to
@@ -50,12 +55,21 @@ three spindle steps (the deadline; the host default bridges 50 ms, 25 sub-steps)
 
 DECAY_COARSE = 128
 """``FW_DECAY_COARSE`` of system.c: the tracking filter's decay tables cover 128 x 64 us."""
-GTO_PLANS = 26
-"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 256 us, ... 6.4 ms."""
-GTO_PLAN_STEP_US = 256
+GTO_PLANS = 30
+"""``FW_GTO_PLANS`` of system.c: the tendon organs' plan table, h = 0, 1024 us, ... 29.7 ms."""
+GTO_PLAN_STEP_US = 1024
 """``1 << FW_GTO_PLAN_SHIFT``: the table's step."""
 NOMINAL_INTERVAL_US = 2000
-"""The encoder's period (500 Hz): the interval with its own exact tendon-organ plan."""
+"""The encoder's period (500 Hz, ``FW_SAMPLE_US``)."""
+GTO_STEP_S = 8e-3
+"""The tendon organs' step in the firmware (``fw_gto_config.step_us``, its own exact plan):
+four samples, the two muscles' grids offset by half a step (one organ steps every second
+sample); the host chain steps them every sample. Measured (worst Ib RMS against the host
+double chain on the demo motion / the faulty trace; instructions a sample on the demo;
+TRImed Ib on the 60 samples of test_time_and_load_rules_at_their_limits_as_the_host, whose
+load word flips from flexion to extension at once): every sample 0.0004 / 0.0004 pps, 2176;
+4 ms -, 0.24; 8 ms 0.20 / 0.26 pps, 606, 0.94; 16 ms 0.44 / 0.44 pps, 336, 2.32 (the held
+output lags a sudden load by up to a step: 16 ms is too coarse)."""
 FORCE_PER_COUNT_BITS = 12
 """``fw_arm_force``: force (Q8 N) per load count, in Q12 (stored >> ``arm_shift`` as uint16)."""
 
@@ -107,6 +121,7 @@ def fixed_config(config: ChainConfig, fits: LengthFits, spindle_step_s: float) -
                                           strict=True)],
         "spindle_step_us": step_us,
         "spindle_reach_Q24": _round_q_product(_q(c.max_speed_L0_s * 1e-6, 40), step_us, 16),
+        "spindle_lead_us": step_us // 2,
         "decay_coarse_Q30": [_q(math.exp(-c.lowpass_rad_s * 64e-6 * i), 30)
                              for i in range(DECAY_COARSE)],
         "decay_fine_Q30": [_q(math.exp(-c.lowpass_rad_s * 1e-6 * j), 30) for j in range(64)],
@@ -137,23 +152,28 @@ def _plan_fields(plan) -> list[int]:
         [int(v) for v in plan.g1]
 
 
-def gto_config(config: ChainConfig, moment_arms=None) -> tuple[dict, list[list[int]]]:
+def gto_config(config: ChainConfig, moment_arms=None,
+               gto_step_s: float = GTO_STEP_S) -> tuple[dict, list[list[int]]]:
     """The fields of ``fw_gto_config`` (system.c) and ``fw_arm_force`` (per grid point, per
     muscle, Q12 >> ``arm_shift``), from the force-sense settings of ``config`` as
     ``ps_chain_config`` holds them (``_fill_force_sense``): the load's resolution and sign,
     the moment-arm table, G2 and the tendon organs' fixed-point plans
-    (``ps_gto_plan_fx_init``) at the nominal interval and on the table."""
+    (``ps_gto_plan_fx_init``) at their step ``gto_step_s`` and on the table (to the longest
+    step: ``gto_step_s`` + max_bridge_s, a grid point just missed and the longest bridged
+    interval after it)."""
     from spindle.chain.force import load_moment_arm_fits
     from spindle.native.tendon_organ import FX_FORCE, FX_INV_SCALE, fixed_plan
 
     arms = moment_arms if moment_arms is not None else \
         load_moment_arm_fits(config.moment_arm_fits_path)
-    max_bridge_us = config.max_bridge_s * 1e6
-    if max_bridge_us + 2 > (GTO_PLANS - 1) * GTO_PLAN_STEP_US:
-        raise ValueError(f"max_bridge_s={config.max_bridge_s!r} exceeds the firmware's "
-                         f"tendon-organ plans ({(GTO_PLANS - 1) * GTO_PLAN_STEP_US} us)")
-    n_plans = min(GTO_PLANS, math.ceil((max_bridge_us + 2) / GTO_PLAN_STEP_US) + 1)
-    nominal = fixed_plan(config.gto, NOMINAL_INTERVAL_US * 1e-6)
+    step_us = round(gto_step_s * 1e6)
+    longest_us = step_us + config.max_bridge_s * 1e6 + 2
+    if step_us < NOMINAL_INTERVAL_US or longest_us > (GTO_PLANS - 1) * GTO_PLAN_STEP_US:
+        raise ValueError(f"gto_step_s={gto_step_s!r} with max_bridge_s={config.max_bridge_s!r}"
+                         f" leaves the firmware's tendon-organ plans "
+                         f"({(GTO_PLANS - 1) * GTO_PLAN_STEP_US} us)")
+    n_plans = min(GTO_PLANS, math.ceil(longest_us / GTO_PLAN_STEP_US) + 1)
+    nominal = fixed_plan(config.gto, step_us * 1e-6)
     identity = [1 << 30 if i == j else 0 for i in range(3) for j in range(3)] + [0] * 6
     plans = [identity] + [_plan_fields(fixed_plan(config.gto, k * GTO_PLAN_STEP_US * 1e-6))
                           for k in range(1, n_plans)]
@@ -173,7 +193,7 @@ def gto_config(config: ChainConfig, moment_arms=None) -> tuple[dict, list[list[i
         "arm_lo_Q16": _q(lo, 16), "arm_scale_Q28": _q((points - 1) / (hi - lo), 28),
         "arm_last": points - 1, "arm_shift": shift,
         "inv_scale_Q24": [round(FX_INV_SCALE / float(g2)) for g2 in config.force_scale_N],
-        "nominal_us": NOMINAL_INTERVAL_US,
+        "step_us": step_us,
         "plan_nominal": _struct_literal(nominal),
         "n_plans": n_plans,
         "plan_Q30": plans,
@@ -223,9 +243,10 @@ def stim_channel_source(stim) -> str:
 
 def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits | None = None,
                          spindle_step_s: float = SPINDLE_STEP_S, stim=None,
-                         tendon_organs: bool = True) -> str:
+                         tendon_organs: bool = True, gto_step_s: float = GTO_STEP_S) -> str:
     """fw_system_config.h for ``config``, ``fits``, the spindle step, (if not None) the
-    stimulator's ``StimConfig`` and (``tendon_organs``) the FW_GTO stage's constants."""
+    stimulator's ``StimConfig`` and (``tendon_organs``) the FW_GTO stage's constants, its
+    organs stepping every ``gto_step_s``."""
     from spindle.native import fixed
     from spindle.native.spindle import library
 
@@ -244,12 +265,12 @@ def system_config_source(config: ChainConfig = DEVICE_CONFIG, fits: LengthFits |
             f"const ps_plan_fx fw_plan = {{\n    {plan_body}\n}};\n"
             + _table_source("fw_length_Q24", length_table(config, fits))
             + ("" if stim is None else "\n" + stim_channel_source(stim))
-            + ("" if not tendon_organs else "\n#ifdef FW_GTO\n" + _gto_source(config)
+            + ("" if not tendon_organs else "\n#ifdef FW_GTO\n" + _gto_source(config, gto_step_s)
                + "#endif\n"))
 
 
-def _gto_source(config: ChainConfig) -> str:
-    fields, table = gto_config(config)
+def _gto_source(config: ChainConfig, gto_step_s: float) -> str:
+    fields, table = gto_config(config, gto_step_s=gto_step_s)
     body = ",\n    ".join(f".{k} = {_literal(v)}" for k, v in fields.items())
     return (f"const fw_gto_config fw_gto_cfg = {{\n    {body}\n}};\n"
             + _table_source("fw_arm_force", table, "uint16_t"))

@@ -17,14 +17,18 @@
  * the sample's time as a double, as the host chain does (ps_time), so the bad-sample rules and
  * counters are those of spindle/chain/arm.py and chain.c (see fw_counters).
  *
- * The spindles run on a fixed grid of FW_SPINDLE_STEP_US (the plan's h, generated on the host
- * by ps_plan_fx_init), the two muscles' grids offset by half a step so that a sample at the
- * nominal rate steps one spindle; at each grid point in the sample's interval the length
- * follows the cubic Hermite curve through the interval's ends (as chain.c's sub-steps), and a
- * muscle's output holds its last step's rates. A sample runs at most FW_MAX_STEPS (1) spindle
- * steps, the oldest queued grid point first: one step is the worst case of a sample (with the
- * grids offset, a sample at the nominal rate has one grid point; jitter and bridged intervals
- * queue the others for the next samples).
+ * The spindles run on a fixed grid of the plan's h (fw_cfg.spindle_step_us, 8 ms; generated on
+ * the host by ps_plan_fx_init), the two muscles' grids offset by half a step, so that a sample
+ * at the nominal rate steps at most one spindle (every second sample one). A grid point steps
+ * at the first sample at most spindle_lead_us (half a step) before it: its length is the
+ * tracking filter's line x1 + v1 (tau - t) past the sample, or for a point the sample came
+ * late for the cubic Hermite curve through the interval's ends (as chain.c's sub-steps); a
+ * muscle's output holds its last step's rates, which then stand for a time within half a step
+ * of the sample. A sample runs at most FW_MAX_STEPS (1) spindle steps, the oldest queued grid
+ * point first (jitter and bridged intervals queue the others for the next samples).
+ *
+ * The tendon organs step on their own grid (fw_gto_cfg.step_us, 8 ms), likewise offset by
+ * half a step between the muscles (FW_GTO section).
  *
  * The configuration (fw_system_config.h: const fw_config fw_cfg, const ps_plan_fx fw_plan) is
  * generated on the host by spindle.native.m0plus.system_config from a ChainConfig.
@@ -60,6 +64,7 @@ typedef struct fw_config {
     int32_t gs_gain_Q8[PS_MUSCLES];             /* span / (Lmax - Lmin) (pps/L0) */
     int32_t spindle_step_us;                    /* the plan's h */
     int32_t spindle_reach_Q24;                  /* the length's slew limit over one step */
+    int32_t spindle_lead_us;                    /* grid points this far ahead step now */
     /* e^(-omega dt) of the tracking filter for dt = 64 i + j us (Q30): coarse i, fine j */
     int32_t decay_coarse_Q30[FW_DECAY_COARSE], decay_fine_Q30[64];
 } fw_config;
@@ -67,10 +72,17 @@ typedef struct fw_config {
 #ifdef FW_GTO
 /* The force sense's constants (generated with fw_cfg, from the same ps_chain_config): the load
  * word's sign, the moment-arm grid (the host's table points) as force per load count of each
- * muscle, 1/G2, and the tendon organs' fixed-point plans: one at the nominal interval and a
- * table at h = k 256 us (k = 0: no time passes), linear between its points. */
-#define FW_GTO_PLANS 26          /* intervals up to (FW_GTO_PLANS - 1) * 256 us = 6.4 ms */
-#define FW_GTO_PLAN_SHIFT 8      /* the table's step, 256 us: its index is a shift */
+ * muscle, 1/G2, and the tendon organs' fixed-point plans: one at the organs' nominal step
+ * (step_us) and a table at h = k 1024 us (k = 0: no time passes), linear between its points.
+ *
+ * The organs step on their own grid of step_us (8 ms, four samples; the two muscles' grids
+ * offset by half a step, so a sample at the nominal rate steps at most one organ): a 3-state
+ * filter whose fastest pole is its 10 ms low-pass's (Lin & Crago 2002) needs no 2 ms step, and
+ * the force is a line over the step as it is over a sample on the host. Between its steps a
+ * muscle's Ib holds (measured against the host's organs stepped every sample: 0.26 pps RMS on
+ * the bench's servo trace, 0.94 right after a load that appears at once; 2.3 at 16 ms). */
+#define FW_GTO_PLANS 30          /* intervals up to (FW_GTO_PLANS - 1) * 1024 us = 29.7 ms */
+#define FW_GTO_PLAN_SHIFT 10     /* the table's step, 1024 us: its index is a shift */
 typedef struct fw_gto_config {
     int32_t load_sign;           /* the torque's sign of a counter-clockwise load word */
     int32_t arm_lo_Q16;          /* the moment-arm grid's first angle (deg, Q16) */
@@ -78,10 +90,10 @@ typedef struct fw_gto_config {
     int32_t arm_last;            /* the last grid point's index */
     int32_t arm_shift;           /* fw_arm_force's values are the Q12 ones >> arm_shift */
     int32_t inv_scale_Q24[PS_MUSCLES]; /* 1 / G2 (1/N) */
-    int32_t nominal_us;          /* the interval of plan_nominal */
+    int32_t step_us;             /* the organs' step, the interval of plan_nominal */
     ps_gto_plan_fx plan_nominal;
     int32_t n_plans;
-    int32_t plan_Q30[FW_GTO_PLANS][15]; /* phi (row-major), g0, g1 at h = k 256 us */
+    int32_t plan_Q30[FW_GTO_PLANS][15]; /* phi (row-major), g0, g1 at h = k 1024 us */
 } fw_gto_config;
 #endif
 
@@ -119,6 +131,7 @@ typedef struct fw_interval {
     int32_t angle_limit_Q16, length_limit_Q24; /* the slew limits over it */
 } fw_interval;
 
+#define FW_SAMPLE_US 2000 /* the encoder's nominal period (500 Hz) */
 #define FW_SEGMENTS 8 /* >= predictor_keep (4 for the seed paper's 40 ms at 50 Hz); a power
                         * of 2 (the ring's index is a mask) */
 #define FW_PENDING 8  /* queued spindle grid points per muscle */
@@ -150,6 +163,8 @@ typedef struct fw_state {
     int32_t gs_Q8[PS_MUSCLES], gd_Q8[PS_MUSCLES];
 #ifdef FW_GTO
     ps_gto_fx gto[PS_MUSCLES];
+    uint32_t gto_t_us[PS_MUSCLES];   /* each organ's last step (or rest) */
+    uint32_t gto_due_us[PS_MUSCLES]; /* and its next grid point */
     int32_t torque_counts;          /* the last accepted sample's signed load (counts) */
 #endif
     int32_t ib_Q16[PS_MUSCLES];
@@ -220,8 +235,14 @@ static int32_t clamp_i32(int32_t x, int32_t lo, int32_t hi)
     return x < lo ? lo : x > hi ? hi : x;
 }
 
-/* An interval in us (<= 2^21) as seconds in Q30. */
-static int32_t us_to_Q30(int32_t us) { return mul_q(us, 1099512, 10); /* 2^40 / 1e6 */ }
+/* An interval in us (0 <= us < 2^21) as seconds in Q30: round(us 1099512 / 2^10) (2^40 / 1e6)
+ * in 32-bit products, 1099512 = 1073 2^10 + 760, exactly (mul_q's 64-bit product took ~20
+ * instructions more, three times a sample). */
+static int32_t us_to_Q30(int32_t us)
+{
+    const uint32_t u = (uint32_t)us;
+    return (int32_t)(u * 1073u + ((u * 760u + 512u) >> 10));
+}
 
 /* exp(-y) in Q30 for 0 <= y (Q28) < 8: Taylor series of exp(-y/8) to z^8 (the first term
  * left out is below 2^-31 for z < 1), then three squarings. */
@@ -341,6 +362,10 @@ static void rebase_epoch(void)
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
         st.next_step_us[m] -= shift;
+#ifdef FW_GTO
+        st.gto_t_us[m] -= shift;
+        st.gto_due_us[m] -= shift;
+#endif
         for (k = 0; k < FW_PENDING; ++k) {
             st.pending_t_us[m][k] -= shift;
         }
@@ -390,6 +415,17 @@ static void interval_constants(fw_interval *out, int32_t dt_us)
     out->length_limit_Q24 = mul_q(fw_cfg.max_speed_L0_Q40_us, dt_us, 16);
 }
 
+/* round(since 10^6 / 2^32) for 0 <= since < FW_EPOCH_S 2^32 (Q32 s to us; FW_EPOCH_S below
+ * 4295 keeps the result in uint32) in 32-bit
+ * products, exactly: 10^6 = 15625 2^6, the low word in 16-bit halves (the int64 product
+ * called libgcc's __muldi3, ~45 instructions a sample). */
+static uint32_t us_of_Q32(int64_t since)
+{
+    const uint32_t hi = (uint32_t)(since >> 32), lo = (uint32_t)since;
+    const uint32_t a = (lo >> 16) * 15625u, x = (lo & 0xFFFFu) * 15625u + (1u << 25);
+    return hi * 1000000u + ((a + (x >> 16)) >> 10);
+}
+
 /* The time t of a sample within max_bridge_s of the last accepted one, in us since the epoch
  * (rounded, below 2^31): from the Q32 times, else (a time outside to_Q32's range) the
  * doubles'. The epoch moves on once it is FW_EPOCH_S old. */
@@ -402,7 +438,7 @@ static uint32_t time_us(const fw_ctx *c, double t)
             rebase_epoch();
             since = c->t_Q32 - st.epoch_Q32;
         }
-        return (uint32_t)((since * 1000000 + ((int64_t)1 << 31)) >> 32);
+        return us_of_Q32(since);
     }
     half_us = (t - st.epoch_s) * 2e6;
     if (order_key(half_us) >= order_key(2e6 * FW_EPOCH_S)) {
@@ -689,8 +725,11 @@ static int step_oldest(fw_ctx *c)
     return status;
 }
 
-/* The spindles: every grid point of the interval queues its length (the Hermite curve, within
- * the slew limit of the previous grid point and the spindle's range); at most FW_MAX_STEPS of
+/* The spindles: every grid point up to spindle_lead_us after the sample queues its length (in
+ * the interval the Hermite curve, after the sample the tracking filter's line x1 + v1 (tau - t),
+ * within the slew limit of the previous grid point and the spindle's range): a muscle's rates
+ * then stand for a grid point within half a step of the sample, not up to a step before it
+ * (the output's lag was the larger part of the RMS against the host); at most FW_MAX_STEPS of
  * the queued steps run in this sample, oldest first (a queue that fills runs its oldest at
  * once, counted in fw_overruns). */
 static int stage_spindles(fw_ctx *c)
@@ -701,9 +740,11 @@ static int stage_spindles(fw_ctx *c)
         return rest_spindles(c);
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
-        while ((int32_t)(c->t_us - st.next_step_us[m]) >= 0) {
-            int32_t L = (st.next_step_us[m] == c->t_us) ? c->x1_Q24[m]
-                                                         : hermite_Q24(c, m, st.next_step_us[m]);
+        while ((int32_t)(c->t_us + (uint32_t)fw_cfg.spindle_lead_us - st.next_step_us[m]) >= 0) {
+            int32_t ahead = (int32_t)(st.next_step_us[m] - c->t_us);
+            int32_t L = ahead == 0 ? c->x1_Q24[m]
+                        : ahead < 0 ? hermite_Q24(c, m, st.next_step_us[m])
+                                    : c->x1_Q24[m] + mul_q(c->v1_Q20[m], us_to_Q30(ahead), 26);
             L = clamp_i32(L, st.last_L_Q24[m] - reach, st.last_L_Q24[m] + reach);
             L = clamp_i32(L, PS_FX_ONE / 2, PS_FX_ONE + PS_FX_ONE / 2);
             if (st.pending_n[m] == FW_PENDING) {
@@ -747,15 +788,19 @@ static int rest_spindles(fw_ctx *c)
 }
 
 #ifdef FW_GTO
-/* tendon_forces_N: the torque over the moment arm at the angle (the host's table, linear
- * between its points, clamped to its ends), flexion torque to BRA, extension to TRImed. The
- * table holds Nm_per_count / |r| (Q8 N per count), so a force is one product per muscle. */
-static void tendon_forces(const fw_ctx *c, int32_t force_Q8[PS_MUSCLES])
+/* tendon_forces_N of muscle m: the torque over the moment arm at the angle (the host's
+ * table, linear between its points, clamped to its ends), flexion torque to BRA (m = 0),
+ * extension to TRImed. The table holds Nm_per_count / |r| (Q8 N per count), so a force is one
+ * product. */
+static int32_t tendon_force(const fw_ctx *c, int m)
 {
-    const int m = c->torque_counts > 0 ? 0 : 1;
-    int32_t position = mul_q(c->angle_Q16 - fw_gto_cfg.arm_lo_Q16, fw_gto_cfg.arm_scale_Q28, 28);
-    int32_t j = position >> 16, per_count;
-    int32_t magnitude = c->torque_counts < 0 ? -c->torque_counts : c->torque_counts;
+    int32_t position, j, per_count, magnitude;
+    if (m == 0 ? c->torque_counts <= 0 : c->torque_counts > 0) {
+        return 0;
+    }
+    position = mul_q(c->angle_Q16 - fw_gto_cfg.arm_lo_Q16, fw_gto_cfg.arm_scale_Q28, 28);
+    j = position >> 16;
+    magnitude = c->torque_counts < 0 ? -c->torque_counts : c->torque_counts;
     if (position <= 0) {
         per_count = fw_arm_force[0][m] << fw_gto_cfg.arm_shift;
     } else if (j >= fw_gto_cfg.arm_last) {
@@ -765,18 +810,16 @@ static void tendon_forces(const fw_ctx *c, int32_t force_Q8[PS_MUSCLES])
         int32_t hi = fw_arm_force[j + 1][m] << fw_gto_cfg.arm_shift;
         per_count = lo + mul_q(hi - lo, position & 0xFFFF, 16); /* Q12 */
     }
-    force_Q8[0] = 0;
-    force_Q8[1] = 0;
-    force_Q8[m] = (magnitude * per_count + 2048) >> 12;
+    return (magnitude * per_count + 2048) >> 12;
 }
 
-/* The plan for an interval of dt_us: the nominal one, else the table's, linear in h. */
-static const ps_gto_plan_fx *gto_plan(int32_t dt_us, ps_gto_plan_fx *scratch)
+/* The plan for a step of h_us: the nominal one, else the table's, linear in h. */
+static const ps_gto_plan_fx *gto_plan(int32_t h_us, ps_gto_plan_fx *scratch)
 {
-    int32_t k = dt_us >> FW_GTO_PLAN_SHIFT, w_Q30, i;
+    int32_t k = h_us >> FW_GTO_PLAN_SHIFT, w_Q30, i;
     int32_t *out = &scratch->phi[0][0];
     const int32_t *a, *b;
-    if (dt_us == fw_gto_cfg.nominal_us) {
+    if (h_us == fw_gto_cfg.step_us) {
         return &fw_gto_cfg.plan_nominal;
     }
     if (k > fw_gto_cfg.n_plans - 2) {
@@ -784,7 +827,7 @@ static const ps_gto_plan_fx *gto_plan(int32_t dt_us, ps_gto_plan_fx *scratch)
     }
     a = fw_gto_cfg.plan_Q30[k];
     b = fw_gto_cfg.plan_Q30[k + 1];
-    w_Q30 = (dt_us - (k << FW_GTO_PLAN_SHIFT)) << (30 - FW_GTO_PLAN_SHIFT);
+    w_Q30 = (h_us - (k << FW_GTO_PLAN_SHIFT)) << (30 - FW_GTO_PLAN_SHIFT);
     *scratch = fw_gto_cfg.plan_nominal; /* c, gain and 1/a0 do not depend on h */
     for (i = 0; i < 15; ++i) { /* phi, g0, g1 are contiguous in ps_gto_plan_fx */
         out[i] = a[i] + mul_q(b[i] - a[i], w_Q30, 30);
@@ -792,30 +835,49 @@ static const ps_gto_plan_fx *gto_plan(int32_t dt_us, ps_gto_plan_fx *scratch)
     return scratch;
 }
 
-/* The tendon organs (Ib): at rest at a restart's force, else one step over the interval to
- * the sample's force (the force a line over it), as chain.c's advance_tendon_organs; an organ
- * at rest at zero force that stays there is not stepped (the step would give zeros). */
+/* An organ steps at the first sample within half a sample of its grid point: from its last
+ * step to this sample, the force a line over the step (as chain.c's advance_tendon_organs
+ * over a sample). Grid points a long interval skipped are dropped (the step covers them). */
+static int gto_advance(const fw_ctx *c, int m)
+{
+    ps_gto_fx *g = &st.gto[m];
+    ps_gto_plan_fx scratch;
+    int32_t force_Q8;
+    if ((int32_t)(c->t_us - st.gto_due_us[m]) < -(FW_SAMPLE_US / 2)) {
+        return PS_OK;
+    }
+    do {
+        st.gto_due_us[m] += (uint32_t)fw_gto_cfg.step_us;
+    } while ((int32_t)(c->t_us - st.gto_due_us[m]) >= -(FW_SAMPLE_US / 2));
+    force_Q8 = tendon_force(c, m);
+    if (force_Q8 == 0 && g->r == 0 && g->z[0] == 0 && g->z[1] == 0 && g->z[2] == 0) {
+        st.gto_t_us[m] = c->t_us; /* at rest at zero force it stays there */
+        st.ib_Q16[m] = 0;
+        return PS_OK;
+    }
+    {
+        int32_t h_us = (int32_t)(c->t_us - st.gto_t_us[m]);
+        st.gto_t_us[m] = c->t_us;
+        return ps_gto_step_fx(g, gto_plan(h_us, &scratch), force_Q8,
+                              fw_gto_cfg.inv_scale_Q24[m], &st.ib_Q16[m]);
+    }
+}
+
+/* The tendon organs (Ib): at rest at a restart's force (their grids restarting from now,
+ * offset by half a step), else each on its grid (gto_advance). */
 static int stage_tendon(fw_ctx *c)
 {
-    int32_t force_Q8[PS_MUSCLES];
-    ps_gto_plan_fx scratch;
-    const ps_gto_plan_fx *plan = &fw_gto_cfg.plan_nominal;
     int m, status = PS_OK;
-    tendon_forces(c, force_Q8);
-    if (!c->restart) {
-        plan = gto_plan(c->dt_us, &scratch);
-    }
     for (m = 0; m < PS_MUSCLES; ++m) {
-        ps_gto_fx *g = &st.gto[m];
         if (c->restart) {
-            status = ps_gto_fx_init(g, plan, force_Q8[m], fw_gto_cfg.inv_scale_Q24[m]);
-            st.ib_Q16[m] = ps_gto_rate_fx(g, plan);
-        } else if (force_Q8[m] == 0 && g->r == 0 && g->z[0] == 0 && g->z[1] == 0
-                   && g->z[2] == 0) {
-            st.ib_Q16[m] = 0;
+            const ps_gto_plan_fx *plan = &fw_gto_cfg.plan_nominal;
+            status = ps_gto_fx_init(&st.gto[m], plan, tendon_force(c, m),
+                                    fw_gto_cfg.inv_scale_Q24[m]);
+            st.ib_Q16[m] = ps_gto_rate_fx(&st.gto[m], plan);
+            st.gto_t_us[m] = c->t_us;
+            st.gto_due_us[m] = c->t_us + (uint32_t)(fw_gto_cfg.step_us * (m + 1) / 2);
         } else {
-            status = ps_gto_step_fx(g, plan, force_Q8[m], fw_gto_cfg.inv_scale_Q24[m],
-                                    &st.ib_Q16[m]);
+            status = gto_advance(c, m);
         }
         if (status != PS_OK) {
             c->status = status;
