@@ -448,13 +448,18 @@ class EnvTap:
         (:meth:`~proprio_env.wrappers.muscles.MuscleSet.tension_N`) that MuJoCo's
         ``mj_fwdActuation`` gives at that state (on a scratch ``MjData`` unless the env's
         data is current), in the same pass."""
+        t, *raw = self.raw_state_now()
+        return (t, *normalised(self.muscles, *raw))
+
+    def raw_state_now(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`state_now` before the normalisation: (time s, actuator lengths m,
+        velocities m/s, ``actuator_force``) of the muscles, fresh arrays (M,)."""
         if self.final is not None:
             return self.final[0]
         current = None if self.recorder is None else self.recorder.current()
         length, velocity, force = (self.kinematics.state_of_data(self.data)
                                    if current is None else current)
-        return (float(self.data.time), self.muscles.length_L0(length),
-                self.muscles.velocity_L0_s(velocity), self.muscles.tension_N(force))
+        return float(self.data.time), length, velocity, force
 
     def records(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The raw records since the last call (:meth:`FrameRecorder.take_all`); None without a
@@ -481,7 +486,7 @@ class EnvTap:
         records = self.records()
         kept = None if records is None else tuple(a.copy() for a in records)
         forces = None if self.record_forces is None else self.record_forces.copy()
-        self.final = (self.state_now(), kept, forces)
+        self.final = (self.raw_state_now(), kept, forces)
 
     def thaw(self) -> None:
         """Read the env again; the records of whatever stepped since :meth:`freeze` (the
@@ -502,10 +507,10 @@ def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list,
                    every_force: bool = True
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The raw records (:meth:`EnvTap.records`) and their forces
-    (:attr:`EnvTap.record_forces`) of ``rows`` as normalised arrays: times (F, r), lengths
-    L0, velocities L0/s and tendon forces N (F, r, M) (``every_force`` False: the last
-    record's only, (1, r, M)); None unless every row has the same number F >= 1. One stack
-    and one normalisation for all rows."""
+    (:attr:`EnvTap.record_forces`) of ``rows`` as arrays of the muscles' columns, still raw
+    (:func:`normalised` makes them L0, L0/s and N): times (F, r), lengths m, velocities m/s
+    and forces (F, r, M) (``every_force`` False: the last record's only, (1, r, M)); None
+    unless every row has the same number F >= 1. One stack for all rows."""
     chosen = [(*records[i], forces[i]) if records[i] is not None else None for i in rows]
     if not chosen or any(r is None or r[3] is None for r in chosen):
         return None
@@ -524,12 +529,28 @@ def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list,
         length, velocity, force = (np.array([r[k] if k < 3 or every_force else r[k][-1:]
                                              for r in chosen]).transpose(1, 0, 2)[..., cols]
                                    for k in (1, 2, 3))
-    return (t, muscles.length_L0(length), muscles.velocity_L0_s(velocity),
+    return t, length, velocity, force
+
+
+def normalised(muscles: Any, length_m: np.ndarray, velocity_m_s: np.ndarray,
+               force: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw actuator lengths (m), velocities (m/s) and forces (MuJoCo's sign), (..., M), as
+    normalised lengths (L0), velocities (L0/s) and tendon forces (N)."""
+    return (muscles.length_L0(length_m), muscles.velocity_L0_s(velocity_m_s),
             muscles.tension_N(force))
 
 
 def _stacked(states: list) -> tuple[np.ndarray, ...]:
     return tuple(np.array([x[k] for x in states]) for k in range(4))
+
+
+def _raw_ends(taps: list, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Each row's env state now, raw (:meth:`EnvTap.raw_state_now`): times (1, r), lengths,
+    velocities and forces (1, r, M), ready to follow the raw records."""
+    if rows.size == 1:  # one env: its arrays with two new axes, no stack
+        t, *raw = taps[rows[0]].raw_state_now()
+        return (np.array([[t]]), *(a[None, None] for a in raw))
+    return tuple(a[None] for a in _stacked([taps[i].raw_state_now() for i in rows]))
 
 
 def _step_end(taps: list, records: list, rows: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -593,12 +614,12 @@ def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray
             knots = [a[drop:] for a in stacked[:3]]
             forces = stacked[3][drop:] if every_force else stacked[3]
             if not lag:
-                ends = _step_end(taps, records, rows)
-                knots = [np.concatenate((a, e[None])) for a, e in zip(knots, ends[:3],
-                                                                       strict=True)]
-                forces = np.concatenate((forces, ends[3][None])) if every_force \
-                    else ends[3][None]
-            knots.append(forces)
+                # the state now after the records, both raw: one normalisation of the
+                # knots (two were 12 numpy calls of a legs env step)
+                ends = _raw_ends(taps, rows)
+                knots = [np.concatenate((a, e)) for a, e in zip(knots, ends[:3], strict=True)]
+                forces = np.concatenate((forces, ends[3])) if every_force else ends[3]
+            knots = [knots[0], *normalised(taps[0].muscles, *knots[1:], forces)]
             if rows.size == n:
                 return (*knots, "frames")
             K = knots[0].shape[0]
