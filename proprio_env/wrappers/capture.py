@@ -569,6 +569,27 @@ def _step_end(taps: list, records: list, rows: np.ndarray) -> tuple[np.ndarray, 
     return _stacked(ends)
 
 
+def _records_follow(t_first: np.ndarray, t_last: np.ndarray, timestep_s: float
+                    ) -> tuple[int, bool]:
+    """(1 if each row's first record is its previous knot itself, else 0; whether it is that
+    knot or one physics step after it in every row), the rows' first record times and last
+    knot times (r,) compared within :data:`TIME_TOL_S` and a few units in the last place (a
+    clock far from 0, set forward by hand or after a long run, resolves its physics steps
+    only to those)."""
+    if t_last.size == 1 and math.isfinite(last := float(t_last[0])):
+        # one env: the same comparisons on Python floats (math.ulp is np.spacing for a
+        # finite non-negative float), not 8 numpy calls on one-element arrays (~40k of a
+        # legs env step's ~1.7M added instructions, callgrind)
+        first = float(t_first[0])
+        tol = TIME_TOL_S + 4 * math.ulp(abs(last))
+        drop = int(abs(first - last) <= tol)
+        return drop, bool(drop) or abs((first - last) - timestep_s) <= tol
+    first = t_first - t_last
+    tol = TIME_TOL_S + 4 * np.spacing(np.abs(t_last))
+    drop = int((np.abs(first) <= tol).all())
+    return drop, bool(drop) or bool((np.abs(first - timestep_s) <= tol).all())
+
+
 def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray,
                V_prev: np.ndarray, moving: np.ndarray, F_prev: np.ndarray | None = None,
                every_force: bool = True
@@ -596,20 +617,15 @@ def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray
     from the previous knot to the step's end, sampled every physics step, and the forces on
     the straight line between the step's ends (a wrapper sees no force in between).
     """
-    rows = np.flatnonzero(moving)
+    rows = moving.nonzero()[0]  # (np.flatnonzero: three more Python calls; moving is 1-D)
     n, M = L_prev.shape
     F_prev = np.zeros((n, M)) if F_prev is None else F_prev
     lag, timestep_s = taps[0].lag_physics_step, taps[0].timestep_s
     stacked = gather_records(records, rows, taps[0].muscles,
                              [tap.record_forces for tap in taps], every_force)
     if stacked is not None:
-        t_rec, t_last = stacked[0], t_prev[rows]
-        first = t_rec[0] - t_last
-        # a clock far from 0 (set forward by hand, a long run) resolves its physics steps
-        # only to a few of its units in the last place
-        tol = TIME_TOL_S + 4 * np.spacing(np.abs(t_last))
-        drop = int((np.abs(first) <= tol).all())
-        follows = drop or bool((np.abs(first - timestep_s) <= tol).all())
+        t_rec = stacked[0]
+        drop, follows = _records_follow(t_rec[0], t_prev[rows], timestep_s)
         if follows and t_rec.shape[0] - drop + (not lag) >= 1:
             knots = [a[drop:] for a in stacked[:3]]
             forces = stacked[3][drop:] if every_force else stacked[3]
