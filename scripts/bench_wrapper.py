@@ -23,7 +23,10 @@ Usage: ``PYTHONPATH=. python scripts/bench_wrapper.py [--envs 16 64] [--steps 40
 [--repeats 3] [--myosuite-python /work/myovenv/bin/python]`` (needs the ``myo`` extra);
 ``--figure docs/img/wrapper_legs_afferents.png`` draws the docs figure instead;
 ``--breakdown 16 [--steps 40 --repeats 3]`` prints where the time of a wrapped legs vector step
-of 16 envs goes (C, lagging, unless ``--backends`` / ``--lag`` say otherwise).
+of 16 envs goes (C, lagging, unless ``--backends`` / ``--lag`` say otherwise);
+``--instructions --steps 20 --lag 0`` counts the instructions per env step of the bare and
+the wrapped single legs env under valgrind's callgrind (exact, whatever the machine's load;
+needs valgrind): last line ``bench_wrapper_instructions bare=... wrapped=... ratio=...``.
 """
 
 from __future__ import annotations
@@ -273,6 +276,75 @@ def breakdown(n_envs: int, backend: str, lag: bool, steps: int, repeats: int) ->
     wrapped.close()
 
 
+def counted_regions(steps: int, backend: str, lag: bool) -> None:
+    """Runs under callgrind (:func:`instructions`): the bare legs env and the wrapped one step
+    the same actions from the same reset, each pass of ``steps`` env steps a region that
+    callgrind_control zeroes before and dumps after; an empty region first (the cost of
+    marking a region), then the wrapper's end-of-step kinematics alone."""
+    import os
+    import subprocess
+
+    def region(fn, n: int) -> None:
+        pid = str(os.getpid())
+        subprocess.run(["callgrind_control", "-z", pid], check=True, capture_output=True)
+        time.sleep(0.2)  # callgrind polls its command file; a sleep costs no instructions
+        for _ in range(n):
+            fn()
+        subprocess.run(["callgrind_control", "-d", pid], check=True, capture_output=True)
+        time.sleep(0.2)
+
+    path = myo_sim_model_path("legs_osl")
+    compiled = mujoco.MjModel.from_xml_path(str(path))
+    bare = MuscleModelEnv(path, frame_skip=FRAME_SKIP, model=compiled)
+    wrapped = SpindleAfferents(MuscleModelEnv(path, frame_skip=FRAME_SKIP, model=compiled),
+                               backend=backend, lag_physics_step=lag)
+    rng = np.random.default_rng(0)
+    low, high = bare.action_space.low, bare.action_space.high
+    actions = [rng.uniform(low, high).astype(np.float32) for _ in range(steps + 5)]
+    bare.reset(seed=0)
+    wrapped.reset(seed=0)
+    for a in actions[:5]:  # past the first steps' one-off work (buffers, caches)
+        bare.step(a)
+        wrapped.step(a)
+    region(lambda: None, 1)
+    for env in (bare, wrapped):
+        todo = iter(actions[5:])
+        region(lambda env=env, todo=todo: env.step(next(todo)), steps)
+    region(lambda: wrapped.tap.state_now(), steps)
+
+
+def instructions(steps: int, backend: str, lag: bool) -> None:
+    """Instructions per env step (valgrind's callgrind: exact and the same on a loaded
+    machine) of the bare legs env and of ``SpindleAfferents`` on it, and their ratio."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "cg.out"
+        cmd = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", sys.executable,
+               str(Path(__file__).resolve()), "--instructions-child", "--steps", str(steps),
+               "--backends", backend, "--lag", str(int(lag))]
+        env = {**os.environ, "PYTHONHASHSEED": "0"}
+        subprocess.run(cmd, check=True, capture_output=True, env=env)
+        counts = []
+        for i in range(1, 5):
+            text = (Path(tmp) / f"cg.out.{i}").read_text()
+            counts.append(int(next(ln for ln in text.splitlines()
+                                   if ln.startswith("summary:")).split()[1]))
+    empty = counts[0]
+    bare, wrapped, kinematics = ((c - empty) / steps for c in counts[1:])
+    print(f"instructions per env step (callgrind, legs_osl single env, backend={backend}, "
+          f"lag_physics_step={lag}, {steps} steps): bare {bare / 1e6:.3f} M, wrapped "
+          f"{wrapped / 1e6:.3f} M, wrapper {(wrapped - bare) / 1e6:.3f} M (of it the "
+          f"end-of-step kinematics {kinematics / 1e6:.3f} M); wrapped / bare "
+          f"{wrapped / bare:.3f}")
+    print(f"bench_wrapper_instructions bare={bare:.0f} wrapped={wrapped:.0f} "
+          f"ratio={wrapped / bare:.3f}")
+
+
 def myosuite_child(env_ids: list[str], steps: int, repeats: int) -> None:
     """Runs inside MyoSuite's interpreter: each env bare and wrapped (numpy and C), side by
     side; prints one line per env."""
@@ -341,7 +413,19 @@ def main() -> None:
                         default=["myoElbowPose1D6MRandom-v0", "myoElbowPoseTaskRandom-v0",
                                  "myoLegStandRandom-v0"])
     parser.add_argument("--myosuite-child", nargs="+", help=argparse.SUPPRESS)
+    parser.add_argument("--instructions", action="store_true",
+                        help="only count instructions per env step of the bare and the "
+                             "wrapped legs env under valgrind (single env; C unless "
+                             "--backends says otherwise; --lag's last setting)")
+    parser.add_argument("--instructions-child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.instructions or args.instructions_child:
+        from spindle.chain import resolve_backend
+
+        backend = (args.backends or [resolve_backend("auto")])[0]
+        run = counted_regions if args.instructions_child else instructions
+        run(args.steps, backend, args.lag[-1])
+        return
     if args.myosuite_child:
         myosuite_child(args.myosuite_child, args.steps, args.repeats)
         return

@@ -448,13 +448,18 @@ class EnvTap:
         (:meth:`~proprio_env.wrappers.muscles.MuscleSet.tension_N`) that MuJoCo's
         ``mj_fwdActuation`` gives at that state (on a scratch ``MjData`` unless the env's
         data is current), in the same pass."""
+        t, *raw = self.raw_state_now()
+        return (t, *normalised(self.muscles, *raw))
+
+    def raw_state_now(self) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`state_now` before the normalisation: (time s, actuator lengths m,
+        velocities m/s, ``actuator_force``) of the muscles, fresh arrays (M,)."""
         if self.final is not None:
             return self.final[0]
         current = None if self.recorder is None else self.recorder.current()
         length, velocity, force = (self.kinematics.state_of_data(self.data)
                                    if current is None else current)
-        return (float(self.data.time), self.muscles.length_L0(length),
-                self.muscles.velocity_L0_s(velocity), self.muscles.tension_N(force))
+        return float(self.data.time), length, velocity, force
 
     def records(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The raw records since the last call (:meth:`FrameRecorder.take_all`); None without a
@@ -481,7 +486,7 @@ class EnvTap:
         records = self.records()
         kept = None if records is None else tuple(a.copy() for a in records)
         forces = None if self.record_forces is None else self.record_forces.copy()
-        self.final = (self.state_now(), kept, forces)
+        self.final = (self.raw_state_now(), kept, forces)
 
     def thaw(self) -> None:
         """Read the env again; the records of whatever stepped since :meth:`freeze` (the
@@ -502,10 +507,10 @@ def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list,
                    every_force: bool = True
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The raw records (:meth:`EnvTap.records`) and their forces
-    (:attr:`EnvTap.record_forces`) of ``rows`` as normalised arrays: times (F, r), lengths
-    L0, velocities L0/s and tendon forces N (F, r, M) (``every_force`` False: the last
-    record's only, (1, r, M)); None unless every row has the same number F >= 1. One stack
-    and one normalisation for all rows."""
+    (:attr:`EnvTap.record_forces`) of ``rows`` as arrays of the muscles' columns, still raw
+    (:func:`normalised` makes them L0, L0/s and N): times (F, r), lengths m, velocities m/s
+    and forces (F, r, M) (``every_force`` False: the last record's only, (1, r, M)); None
+    unless every row has the same number F >= 1. One stack for all rows."""
     chosen = [(*records[i], forces[i]) if records[i] is not None else None for i in rows]
     if not chosen or any(r is None or r[3] is None for r in chosen):
         return None
@@ -524,12 +529,28 @@ def gather_records(records: list, rows: np.ndarray, muscles: Any, forces: list,
         length, velocity, force = (np.array([r[k] if k < 3 or every_force else r[k][-1:]
                                              for r in chosen]).transpose(1, 0, 2)[..., cols]
                                    for k in (1, 2, 3))
-    return (t, muscles.length_L0(length), muscles.velocity_L0_s(velocity),
+    return t, length, velocity, force
+
+
+def normalised(muscles: Any, length_m: np.ndarray, velocity_m_s: np.ndarray,
+               force: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw actuator lengths (m), velocities (m/s) and forces (MuJoCo's sign), (..., M), as
+    normalised lengths (L0), velocities (L0/s) and tendon forces (N)."""
+    return (muscles.length_L0(length_m), muscles.velocity_L0_s(velocity_m_s),
             muscles.tension_N(force))
 
 
 def _stacked(states: list) -> tuple[np.ndarray, ...]:
     return tuple(np.array([x[k] for x in states]) for k in range(4))
+
+
+def _raw_ends(taps: list, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Each row's env state now, raw (:meth:`EnvTap.raw_state_now`): times (1, r), lengths,
+    velocities and forces (1, r, M), ready to follow the raw records."""
+    if rows.size == 1:  # one env: its arrays with two new axes, no stack
+        t, *raw = taps[rows[0]].raw_state_now()
+        return (np.array([[t]]), *(a[None, None] for a in raw))
+    return tuple(a[None] for a in _stacked([taps[i].raw_state_now() for i in rows]))
 
 
 def _step_end(taps: list, records: list, rows: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -546,6 +567,27 @@ def _step_end(taps: list, records: list, rows: np.ndarray) -> tuple[np.ndarray, 
             ends.append((float(r[0][-1]), m.length_L0(r[1][-1, m.ids]),
                          m.velocity_L0_s(r[2][-1, m.ids]), m.tension_N(f[-1, m.ids])))
     return _stacked(ends)
+
+
+def _records_follow(t_first: np.ndarray, t_last: np.ndarray, timestep_s: float
+                    ) -> tuple[int, bool]:
+    """(1 if each row's first record is its previous knot itself, else 0; whether it is that
+    knot or one physics step after it in every row), the rows' first record times and last
+    knot times (r,) compared within :data:`TIME_TOL_S` and a few units in the last place (a
+    clock far from 0, set forward by hand or after a long run, resolves its physics steps
+    only to those)."""
+    if t_last.size == 1 and math.isfinite(last := float(t_last[0])):
+        # one env: the same comparisons on Python floats (math.ulp is np.spacing for a
+        # finite non-negative float), not 8 numpy calls on one-element arrays (~40k of a
+        # legs env step's ~1.7M added instructions, callgrind)
+        first = float(t_first[0])
+        tol = TIME_TOL_S + 4 * math.ulp(abs(last))
+        drop = int(abs(first - last) <= tol)
+        return drop, bool(drop) or abs((first - last) - timestep_s) <= tol
+    first = t_first - t_last
+    tol = TIME_TOL_S + 4 * np.spacing(np.abs(t_last))
+    drop = int((np.abs(first) <= tol).all())
+    return drop, bool(drop) or bool((np.abs(first - timestep_s) <= tol).all())
 
 
 def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray,
@@ -575,30 +617,25 @@ def step_knots(taps: list, records: list, t_prev: np.ndarray, L_prev: np.ndarray
     from the previous knot to the step's end, sampled every physics step, and the forces on
     the straight line between the step's ends (a wrapper sees no force in between).
     """
-    rows = np.flatnonzero(moving)
+    rows = moving.nonzero()[0]  # (np.flatnonzero: three more Python calls; moving is 1-D)
     n, M = L_prev.shape
     F_prev = np.zeros((n, M)) if F_prev is None else F_prev
     lag, timestep_s = taps[0].lag_physics_step, taps[0].timestep_s
     stacked = gather_records(records, rows, taps[0].muscles,
                              [tap.record_forces for tap in taps], every_force)
     if stacked is not None:
-        t_rec, t_last = stacked[0], t_prev[rows]
-        first = t_rec[0] - t_last
-        # a clock far from 0 (set forward by hand, a long run) resolves its physics steps
-        # only to a few of its units in the last place
-        tol = TIME_TOL_S + 4 * np.spacing(np.abs(t_last))
-        drop = int((np.abs(first) <= tol).all())
-        follows = drop or bool((np.abs(first - timestep_s) <= tol).all())
+        t_rec = stacked[0]
+        drop, follows = _records_follow(t_rec[0], t_prev[rows], timestep_s)
         if follows and t_rec.shape[0] - drop + (not lag) >= 1:
             knots = [a[drop:] for a in stacked[:3]]
             forces = stacked[3][drop:] if every_force else stacked[3]
             if not lag:
-                ends = _step_end(taps, records, rows)
-                knots = [np.concatenate((a, e[None])) for a, e in zip(knots, ends[:3],
-                                                                       strict=True)]
-                forces = np.concatenate((forces, ends[3][None])) if every_force \
-                    else ends[3][None]
-            knots.append(forces)
+                # the state now after the records, both raw: one normalisation of the
+                # knots (two were 12 numpy calls of a legs env step)
+                ends = _raw_ends(taps, rows)
+                knots = [np.concatenate((a, e)) for a, e in zip(knots, ends[:3], strict=True)]
+                forces = np.concatenate((forces, ends[3])) if every_force else ends[3]
+            knots = [knots[0], *normalised(taps[0].muscles, *knots[1:], forces)]
             if rows.size == n:
                 return (*knots, "frames")
             K = knots[0].shape[0]
