@@ -125,7 +125,8 @@ typedef struct fw_counters {
 /* What the stages derive from an interval, kept while it repeats (the nominal one does). */
 typedef struct fw_interval {
     int32_t us;                   /* -1: none yet */
-    int32_t Q30, inv_Q12;         /* in s (Q30); 1 / interval (1/s, Q12: 0 for 0 us) */
+    int32_t Q30, inv_Q11;         /* in s (Q30); 1 / interval (1/s, Q11: 0 for 0 us; Q12
+                                   * overflowed int32 at 1 us, 4.096e9) */
     int32_t inv_us_Q30;           /* 1 / us (Q30; 0 for 0 us) */
     int32_t decay_Q30;            /* the tracking low-pass's e^(-omega dt) */
     int32_t angle_limit_Q16, length_limit_Q24; /* the slew limits over it */
@@ -403,7 +404,7 @@ static void interval_constants(fw_interval *out, int32_t dt_us)
 {
     out->us = dt_us;
     out->Q30 = us_to_Q30(dt_us);
-    out->inv_Q12 = dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)dt_us) : 0;
+    out->inv_Q11 = dt_us > 0 ? (int32_t)(2048000000u / (uint32_t)dt_us) : 0;
     out->inv_us_Q30 = dt_us > 0 ? (int32_t)((1u << 30) / (uint32_t)dt_us) : 0;
     if (dt_us < 64 * FW_DECAY_COARSE) {
         out->decay_Q30 = mul_q(fw_cfg.decay_coarse_Q30[dt_us >> 6],
@@ -604,7 +605,7 @@ static int stage_tracking(fw_ctx *c)
             c->v1_Q20[m] = st.v_Q20[m];
             continue;
         }
-        slope = mul_q(u1 - u0, dt->inv_Q12, 16);                     /* Q20 */
+        slope = mul_q(u1 - u0, dt->inv_Q11, 15);                     /* Q20 */
         offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);        /* Q24 */
         A = st.x_Q24[m] - u0 + offset;                               /* Q24 */
         B = st.v_Q20[m] - slope + mul_q(fw_cfg.omega_Q16, A, 20);    /* Q20 */
