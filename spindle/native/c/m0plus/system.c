@@ -129,7 +129,11 @@ typedef struct fw_interval {
                                    * overflowed int32 at 1 us, 4.096e9) */
     int32_t inv_us_Q30;           /* 1 / us (Q30; 0 for 0 us) */
     int32_t decay_Q30;            /* the tracking low-pass's e^(-omega dt) */
-    int32_t angle_limit_Q16, length_limit_Q24; /* the slew limits over it */
+    /* the angle's slew limit over it, max_speed_deg_s dt in Q32 deg as its Q16 part (floor)
+     * and the 16 bits below: a limit rounded to Q16 was 66 units for 65.536 at 1 us (0.7%), so
+     * a slew over few-us intervals took fewer limited samples than the host's (slew_limited) */
+    int32_t angle_limit_Q16, angle_limit_frac;
+    int32_t length_limit_Q24;     /* the lengths' slew limit over it */
 } fw_interval;
 
 #define FW_SAMPLE_US 2000 /* the encoder's nominal period (500 Hz) */
@@ -148,6 +152,8 @@ typedef struct fw_state {
     uint32_t t_us;                /* last accepted time since the epoch */
     int32_t behind;
     int32_t angle_Q16;
+    int32_t angle_frac;           /* the angle's bits below Q16 (0..65535): the slew limit moves
+                                   * the angle by its Q32 value, the host's max_speed_deg_s dt */
     int32_t u_Q24[PS_MUSCLES], x_Q24[PS_MUSCLES], v_Q20[PS_MUSCLES];
     /* predictor: the last segments (t, p, u), oldest first from seg_first */
     uint32_t seg_t_us[FW_SEGMENTS];
@@ -245,20 +251,23 @@ static int32_t us_to_Q30(int32_t us)
     return (int32_t)(u * 1073u + ((u * 760u + 512u) >> 10));
 }
 
-/* exp(-y) in Q30 for 0 <= y (Q28) < 8: Taylor series of exp(-y/8) to z^8 (the first term
- * left out is below 2^-31 for z < 1), then three squarings. */
-static int32_t exp_neg_Q30(int32_t y_Q28)
+/* exp(-y) in Q30 for 0 <= y (Q26) < 32: Taylor series of exp(-y/32) to z^8 (the first term
+ * left out, z^9 / 9!, is below 2.8e-6 of it for z < 1), then five squarings: within 22 Q30
+ * units of exp at 20 Hz over 8.2-100 ms (three squarings from Q28 were within 20 up to y = 8,
+ * and overflowed beyond: a 64 ms interval at the default 20 Hz, which a max_bridge_s up to
+ * ChainConfig's 0.1 s bridges, decayed by a wrapped exponent). */
+static int32_t exp_neg_Q30(int32_t y_Q26)
 {
     static const int32_t inv_k_Q30[9] = {0, 1073741824, 536870912, 357913941, 268435456,
                                          214748365, 178956971, 153391689, 134217728};
-    int32_t z = y_Q28 >> 1; /* y / 8 in Q30 */
+    int32_t z = y_Q26 >> 1; /* y / 32 in Q30 */
     int32_t term = 1 << 30, sum = 1 << 30;
     int k;
     for (k = 1; k <= 8 && term != 0; ++k) { /* a term that rounds to 0 ends the series */
         term = -mul_q(mul_q(term, z, 30), inv_k_Q30[k], 30);
         sum += term;
     }
-    for (k = 0; k < 3; ++k) {
+    for (k = 0; k < 5; ++k) {
         sum = mul_q(sum, sum, 30);
     }
     return sum;
@@ -409,10 +418,18 @@ static void interval_constants(fw_interval *out, int32_t dt_us)
     if (dt_us < 64 * FW_DECAY_COARSE) {
         out->decay_Q30 = mul_q(fw_cfg.decay_coarse_Q30[dt_us >> 6],
                                fw_cfg.decay_fine_Q30[dt_us & 63], 30);
-    } else {
-        out->decay_Q30 = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, out->Q30, 18));
+    } else { /* omega dt in Q46; from 32 on exp(-omega dt) is below 2^-46: 0 in Q30 */
+        ps_fx_wide y = ps_fx_mul_wide(fw_cfg.omega_Q16, out->Q30);
+        out->decay_Q30 = y.hi >= (1 << 19) ? 0
+                         : exp_neg_Q30((int32_t)(((uint32_t)y.hi << 12) | (y.lo >> 20)));
     }
-    out->angle_limit_Q16 = mul_q(fw_cfg.max_speed_deg_Q32_us, dt_us, 16);
+    {
+        ps_fx_wide limit = ps_fx_mul_wide(fw_cfg.max_speed_deg_Q32_us, dt_us); /* Q32 deg */
+        const int far = limit.hi >= (1 << 14); /* 2^14 deg and more: no change reaches it */
+        out->angle_limit_Q16 = far ? (1 << 30) : (int32_t)(((uint32_t)limit.hi << 16)
+                                                           | (limit.lo >> 16));
+        out->angle_limit_frac = far ? 0 : (int32_t)(limit.lo & 0xFFFFu);
+    }
     out->length_limit_Q24 = mul_q(fw_cfg.max_speed_L0_Q40_us, dt_us, 16);
 }
 
@@ -543,22 +560,48 @@ static int stage_median(fw_ctx *c)
     return FW_NEXT;
 }
 
+/* The host's slew rule |angle - previous| > limit on the Q32 angles (the previous one has
+ * angle_frac below its Q16 part, the new one none), for a change of at least the limit's Q16
+ * part: 0, or 1 with *angle and *frac the previous one moved by the limit towards it. */
+static int slew_angle(const fw_interval *dt, int32_t change, int32_t *angle, int32_t *frac)
+{
+    const int32_t hi = dt->angle_limit_Q16, lo = dt->angle_limit_frac, below = st.angle_frac;
+    int32_t sum;
+    if (change > 0) { /* the change is change - below / 2^16 */
+        if (change - hi == 0 || (change - hi == 1 && 65536 - below <= lo)) {
+            return 0;
+        }
+        sum = below + lo;
+        *angle = st.angle_Q16 + hi + (sum >> 16);
+    } else { /* -change + below / 2^16 against the limit */
+        if (-change - hi == 0 && below <= lo) {
+            return 0;
+        }
+        sum = below - lo;
+        *angle = st.angle_Q16 - hi + (sum >> 16); /* sum >> 16: the borrow, -1 or 0 */
+    }
+    *frac = sum & 0xFFFF;
+    return 1;
+}
+
 /* f(x), the angle's slew limit and the clamp to the fitted range. */
 static int stage_angle(fw_ctx *c)
 {
     int32_t angle = mul_q(c->filtered * 65536 - fw_cfg.zero_Q16, fw_cfg.deg_per_count_Q30, 30);
+    int32_t frac = 0;
     if (!c->restart) {
-        int32_t limit = c->dt->angle_limit_Q16;
-        int32_t change = angle - st.angle_Q16;
-        if (change > limit || change < -limit) {
+        const int32_t limit = c->dt->angle_limit_Q16, change = angle - st.angle_Q16;
+        if ((change >= limit || change <= -limit) && slew_angle(c->dt, change, &angle, &frac)) {
             fw_count.slew_limited += 1;
-            angle = st.angle_Q16 + (change < 0 ? -limit : limit);
+            angle += angle == fw_cfg.angle_max_Q16 && frac != 0; /* above the range: clamped */
         }
     }
     if (angle < fw_cfg.angle_min_Q16 || angle > fw_cfg.angle_max_Q16) {
         fw_count.angle_clamped += 1;
         angle = clamp_i32(angle, fw_cfg.angle_min_Q16, fw_cfg.angle_max_Q16);
+        frac = 0;
     }
+    st.angle_frac = frac; /* no stage after the reading's rejects a sample */
     c->angle_Q16 = angle;
     return FW_NEXT;
 }
@@ -605,6 +648,8 @@ static int stage_tracking(fw_ctx *c)
             c->v1_Q20[m] = st.v_Q20[m];
             continue;
         }
+        /* |slope| <= max_speed_L0_s (<= 10 L0/s: the slew limit above), in Q20 at any
+         * interval of 1 us or more */
         slope = mul_q(u1 - u0, dt->inv_Q11, 15);                     /* Q20 */
         offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);        /* Q24 */
         A = st.x_Q24[m] - u0 + offset;                               /* Q24 */
