@@ -264,3 +264,20 @@ def test_a_bridge_longer_than_64_ms_matches_the_host(tmp_path):
     for got, ref in ((c.run.ia_pps, host["ia_pps"]), (c.run.ii_pps, host["ii_pps"])):
         assert np.all(got.max(axis=0) <= 1.25 * ref.max(axis=0) + 1.0), (got.max(axis=0),
                                                                          ref.max(axis=0))
+
+
+def test_a_length_slew_over_microseconds_counts_as_the_host(tmp_path):
+    # with a faster angle limit (1e4 deg/s) the lengths' own limit (8 L0/s; the fits' steepest
+    # 0.0049 L0/deg moves them at up to 49 L0/s) acts: 3-5 counts over 1-3 us samples slew the
+    # lengths over hundreds of them. Before the fix the lengths' limit rounded to Q24 (134
+    # units for 134.2 at 1 us) counted 1522 limited samples for the host's 1520.
+    config = device_config(max_speed_deg_s=1e4)
+    fw = sysfw.SystemFirmware(sysfw.build_system(tmp_path, config))
+    pieces = [(40, 0.002, 0)]
+    for interval_s, step, n in ((1e-6, 5, 1000), (1e-6, -3, 700), (3e-6, 5, 400)):
+        pieces += [(n, interval_s, step), (60, 0.002, 0)]
+    samples, _ = _stream(pieces)
+    c = sysfw.compare(fw, samples, config)
+    assert c.counters_equal, (c.run.counters, c.host_counters)
+    assert c.run.counters["slew_limited"] > 1000  # measured 1520
+    assert c.worst_rms_pps <= RMS_LIMIT_PPS, c.rms_pps  # measured 0.50 (BRA Ia)

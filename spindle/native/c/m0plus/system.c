@@ -129,11 +129,12 @@ typedef struct fw_interval {
                                    * overflowed int32 at 1 us, 4.096e9) */
     int32_t inv_us_Q30;           /* 1 / us (Q30; 0 for 0 us) */
     int32_t decay_Q30;            /* the tracking low-pass's e^(-omega dt) */
-    /* the angle's slew limit over it, max_speed_deg_s dt in Q32 deg as its Q16 part (floor)
-     * and the 16 bits below: a limit rounded to Q16 was 66 units for 65.536 at 1 us (0.7%), so
-     * a slew over few-us intervals took fewer limited samples than the host's (slew_limited) */
+    /* the slew limits over it, max_speed_deg_s dt in Q32 deg and max_speed_L0_s dt in Q40 L0,
+     * each as its Q16 (Q24) part, floored, and the 16 bits below: rounded to Q16 the angle's
+     * was 66 units for 65.536 at 1 us (0.7%; the lengths' 134 for 134.2), so a slew over
+     * few-us intervals took another number of limited samples than the host's */
     int32_t angle_limit_Q16, angle_limit_frac;
-    int32_t length_limit_Q24;     /* the lengths' slew limit over it */
+    int32_t length_limit_Q24, length_limit_frac;
 } fw_interval;
 
 #define FW_SAMPLE_US 2000 /* the encoder's nominal period (500 Hz) */
@@ -152,8 +153,6 @@ typedef struct fw_state {
     uint32_t t_us;                /* last accepted time since the epoch */
     int32_t behind;
     int32_t angle_Q16;
-    int32_t angle_frac;           /* the angle's bits below Q16 (0..65535): the slew limit moves
-                                   * the angle by its Q32 value, the host's max_speed_deg_s dt */
     int32_t u_Q24[PS_MUSCLES], x_Q24[PS_MUSCLES], v_Q20[PS_MUSCLES];
     /* predictor: the last segments (t, p, u), oldest first from seg_first */
     uint32_t seg_t_us[FW_SEGMENTS];
@@ -179,6 +178,13 @@ typedef struct fw_state {
     int32_t held_Q16[PS_STIM_MAX_CHANNELS]; /* each channel's rate since the last sample */
 #endif
     int32_t started;
+    /* the bits below angle_Q16 and u_Q24 (0..65535) of an angle or lengths the slew limit set
+     * (it moves them by the host's max_speed dt, the interval's limits in 16 more bits), and
+     * the fw_count.accepted of that sample: they hold for the next sample only, so a sample
+     * within the limits stores nothing (zeroing them cost ~20 instructions a sample); last:
+     * the fields before them keep their short offsets */
+    int32_t angle_frac, u_frac[PS_MUSCLES];
+    uint32_t angle_tag, u_tag;
 } fw_state;
 
 /* One sample as the interrupt gets it. */
@@ -430,7 +436,11 @@ static void interval_constants(fw_interval *out, int32_t dt_us)
                                                            | (limit.lo >> 16));
         out->angle_limit_frac = far ? 0 : (int32_t)(limit.lo & 0xFFFFu);
     }
-    out->length_limit_Q24 = mul_q(fw_cfg.max_speed_L0_Q40_us, dt_us, 16);
+    {
+        ps_fx_wide limit = ps_fx_mul_wide(fw_cfg.max_speed_L0_Q40_us, dt_us); /* Q40 L0 */
+        out->length_limit_Q24 = (int32_t)(((uint32_t)limit.hi << 16) | (limit.lo >> 16));
+        out->length_limit_frac = (int32_t)(limit.lo & 0xFFFFu);
+    }
 }
 
 /* round(since 10^6 / 2^32) for 0 <= since < FW_EPOCH_S 2^32 (Q32 s to us; FW_EPOCH_S below
@@ -560,48 +570,61 @@ static int stage_median(fw_ctx *c)
     return FW_NEXT;
 }
 
-/* The host's slew rule |angle - previous| > limit on the Q32 angles (the previous one has
- * angle_frac below its Q16 part, the new one none), for a change of at least the limit's Q16
- * part: 0, or 1 with *angle and *frac the previous one moved by the limit towards it. */
-static int slew_angle(const fw_interval *dt, int32_t change, int32_t *angle, int32_t *frac)
+/* The host's slew rule |x - previous| > limit on values with 16 more bits (the previous
+ * value has `below` in them, 0..65535; x, a new reading's, none; the limit is hi and lo in
+ * them), for change = x - previous in their last place: 0 (x stands), or 1 with *moved and
+ * *frac the previous value moved by the limit towards x. */
+__attribute__((noinline)) static int slew_limit(int32_t previous, int32_t below,
+                                                int32_t change, int32_t hi, int32_t lo,
+                                                int32_t *moved, int32_t *frac)
 {
-    const int32_t hi = dt->angle_limit_Q16, lo = dt->angle_limit_frac, below = st.angle_frac;
     int32_t sum;
     if (change > 0) { /* the change is change - below / 2^16 */
-        if (change - hi == 0 || (change - hi == 1 && 65536 - below <= lo)) {
+        if (change - hi <= 0 || (change - hi == 1 && 65536 - below <= lo)) {
             return 0;
         }
         sum = below + lo;
-        *angle = st.angle_Q16 + hi + (sum >> 16);
+        *moved = previous + hi + (sum >> 16);
     } else { /* -change + below / 2^16 against the limit */
-        if (-change - hi == 0 && below <= lo) {
+        if (-change - hi < 0 || (-change - hi == 0 && below <= lo)) {
             return 0;
         }
         sum = below - lo;
-        *angle = st.angle_Q16 - hi + (sum >> 16); /* sum >> 16: the borrow, -1 or 0 */
+        *moved = previous - hi + (sum >> 16); /* sum >> 16: the borrow, -1 or 0 */
     }
     *frac = sum & 0xFFFF;
     return 1;
+}
+
+/* The bits below a value the previous accepted sample's slew limit set (0 if it set none). */
+static int32_t slewed_below(uint32_t tag, int32_t frac)
+{
+    return tag + 1u == fw_count.accepted ? frac : 0;
 }
 
 /* f(x), the angle's slew limit and the clamp to the fitted range. */
 static int stage_angle(fw_ctx *c)
 {
     int32_t angle = mul_q(c->filtered * 65536 - fw_cfg.zero_Q16, fw_cfg.deg_per_count_Q30, 30);
-    int32_t frac = 0;
-    if (!c->restart) {
+    if (c->restart) {
+        st.angle_frac = 0;
+    } else {
         const int32_t limit = c->dt->angle_limit_Q16, change = angle - st.angle_Q16;
-        if ((change >= limit || change <= -limit) && slew_angle(c->dt, change, &angle, &frac)) {
+        int32_t moved, frac; /* not angle's address: it stays in a register */
+        if ((change >= limit || change <= -limit)
+            && slew_limit(st.angle_Q16, slewed_below(st.angle_tag, st.angle_frac), change,
+                          limit, c->dt->angle_limit_frac, &moved, &frac)) {
             fw_count.slew_limited += 1;
-            angle += angle == fw_cfg.angle_max_Q16 && frac != 0; /* above the range: clamped */
+            st.angle_frac = frac; /* no stage after the reading's rejects a sample */
+            st.angle_tag = fw_count.accepted;
+            angle = moved + (moved == fw_cfg.angle_max_Q16 && frac != 0); /* above: clamped */
         }
     }
     if (angle < fw_cfg.angle_min_Q16 || angle > fw_cfg.angle_max_Q16) {
         fw_count.angle_clamped += 1;
         angle = clamp_i32(angle, fw_cfg.angle_min_Q16, fw_cfg.angle_max_Q16);
-        frac = 0;
+        st.angle_frac = 0;
     }
-    st.angle_frac = frac; /* no stage after the reading's rejects a sample */
     c->angle_Q16 = angle;
     return FW_NEXT;
 }
@@ -622,6 +645,26 @@ static int stage_lengths(fw_ctx *c)
     return FW_NEXT;
 }
 
+/* The lengths' slew rule (the host's: a sample is limited if a muscle's length moved more
+ * than the limit since the last one; each such length moves by the limit, the others stand),
+ * on the Q40 lengths (u_frac below st.u_Q24). */
+__attribute__((noinline)) static void slew_lengths(fw_ctx *c)
+{
+    int32_t moved[PS_MUSCLES], frac[PS_MUSCLES], hit[PS_MUSCLES], m;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        hit[m] = slew_limit(st.u_Q24[m], slewed_below(st.u_tag, st.u_frac[m]),
+                            c->L_Q24[m] - st.u_Q24[m],
+                            c->dt->length_limit_Q24, c->dt->length_limit_frac, &moved[m],
+                            &frac[m]);
+    }
+    fw_count.slew_limited += (uint32_t)(hit[0] | hit[1]);
+    st.u_tag = fw_count.accepted;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        c->L_Q24[m] = hit[m] ? moved[m] : c->L_Q24[m];
+        st.u_frac[m] = hit[m] ? frac[m] : 0;
+    }
+}
+
 /* The lengths' slew limit and the tracking low-pass (conditioning.tracking_step's closed
  * form: the input linear over the interval). */
 static int stage_tracking(fw_ctx *c)
@@ -629,17 +672,15 @@ static int stage_tracking(fw_ctx *c)
     const fw_interval *dt = c->dt;
     int32_t limit = dt->length_limit_Q24, m, limited = 0;
     if (c->restart) {
+        st.u_frac[0] = st.u_frac[1] = 0;
         return FW_NEXT;
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
         int32_t change = c->L_Q24[m] - st.u_Q24[m];
-        limited |= change > limit || change < -limit;
+        limited |= change >= limit || change <= -limit;
     }
     if (limited) {
-        fw_count.slew_limited += 1;
-        for (m = 0; m < PS_MUSCLES; ++m) {
-            c->L_Q24[m] = st.u_Q24[m] + clamp_i32(c->L_Q24[m] - st.u_Q24[m], -limit, limit);
-        }
+        slew_lengths(c);
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
         int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m], slope, offset, A, B, AB;
