@@ -125,10 +125,16 @@ typedef struct fw_counters {
 /* What the stages derive from an interval, kept while it repeats (the nominal one does). */
 typedef struct fw_interval {
     int32_t us;                   /* -1: none yet */
-    int32_t Q30, inv_Q12;         /* in s (Q30); 1 / interval (1/s, Q12: 0 for 0 us) */
+    int32_t Q30, inv_Q11;         /* in s (Q30); 1 / interval (1/s, Q11: 0 for 0 us; Q12
+                                   * overflowed int32 at 1 us, 4.096e9) */
     int32_t inv_us_Q30;           /* 1 / us (Q30; 0 for 0 us) */
     int32_t decay_Q30;            /* the tracking low-pass's e^(-omega dt) */
-    int32_t angle_limit_Q16, length_limit_Q24; /* the slew limits over it */
+    /* the slew limits over it, max_speed_deg_s dt in Q32 deg and max_speed_L0_s dt in Q40 L0,
+     * each as its Q16 (Q24) part, floored, and the 16 bits below: rounded to Q16 the angle's
+     * was 66 units for 65.536 at 1 us (0.7%; the lengths' 134 for 134.2), so a slew over
+     * few-us intervals took another number of limited samples than the host's */
+    int32_t angle_limit_Q16, angle_limit_frac;
+    int32_t length_limit_Q24, length_limit_frac;
 } fw_interval;
 
 #define FW_SAMPLE_US 2000 /* the encoder's nominal period (500 Hz) */
@@ -172,6 +178,13 @@ typedef struct fw_state {
     int32_t held_Q16[PS_STIM_MAX_CHANNELS]; /* each channel's rate since the last sample */
 #endif
     int32_t started;
+    /* the bits below angle_Q16 and u_Q24 (0..65535) of an angle or lengths the slew limit set
+     * (it moves them by the host's max_speed dt, the interval's limits in 16 more bits), and
+     * the fw_count.accepted of that sample: they hold for the next sample only, so a sample
+     * within the limits stores nothing (zeroing them cost ~20 instructions a sample); last:
+     * the fields before them keep their short offsets */
+    int32_t angle_frac, u_frac[PS_MUSCLES];
+    uint32_t angle_tag, u_tag;
 } fw_state;
 
 /* One sample as the interrupt gets it. */
@@ -244,20 +257,23 @@ static int32_t us_to_Q30(int32_t us)
     return (int32_t)(u * 1073u + ((u * 760u + 512u) >> 10));
 }
 
-/* exp(-y) in Q30 for 0 <= y (Q28) < 8: Taylor series of exp(-y/8) to z^8 (the first term
- * left out is below 2^-31 for z < 1), then three squarings. */
-static int32_t exp_neg_Q30(int32_t y_Q28)
+/* exp(-y) in Q30 for 0 <= y (Q26) < 32: Taylor series of exp(-y/32) to z^8 (the first term
+ * left out, z^9 / 9!, is below 2.8e-6 of it for z < 1), then five squarings: within 22 Q30
+ * units of exp at 20 Hz over 8.2-100 ms (three squarings from Q28 were within 20 up to y = 8,
+ * and overflowed beyond: a 64 ms interval at the default 20 Hz, which a max_bridge_s up to
+ * ChainConfig's 0.1 s bridges, decayed by a wrapped exponent). */
+static int32_t exp_neg_Q30(int32_t y_Q26)
 {
     static const int32_t inv_k_Q30[9] = {0, 1073741824, 536870912, 357913941, 268435456,
                                          214748365, 178956971, 153391689, 134217728};
-    int32_t z = y_Q28 >> 1; /* y / 8 in Q30 */
+    int32_t z = y_Q26 >> 1; /* y / 32 in Q30 */
     int32_t term = 1 << 30, sum = 1 << 30;
     int k;
     for (k = 1; k <= 8 && term != 0; ++k) { /* a term that rounds to 0 ends the series */
         term = -mul_q(mul_q(term, z, 30), inv_k_Q30[k], 30);
         sum += term;
     }
-    for (k = 0; k < 3; ++k) {
+    for (k = 0; k < 5; ++k) {
         sum = mul_q(sum, sum, 30);
     }
     return sum;
@@ -403,16 +419,28 @@ static void interval_constants(fw_interval *out, int32_t dt_us)
 {
     out->us = dt_us;
     out->Q30 = us_to_Q30(dt_us);
-    out->inv_Q12 = dt_us > 0 ? (int32_t)(4096000000u / (uint32_t)dt_us) : 0;
+    out->inv_Q11 = dt_us > 0 ? (int32_t)(2048000000u / (uint32_t)dt_us) : 0;
     out->inv_us_Q30 = dt_us > 0 ? (int32_t)((1u << 30) / (uint32_t)dt_us) : 0;
     if (dt_us < 64 * FW_DECAY_COARSE) {
         out->decay_Q30 = mul_q(fw_cfg.decay_coarse_Q30[dt_us >> 6],
                                fw_cfg.decay_fine_Q30[dt_us & 63], 30);
-    } else {
-        out->decay_Q30 = exp_neg_Q30(mul_q(fw_cfg.omega_Q16, out->Q30, 18));
+    } else { /* omega dt in Q46; from 32 on exp(-omega dt) is below 2^-46: 0 in Q30 */
+        ps_fx_wide y = ps_fx_mul_wide(fw_cfg.omega_Q16, out->Q30);
+        out->decay_Q30 = y.hi >= (1 << 19) ? 0
+                         : exp_neg_Q30((int32_t)(((uint32_t)y.hi << 12) | (y.lo >> 20)));
     }
-    out->angle_limit_Q16 = mul_q(fw_cfg.max_speed_deg_Q32_us, dt_us, 16);
-    out->length_limit_Q24 = mul_q(fw_cfg.max_speed_L0_Q40_us, dt_us, 16);
+    {
+        ps_fx_wide limit = ps_fx_mul_wide(fw_cfg.max_speed_deg_Q32_us, dt_us); /* Q32 deg */
+        const int far = limit.hi >= (1 << 14); /* 2^14 deg and more: no change reaches it */
+        out->angle_limit_Q16 = far ? (1 << 30) : (int32_t)(((uint32_t)limit.hi << 16)
+                                                           | (limit.lo >> 16));
+        out->angle_limit_frac = far ? 0 : (int32_t)(limit.lo & 0xFFFFu);
+    }
+    {
+        ps_fx_wide limit = ps_fx_mul_wide(fw_cfg.max_speed_L0_Q40_us, dt_us); /* Q40 L0 */
+        out->length_limit_Q24 = (int32_t)(((uint32_t)limit.hi << 16) | (limit.lo >> 16));
+        out->length_limit_frac = (int32_t)(limit.lo & 0xFFFFu);
+    }
 }
 
 /* round(since 10^6 / 2^32) for 0 <= since < FW_EPOCH_S 2^32 (Q32 s to us; FW_EPOCH_S below
@@ -542,21 +570,60 @@ static int stage_median(fw_ctx *c)
     return FW_NEXT;
 }
 
+/* The host's slew rule |x - previous| > limit on values with 16 more bits (the previous
+ * value has `below` in them, 0..65535; x, a new reading's, none; the limit is hi and lo in
+ * them), for change = x - previous in their last place: 0 (x stands), or 1 with *moved and
+ * *frac the previous value moved by the limit towards x. */
+__attribute__((noinline)) static int slew_limit(int32_t previous, int32_t below,
+                                                int32_t change, int32_t hi, int32_t lo,
+                                                int32_t *moved, int32_t *frac)
+{
+    int32_t sum;
+    if (change > 0) { /* the change is change - below / 2^16 */
+        if (change - hi <= 0 || (change - hi == 1 && 65536 - below <= lo)) {
+            return 0;
+        }
+        sum = below + lo;
+        *moved = previous + hi + (sum >> 16);
+    } else { /* -change + below / 2^16 against the limit */
+        if (-change - hi < 0 || (-change - hi == 0 && below <= lo)) {
+            return 0;
+        }
+        sum = below - lo;
+        *moved = previous - hi + (sum >> 16); /* sum >> 16: the borrow, -1 or 0 */
+    }
+    *frac = sum & 0xFFFF;
+    return 1;
+}
+
+/* The bits below a value the previous accepted sample's slew limit set (0 if it set none). */
+static int32_t slewed_below(uint32_t tag, int32_t frac)
+{
+    return tag + 1u == fw_count.accepted ? frac : 0;
+}
+
 /* f(x), the angle's slew limit and the clamp to the fitted range. */
 static int stage_angle(fw_ctx *c)
 {
     int32_t angle = mul_q(c->filtered * 65536 - fw_cfg.zero_Q16, fw_cfg.deg_per_count_Q30, 30);
-    if (!c->restart) {
-        int32_t limit = c->dt->angle_limit_Q16;
-        int32_t change = angle - st.angle_Q16;
-        if (change > limit || change < -limit) {
+    if (c->restart) {
+        st.angle_frac = 0;
+    } else {
+        const int32_t limit = c->dt->angle_limit_Q16, change = angle - st.angle_Q16;
+        int32_t moved, frac; /* not angle's address: it stays in a register */
+        if ((change >= limit || change <= -limit)
+            && slew_limit(st.angle_Q16, slewed_below(st.angle_tag, st.angle_frac), change,
+                          limit, c->dt->angle_limit_frac, &moved, &frac)) {
             fw_count.slew_limited += 1;
-            angle = st.angle_Q16 + (change < 0 ? -limit : limit);
+            st.angle_frac = frac; /* no stage after the reading's rejects a sample */
+            st.angle_tag = fw_count.accepted;
+            angle = moved + (moved == fw_cfg.angle_max_Q16 && frac != 0); /* above: clamped */
         }
     }
     if (angle < fw_cfg.angle_min_Q16 || angle > fw_cfg.angle_max_Q16) {
         fw_count.angle_clamped += 1;
         angle = clamp_i32(angle, fw_cfg.angle_min_Q16, fw_cfg.angle_max_Q16);
+        st.angle_frac = 0;
     }
     c->angle_Q16 = angle;
     return FW_NEXT;
@@ -578,6 +645,26 @@ static int stage_lengths(fw_ctx *c)
     return FW_NEXT;
 }
 
+/* The lengths' slew rule (the host's: a sample is limited if a muscle's length moved more
+ * than the limit since the last one; each such length moves by the limit, the others stand),
+ * on the Q40 lengths (u_frac below st.u_Q24). */
+__attribute__((noinline)) static void slew_lengths(fw_ctx *c)
+{
+    int32_t moved[PS_MUSCLES], frac[PS_MUSCLES], hit[PS_MUSCLES], m;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        hit[m] = slew_limit(st.u_Q24[m], slewed_below(st.u_tag, st.u_frac[m]),
+                            c->L_Q24[m] - st.u_Q24[m],
+                            c->dt->length_limit_Q24, c->dt->length_limit_frac, &moved[m],
+                            &frac[m]);
+    }
+    fw_count.slew_limited += (uint32_t)(hit[0] | hit[1]);
+    st.u_tag = fw_count.accepted;
+    for (m = 0; m < PS_MUSCLES; ++m) {
+        c->L_Q24[m] = hit[m] ? moved[m] : c->L_Q24[m];
+        st.u_frac[m] = hit[m] ? frac[m] : 0;
+    }
+}
+
 /* The lengths' slew limit and the tracking low-pass (conditioning.tracking_step's closed
  * form: the input linear over the interval). */
 static int stage_tracking(fw_ctx *c)
@@ -585,17 +672,15 @@ static int stage_tracking(fw_ctx *c)
     const fw_interval *dt = c->dt;
     int32_t limit = dt->length_limit_Q24, m, limited = 0;
     if (c->restart) {
+        st.u_frac[0] = st.u_frac[1] = 0;
         return FW_NEXT;
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
         int32_t change = c->L_Q24[m] - st.u_Q24[m];
-        limited |= change > limit || change < -limit;
+        limited |= change >= limit || change <= -limit;
     }
     if (limited) {
-        fw_count.slew_limited += 1;
-        for (m = 0; m < PS_MUSCLES; ++m) {
-            c->L_Q24[m] = st.u_Q24[m] + clamp_i32(c->L_Q24[m] - st.u_Q24[m], -limit, limit);
-        }
+        slew_lengths(c);
     }
     for (m = 0; m < PS_MUSCLES; ++m) {
         int32_t u0 = st.u_Q24[m], u1 = c->L_Q24[m], slope, offset, A, B, AB;
@@ -604,7 +689,9 @@ static int stage_tracking(fw_ctx *c)
             c->v1_Q20[m] = st.v_Q20[m];
             continue;
         }
-        slope = mul_q(u1 - u0, dt->inv_Q12, 16);                     /* Q20 */
+        /* |slope| <= max_speed_L0_s (<= 10 L0/s: the slew limit above), in Q20 at any
+         * interval of 1 us or more */
+        slope = mul_q(u1 - u0, dt->inv_Q11, 15);                     /* Q20 */
         offset = mul_q(slope, fw_cfg.two_over_omega_Q32, 28);        /* Q24 */
         A = st.x_Q24[m] - u0 + offset;                               /* Q24 */
         B = st.v_Q20[m] - slope + mul_q(fw_cfg.omega_Q16, A, 20);    /* Q20 */
