@@ -986,8 +986,9 @@ class CArmChainBatch:
         x = _batch_real(name, signal, (n, k, *sample_shape))
         t_buf, x_buf, w_buf, c_buf, t_p, x_p, w_p, c_p = self._push_buffers(name, k,
                                                                             sample_shape)
-        np.copyto(t_buf, t)
-        np.copyto(x_buf, x, casting="unsafe")  # the float build rounds to float
+        # assignments, not np.copyto (half the instructions); the float build rounds
+        t_buf[...] = t
+        x_buf[...] = x
         counts_p = None
         if n_samples is not None:
             given = np.asarray(n_samples)
@@ -999,11 +1000,11 @@ class CArmChainBatch:
                 i = int(np.argmax(bad))
                 raise ValueError(f"n_samples[{i}]={int(given[i])} must lie in 0..{k} (k samples "
                                  "per arm in this block)")
-            np.copyto(c_buf, given, casting="unsafe")  # checked: integers in 0..k
+            c_buf[...] = given  # checked: integers in 0..k
             counts_p = c_p
         if name == "counts":
             if load is not None:
-                np.copyto(w_buf, _batch_real("load", load, (n, k)), casting="unsafe")
+                w_buf[...] = _batch_real("load", load, (n, k))
             status = self._lib.ps_chain_batch_push_counts_load_block(
                 self._addr[0], n, k, counts_p, t_p, x_p, None if load is None else w_p,
                 self._addr[1], self._addr[2], *self._failed_p)
