@@ -697,6 +697,10 @@ def _sample_columns(variant: str) -> tuple[int, int] | None:
     return ctypes.sizeof(cls) // 8, start // 8
 
 
+_VIEWED_FIELDS = ("t_s", *SCALARS, *PER_MUSCLE)
+assert len(SCALARS) == 4  # _batch_sample's columns
+
+
 def _batch_sample(table: np.ndarray, rows: np.ndarray | None, accepted: np.ndarray):
     """A ``BatchSample`` (float copies) of ``ps_arm_sample`` rows: ``rows``, the rows read as
     doubles (see :func:`_sample_columns`), or else the structured ``table``."""
@@ -704,13 +708,15 @@ def _batch_sample(table: np.ndarray, rows: np.ndarray | None, accepted: np.ndarr
         values = {name: table[name].astype(float) for name in SAMPLE_FIELDS}
     else:
         # One copy of the rows, every field a view of it: a structured field costs ~1.5 us to
-        # read, 13 of them most of a small batch's call.
+        # read, 13 of them most of a small batch's call. The views are taken along the first
+        # axis of transposes (the same arrays as block[:, j], ~9k fewer instructions a call).
         block = rows.copy()
         c = rows.shape[1] - 2 * len(PER_MUSCLE) - len(SCALARS)
-        per_muscle = block[:, c + len(SCALARS):].reshape(-1, len(PER_MUSCLE), 2)
-        values = {"t_s": block[:, 0],
-                  **{name: block[:, c + j] for j, name in enumerate(SCALARS)},
-                  **{name: per_muscle[:, j] for j, name in enumerate(PER_MUSCLE)}}
+        column = block.T
+        per_muscle = block[:, c + len(SCALARS):].reshape(-1, len(PER_MUSCLE), 2).transpose(
+            1, 0, 2)
+        values = dict(zip(_VIEWED_FIELDS, (column[0], column[c], column[c + 1], column[c + 2],
+                                           column[c + 3], *per_muscle), strict=True))
     values["accepted"] = accepted
     out = object.__new__(BatchSample)
     # what the frozen dataclass's __init__ does, without a per-field object.__setattr__
@@ -993,10 +999,13 @@ class CArmChainBatch:
         if n_samples is not None:
             given = np.asarray(n_samples)
             _check_shape("n_samples", given, (n,))
-            if given.dtype == np.bool_ or not np.issubdtype(given.dtype, np.integer):
+            if given.dtype.kind not in "iu":  # bools are kind "b"
                 raise ValueError(f"n_samples has dtype {given.dtype}, expected integers")
-            bad = (given < 0) | (given > k)
-            if bad.any():
+            # the range in Python ints: 5k instructions, where the array comparisons and
+            # .any() took 24k (an encoder env pushes n_samples at every step)
+            values = given.tolist()
+            if min(values) < 0 or max(values) > k:
+                bad = (given < 0) | (given > k)
                 i = int(np.argmax(bad))
                 raise ValueError(f"n_samples[{i}]={int(given[i])} must lie in 0..{k} (k samples "
                                  "per arm in this block)")
