@@ -330,6 +330,7 @@ class EnvCore:
         self.target_deg = np.full(n, 0.5 * sum(self.joint_range_deg))
         self._target_rad = np.radians(self.target_deg)
         self.sample = None  # the chains' latest output, after the first reset
+        self._angle_deg = None  # (n, frames) elbow angles of the last step (deg)
         self.tendon_organs = None
         if self.include_ib:
             self.drive.prepare_forces(model_file)
