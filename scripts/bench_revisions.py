@@ -20,7 +20,8 @@ the repeats and the ratio is new / old (above 1: this tree is faster). Measured:
   sampling): deterministic, the witness when the machine is loaded. The ratio is old / new
   instructions (above 1: this tree does less work).
 
-The last line is ``ratios <label>=<new/old> ...`` for every measurement.
+The last line is ``ratios <label>=<ratio> ...`` for every measurement: new / old rates and
+old / new instructions, so above 1 this tree is the better one in each.
 """
 
 from __future__ import annotations
