@@ -51,18 +51,17 @@ class ElbowProprioEnv(CoreSettings, gym.Env):
             self._np_random, self._np_random_seed = saved
             raise
         self._ready = True
-        zero = np.zeros(1)
-        return self.core.observations()[0], self._info(np.zeros(1, np.int64), zero, zero)
+        return self.core.observations()[0], self._info(np.zeros(1, np.int64), 0.0, 0.0)
 
     def step(self, action):
         if not self._ready:
             raise RuntimeError("call reset() before step()")
         core = self.core
-        distance, control, pushed = core.step(
-            core.check_actions(action, self._action_shape)[None, :])
+        actions = core.check_actions(action, self._action_shape)[None, :]
+        pushed = core.step(actions)
+        distance, control = core.rewards(actions, env=0)
         obs = core.observations()[0]
-        return obs, float(distance[0] + control[0]), False, False, self._info(pushed, distance,
-                                                                               control)
+        return obs, distance + control, False, False, self._info(pushed, distance, control)
 
     def render(self):
         return self.core.render(0)
@@ -87,6 +86,5 @@ class ElbowProprioEnv(CoreSettings, gym.Env):
         """This episode's target elbow flexion (deg)."""
         return float(self.core.target_deg[0])
 
-    def _info(self, pushed: np.ndarray, distance: np.ndarray, control: np.ndarray
-              ) -> dict[str, Any]:
+    def _info(self, pushed: np.ndarray, distance: float, control: float) -> dict[str, Any]:
         return self.core.info(pushed, distance, control, env=0)

@@ -46,8 +46,8 @@ class ServoDrive(Drive):
         super().rest_controls(ctrl, angle_deg)
         ctrl[self._servo_id] = np.radians(angle_deg)
 
-    def info(self, ctrl: np.ndarray) -> dict[str, np.ndarray]:
-        return {"command_deg": np.degrees(ctrl[:, self._servo_id])}
+    def info(self, ctrl: np.ndarray, degrees: Any = np.degrees) -> dict[str, Any]:
+        return {"command_deg": degrees(ctrl[..., self._servo_id])}
 
     def prepare_forces(self, model_file: Path) -> None:
         """The moment-arm table of the model: the bundled ``models/moment_arm_fits.json``

@@ -135,7 +135,8 @@ class ElbowProprioVectorEnv(CoreSettings, VectorEnv):
         actions = core.check_actions(actions, (n, *self.single_action_space.shape))
         resetting = self._autoreset
         active = ~resetting if resetting.any() else None
-        distance, control, pushed = core.step(actions, active)
+        pushed = core.step(actions, active)
+        distance, control = core.rewards(actions)
         self.episode_steps += 1
         if active is not None:
             envs = np.flatnonzero(resetting)
