@@ -272,3 +272,29 @@ def test_the_smallest_force_scale_keeps_the_largest_force_finite(backend):
         CAT.replace(force_scale_N=g / 2)
     with pytest.raises(ValueError, match="MIN_FORCE_SCALE_N"):
         force_scales_N(CAT, 1e-9)
+
+
+def test_the_fixed_point_step_refuses_values_its_int32_formats_would_wrap():
+    """1/G2 in Q24 and the forces in Q8 go to C as int32: a G2 whose 1/G2 is 2^32 + 1000 in
+    Q24 wrapped silently to 1000 (the rates of G2 = 16,777 N), a force of 1e10 N to a valid
+    Q8 word. Each is refused now, naming the value and the limit; at the limit it runs."""
+    force = np.full(50, 10.0)
+    wrapped = cgto.FX_INV_SCALE / (2**32 + 1000)
+    with pytest.raises(ValueError, match="FX_MIN_FORCE_SCALE_N"):
+        cgto.fixed_rates(force, 1e-3, wrapped, CAT)
+    for bad in (1e10, np.nan, np.inf, 2 * MAX_FORCE_N):
+        f = force.copy()
+        f[7] = bad
+        with pytest.raises(ValueError, match=r"MAX_FORCE_N.*\(sample 7\)"):
+            cgto.fixed_rates(f, 1e-3, 4.0, CAT)
+    # a slack tendon however negative: the rates of a force of 0 there
+    f = force.copy()
+    f[7] = -1e10
+    zero = force.copy()
+    zero[7] = 0.0
+    np.testing.assert_array_equal(cgto.fixed_rates(f, 1e-3, 4.0, CAT),
+                                  cgto.fixed_rates(zero, 1e-3, 4.0, CAT))
+    # just above the limit G2 runs, and its static rate is the closed form's (Q16 rates)
+    g = cgto.FX_MIN_FORCE_SCALE_N * 1.001
+    ib = cgto.fixed_rates(np.full(2000, 1.0), 1e-3, g, CAT)
+    assert ib[-1] == pytest.approx(float(static_rate_pps(CAT, 1.0, g)), rel=2e-3)

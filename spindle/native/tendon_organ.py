@@ -29,6 +29,31 @@ FX_RATE = 1 << 16
 """``PS_GTO_FX_RATE_ONE``: 1 pps in Q16."""
 FX_INV_SCALE = 1 << 24
 """``PS_GTO_FX_INV_SCALE_ONE``: 1 / N in Q24."""
+INT32_MAX = 2**31 - 1
+FX_MIN_FORCE_SCALE_N = FX_INV_SCALE / INT32_MAX
+"""Smallest G2 the fixed-point step takes (~0.0078 N): 1/G2 in Q24 must fit an int32. Below
+it ctypes wrapped the value silently (G2 = 0.0039 N gave the rates of G2 = 16,777 N)."""
+
+
+def fixed_inv_scale(force_scale_N: float) -> int:
+    """1 / G2 in Q24 for the fixed-point step, or ValueError naming G2 and the limit."""
+    g = float(check_force_scales(force_scale_N))
+    if g < FX_MIN_FORCE_SCALE_N:
+        raise ValueError(f"force_scale_N={force_scale_N!r} is below the fixed-point step's "
+                         f"FX_MIN_FORCE_SCALE_N={FX_MIN_FORCE_SCALE_N:.6g} N (1/G2 in Q24 "
+                         "must fit an int32)")
+    return round(FX_INV_SCALE / g)
+
+
+def fixed_forces(force_N: object) -> np.ndarray:
+    """Forces (N) in Q8 for the fixed-point step: finite and at most MAX_FORCE_N, else
+    ValueError naming the first bad one; a negative force is a slack tendon, 0."""
+    f = np.asarray(force_N, dtype=np.float64)
+    bad = ~(np.isfinite(f) & (f <= MAX_FORCE_N))
+    if np.any(bad):
+        raise ValueError(f"force_N={f[bad][0]!r} must be finite and at most MAX_FORCE_N="
+                         f"{MAX_FORCE_N} N (sample {int(np.flatnonzero(bad.ravel())[0])})")
+    return np.round(np.maximum(f, 0.0) * FX_FORCE).astype(np.int64)
 
 
 class PsGtoParams(ctypes.Structure):
@@ -246,8 +271,8 @@ def fixed_rates(force_N: np.ndarray, dt_s: float, force_scale_N: float,
     """Ib (pps) of the fixed-point step along one force trace ((T,), N), from rest at the
     first sample: forces rounded to Q8, 1/G2 to Q24, rates read from Q16."""
     lib, qf, s = library(), fixed_plan(params, dt_s), PsGtoFx()
-    q8 = np.round(np.asarray(force_N, dtype=np.float64) * FX_FORCE).astype(np.int64)
-    inv = round(FX_INV_SCALE / float(force_scale_N))
+    q8 = fixed_forces(force_N)
+    inv = fixed_inv_scale(force_scale_N)
     out = np.empty(q8.shape[0])
     code = lib.ps_gto_fx_init(ctypes.byref(s), ctypes.byref(qf), int(q8[0]), inv)
     if code != Status.PS_OK:

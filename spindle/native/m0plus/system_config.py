@@ -162,7 +162,7 @@ def gto_config(config: ChainConfig, moment_arms=None,
     step: ``gto_step_s`` + max_bridge_s, a grid point just missed and the longest bridged
     interval after it)."""
     from spindle.chain.force import load_moment_arm_fits
-    from spindle.native.tendon_organ import FX_FORCE, FX_INV_SCALE, fixed_plan
+    from spindle.native.tendon_organ import FX_FORCE, fixed_inv_scale, fixed_plan
 
     arms = moment_arms if moment_arms is not None else \
         load_moment_arm_fits(config.moment_arm_fits_path)
@@ -192,7 +192,7 @@ def gto_config(config: ChainConfig, moment_arms=None,
         "load_sign": int(config.calibration.sign),
         "arm_lo_Q16": _q(lo, 16), "arm_scale_Q28": _q((points - 1) / (hi - lo), 28),
         "arm_last": points - 1, "arm_shift": shift,
-        "inv_scale_Q24": [round(FX_INV_SCALE / float(g2)) for g2 in config.force_scale_N],
+        "inv_scale_Q24": [fixed_inv_scale(g2) for g2 in config.force_scale_N],
         "step_us": step_us,
         "plan_nominal": _struct_literal(nominal),
         "n_plans": n_plans,
