@@ -17,6 +17,8 @@ import re
 from functools import cache
 from pathlib import Path
 
+import numpy as np
+
 from spindle.native.build import HEADER, VARIANTS
 from spindle.params import SpindleParams
 
@@ -41,6 +43,22 @@ class Status(enum.IntEnum):
     PS_ERR_FORCE_RANGE = 14
     PS_ERR_BUFFER_FULL = 15
     PS_ERR_CHARGE = 16
+
+
+INT32_MAX = 2**31 - 1
+
+
+def checked_int32(values: object, name: str) -> np.ndarray:
+    """``values`` (already scaled to a fixed-point format and rounded) as int64, or ValueError
+    naming ``name``, the first value out of range and the limit: ctypes passes an int32
+    argument modulo 2^32 without a word, so a value beyond it became another, valid-looking
+    one (a length of 256.5 L0 in Q24 arrived as 0.5 L0)."""
+    v = np.asarray(values)
+    bad = ~(np.abs(v.astype(np.float64)) <= INT32_MAX)  # NaN fails too
+    if np.any(bad):
+        raise ValueError(f"{name}={v[bad].flat[0]!r} (in its fixed-point format) does not fit "
+                         f"an int32 (|value| <= {INT32_MAX})")
+    return v.astype(np.int64)
 
 
 def status_name(code: int) -> str:

@@ -54,11 +54,11 @@ def make_plan(lib: ctypes.CDLL, params: SpindleParams, step_s: float, theta: flo
 def to_q(L: np.ndarray, gd: np.ndarray,
          gs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lengths (L0) in Q24 and drives (pps) in Q8, rounded to nearest, as int64 arrays of
-    L's shape."""
+    L's shape; ValueError for a value beyond int32 (the C step's own checks see the rest)."""
     L = np.asarray(L, dtype=np.float64)
-    return (np.round(L * FX_Q24).astype(np.int64),
-            np.round(np.broadcast_to(gd, L.shape) * FX_DRIVE).astype(np.int64),
-            np.round(np.broadcast_to(gs, L.shape) * FX_DRIVE).astype(np.int64))
+    return (abi.checked_int32(np.round(L * FX_Q24), "L (Q24 L0)"),
+            abi.checked_int32(np.round(np.broadcast_to(gd, L.shape) * FX_DRIVE), "gd (Q8 pps)"),
+            abi.checked_int32(np.round(np.broadcast_to(gs, L.shape) * FX_DRIVE), "gs (Q8 pps)"))
 
 
 def fixed_rates(lib: ctypes.CDLL, plan: ctypes.Structure, L: np.ndarray, gd: np.ndarray,

@@ -232,8 +232,8 @@ def fixed_run(config: StimConfig, rates_q16: np.ndarray, dt_us: np.ndarray,
            "ps_stim_fx_config_init")
     s = PsStimFxState()
     _check(lib.ps_stim_fx_init(ctypes.byref(s), ctypes.byref(q), int(t0_us)), "ps_stim_fx_init")
-    rates = np.ascontiguousarray(rates_q16, dtype=np.int32)
-    dt = np.asarray(dt_us, dtype=np.int64)
+    rates = np.ascontiguousarray(abi.checked_int32(rates_q16, "rates_q16"), dtype=np.int32)
+    dt = abi.checked_int32(dt_us, "dt_us")
     per = 1.0 / config.params.dead_time_s if config.params.mode == "stochastic" else \
         config.limits.max_rate_pps
     room = int(np.floor(dt.max(initial=1) * 1e-6 * per) + 4) * config.n_channels

@@ -14,7 +14,7 @@ from functools import cache
 import numpy as np
 
 from spindle.native import build
-from spindle.native.abi import Status, status_name
+from spindle.native.abi import INT32_MAX, Status, checked_int32, status_name
 from spindle.tendon_organ_params import (
     HUMAN,
     MAX_FORCE_N,
@@ -29,7 +29,6 @@ FX_RATE = 1 << 16
 """``PS_GTO_FX_RATE_ONE``: 1 pps in Q16."""
 FX_INV_SCALE = 1 << 24
 """``PS_GTO_FX_INV_SCALE_ONE``: 1 / N in Q24."""
-INT32_MAX = 2**31 - 1
 FX_MIN_FORCE_SCALE_N = FX_INV_SCALE / INT32_MAX
 """Smallest G2 the fixed-point step takes (~0.0078 N): 1/G2 in Q24 must fit an int32. Below
 it ctypes wrapped the value silently (G2 = 0.0039 N gave the rates of G2 = 16,777 N)."""
@@ -53,7 +52,7 @@ def fixed_forces(force_N: object) -> np.ndarray:
     if np.any(bad):
         raise ValueError(f"force_N={f[bad][0]!r} must be finite and at most MAX_FORCE_N="
                          f"{MAX_FORCE_N} N (sample {int(np.flatnonzero(bad.ravel())[0])})")
-    return np.round(np.maximum(f, 0.0) * FX_FORCE).astype(np.int64)
+    return checked_int32(np.round(np.maximum(f, 0.0) * FX_FORCE), "force_N (Q8 N)")
 
 
 class PsGtoParams(ctypes.Structure):
