@@ -40,6 +40,8 @@ HERE = Path(__file__).resolve().parents[1]
 ENV_IDS = ("ElbowReach-v0", "ProsthesisElbow-v0")
 VECTOR_SIZE = 64
 
+# Self-contained rather than importing bench_env: it must run unchanged in the other
+# checkout, whose scripts (and private APIs) may differ from this tree's.
 SNIPPET = r"""
 import json, sys, time
 import numpy as np
